@@ -1,0 +1,173 @@
+"""Data that configures a simulation: boundary conditions, probes, solver settings.
+
+Everything here is plain frozen data; the kernels in :mod:`knockgs_core.sim._kernels`
+interpret it. Units: lengths in the normalized domain [m], times [s], forces [N].
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal, Union
+
+__all__ = [
+    "Box",
+    "DomainWalls",
+    "FixedCuboid",
+    "ParticleTranslation",
+    "BoundaryCondition",
+    "Probe",
+    "ExportSchedule",
+    "Material",
+    "SimParams",
+]
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Box:
+    """Axis-aligned box: ``center`` [m], ``half_size`` [m] (both length-3)."""
+
+    center: Vec3
+    half_size: Vec3
+
+    def contains(self, points):
+        """Boolean mask of ``points`` (shape (n, 3)) inside the closed box."""
+        import numpy as np
+
+        c = np.asarray(self.center, dtype=np.float64)
+        h = np.asarray(self.half_size, dtype=np.float64)
+        return np.all(np.abs(np.asarray(points, dtype=np.float64) - c) <= h, axis=1)
+
+
+@dataclass(frozen=True)
+class DomainWalls:
+    """Walls at the domain boundary: grid nodes within ``padding`` cells of a face.
+
+    ``mode='sticky'`` zeroes the node velocity, ``'slip'`` zeroes only the normal
+    component pointing out of the domain.
+    """
+
+    padding: int = 3
+    mode: Literal["sticky", "slip"] = "slip"
+
+
+@dataclass(frozen=True)
+class FixedCuboid:
+    """A support held on the grid: nodes inside ``box`` take ``velocity`` [m/s]
+    while ``start_time <= t < end_time`` (PhysGaussian's cuboid boundary condition)."""
+
+    box: Box
+    velocity: Vec3 = (0.0, 0.0, 0.0)
+    start_time: float = 0.0
+    end_time: float = math.inf
+
+
+@dataclass(frozen=True)
+class ParticleTranslation:
+    """Particles inside ``box`` at t = 0 move with ``velocity`` [m/s] while
+    ``start_time <= t < end_time`` (PhysGaussian's enforce_particle_translation)."""
+
+    box: Box
+    velocity: Vec3 = (0.0, 0.0, 0.0)
+    start_time: float = 0.0
+    end_time: float = math.inf
+
+
+BoundaryCondition = Union[DomainWalls, FixedCuboid, ParticleTranslation]
+
+
+@dataclass(frozen=True)
+class ExportSchedule:
+    """Export times ``k * frame_dt`` for ``k = 0 .. n_frames - 1`` [s]."""
+
+    frame_dt: float
+    n_frames: int
+
+    @property
+    def times(self) -> list[float]:
+        return [k * self.frame_dt for k in range(self.n_frames)]
+
+    @property
+    def horizon(self) -> float:
+        return (self.n_frames - 1) * self.frame_dt
+
+
+@dataclass(frozen=True)
+class Probe:
+    """A known force, applied per selected particle before P2G: ``v += f / m_p * dt``.
+
+    ``force`` is the force on each selected particle [N], held for ``n_steps`` steps of
+    ``dt_ref`` [s] starting at ``start_time`` [s]; the impulse ``force * n_steps * dt_ref``
+    is what the probe delivers at any solver dt. ``box=None`` selects every particle,
+    otherwise the particles inside the box at t = 0 (selection made once).
+    """
+
+    name: str
+    force: Vec3
+    box: Box | None = None
+    start_time: float = 0.0
+    n_steps: int = 1
+    dt_ref: float = 1e-4
+    export: ExportSchedule = field(default_factory=lambda: ExportSchedule(0.02, 31))
+
+    @property
+    def duration(self) -> float:
+        return self.n_steps * self.dt_ref
+
+    def schedule(self, dt: float) -> tuple[int, int, tuple[float, float, float]]:
+        """(first step, number of steps, per-step force) at solver step ``dt``.
+
+        The impulse ``force * duration`` is preserved exactly: the number of steps is
+        ``max(1, round(duration / dt))`` and the per-step force is rescaled to match.
+        """
+        first = int(round(self.start_time / dt))
+        steps = max(1, int(round(self.duration / dt)))
+        scale = self.duration / (steps * dt)
+        return first, steps, tuple(float(f) * scale for f in self.force)
+
+
+@dataclass(frozen=True)
+class Material:
+    """Fixed-corotated ("jelly") elastic material: Young's modulus ``E`` [Pa],
+    Poisson ratio ``nu`` [-], density ``rho`` [kg/m^3]."""
+
+    E: float
+    nu: float
+    rho: float
+
+    def lame(self) -> tuple[float, float]:
+        """(mu, lambda) [Pa]."""
+        mu = self.E / (2.0 * (1.0 + self.nu))
+        lam = self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
+        return mu, lam
+
+    def p_wave_speed(self) -> float:
+        """Dilatational wave speed sqrt((lambda + 2 mu) / rho) [m/s]."""
+        mu, lam = self.lame()
+        return math.sqrt((lam + 2.0 * mu) / self.rho)
+
+
+@dataclass(frozen=True)
+class SimParams:
+    """Solver settings shared by every rollout of one contract and profile.
+
+    ``n_grid`` cells per axis over ``[0, grid_lim]^3``; substep ``dt`` [s]; ``gravity``
+    [m/s^2]; ``grid_v_damping_scale`` multiplies grid velocities each substep when < 1
+    (PhysGaussian semantics); ``boundaries`` are applied in order after the grid update.
+    ``cfl_limit`` bounds ``max|v| dt / dx`` (the guard stops the run above it).
+    """
+
+    n_grid: int = 100
+    grid_lim: float = 2.0
+    dt: float = 1e-4
+    gravity: Vec3 = (0.0, 0.0, 0.0)
+    grid_v_damping_scale: float = 1.0
+    boundaries: tuple[BoundaryCondition, ...] = (DomainWalls(),)
+    cfl_limit: float = 1.0
+    guard_every: int = 50
+
+    @property
+    def dx(self) -> float:
+        return self.grid_lim / self.n_grid
