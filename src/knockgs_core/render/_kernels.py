@@ -1,0 +1,117 @@
+"""Warp kernels of the rasterizer (private): one thread per Gaussian, one per pixel.
+
+The same kernels run on CPU and CUDA; the device is chosen at launch.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+
+@wp.kernel
+def project_kernel(
+    means: wp.array(dtype=wp.vec3f),
+    covariances: wp.array(dtype=wp.mat33f),
+    opacities: wp.array(dtype=wp.float32),
+    rotation: wp.mat33f,
+    translation: wp.vec3f,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    lim_x_neg: float,
+    lim_x_pos: float,
+    lim_y_neg: float,
+    lim_y_pos: float,
+    near: float,
+    blur: float,
+    alpha_min: float,
+    means2d: wp.array(dtype=wp.vec2f),
+    conics: wp.array(dtype=wp.vec3f),
+    covs2d: wp.array(dtype=wp.vec3f),
+    depths: wp.array(dtype=wp.float32),
+    radii: wp.array(dtype=wp.vec2f),
+):
+    """EWA projection of Gaussian ``i``; ``radii[i] = (0, 0)`` marks a culled Gaussian."""
+    i = wp.tid()
+    p = rotation * means[i] + translation
+    z = p[2]
+    depths[i] = z
+    radii[i] = wp.vec2f(0.0, 0.0)
+    if z <= near:
+        return
+    means2d[i] = wp.vec2f(fx * p[0] / z + cx, fy * p[1] / z + cy)
+    # Clamp the direction used in the Jacobian to 1.3x the field of view (3DGS / gsplat).
+    tx = wp.clamp(p[0] / z, -lim_x_neg, lim_x_pos) * z
+    ty = wp.clamp(p[1] / z, -lim_y_neg, lim_y_pos) * z
+    jac = wp.mat33f(
+        fx / z, 0.0, -fx * tx / (z * z),
+        0.0, fy / z, -fy * ty / (z * z),
+        0.0, 0.0, 0.0,
+    )
+    cov_cam = rotation * covariances[i] * wp.transpose(rotation)
+    c2 = jac * cov_cam * wp.transpose(jac)
+    a = c2[0, 0] + blur
+    b = c2[0, 1]
+    c = c2[1, 1] + blur
+    covs2d[i] = wp.vec3f(a, b, c)
+    det = a * c - b * b
+    if det <= 0.0:
+        return
+    conics[i] = wp.vec3f(c / det, -b / det, a / det)
+    o = opacities[i]
+    if o < alpha_min:
+        return
+    # Opacity-aware extent (gsplat): alpha >= alpha_min only inside this ellipse.
+    k = wp.sqrt(2.0 * wp.log(o / alpha_min))
+    radii[i] = wp.vec2f(k * wp.sqrt(a), k * wp.sqrt(c))
+
+
+@wp.kernel
+def rasterize_kernel(
+    means2d: wp.array(dtype=wp.vec2f),
+    conics: wp.array(dtype=wp.vec3f),
+    colors: wp.array(dtype=wp.vec3f),
+    opacities: wp.array(dtype=wp.float32),
+    depths: wp.array(dtype=wp.float32),
+    gaussian_ids: wp.array(dtype=wp.int32),
+    tile_start: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+    tiles_x: int,
+    tile_size: int,
+    background: wp.vec3f,
+    alpha_min: float,
+    alpha_max: float,
+    transmittance_min: float,
+    out_rgb: wp.array2d(dtype=wp.vec3f),
+    out_depth: wp.array2d(dtype=wp.float32),
+    out_alpha: wp.array2d(dtype=wp.float32),
+):
+    """Front-to-back compositing of pixel ``(row, col)`` over its tile's sorted list."""
+    row, col = wp.tid()
+    px = float(col) + 0.5
+    py = float(row) + 0.5
+    tile = (row // tile_size) * tiles_x + col // tile_size
+    T = float(1.0)
+    rgb = wp.vec3f(0.0, 0.0, 0.0)
+    d = float(0.0)
+    for k in range(tile_start[tile], tile_end[tile]):
+        g = gaussian_ids[k]
+        m = means2d[g]
+        q = conics[g]
+        dx = m[0] - px
+        dy = m[1] - py
+        power = -0.5 * (q[0] * dx * dx + q[2] * dy * dy) - q[1] * dx * dy
+        alpha = wp.min(alpha_max, opacities[g] * wp.exp(power))
+        if alpha < alpha_min:
+            continue
+        next_T = T * (1.0 - alpha)
+        if next_T < transmittance_min:
+            break
+        w = alpha * T
+        rgb = rgb + w * colors[g]
+        d = d + w * depths[g]
+        T = next_T
+    out_rgb[row, col] = rgb + T * background
+    out_depth[row, col] = d
+    out_alpha[row, col] = 1.0 - T

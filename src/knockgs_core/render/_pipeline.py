@@ -1,0 +1,311 @@
+"""The Warp rasterizer: ``project`` -> ``bin_tiles`` -> ``rasterize``, and ``render``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from knockgs_core.errors import InputError
+
+from . import _constants as C
+from ._camera import Camera, RenderOutput
+from ._checks import as_float_array, check_background, check_count, check_range, check_scene
+from ._kernels import project_kernel, rasterize_kernel
+
+
+@dataclass(frozen=True)
+class Projection:
+    """Per-Gaussian screen-space quantities (host arrays, N = number of Gaussians).
+
+    ``means2d: [N, 2]`` image coordinates (u, v) [px]; ``conics: [N, 3]`` the upper
+    triangle (a, b, c) of the inverse 2D covariance; ``covs2d: [N, 3]`` the upper
+    triangle of the 2D covariance including the 0.3 px^2 low-pass term;
+    ``depths: [N]`` camera z; ``radii: [N, 2]`` half-extents [px] of the box outside
+    which the Gaussian's alpha is below 1/255, ``(0, 0)`` when the Gaussian is culled
+    (behind the near plane, degenerate, or opacity below 1/255). Entries of culled
+    Gaussians other than ``depths`` and ``radii`` are unspecified.
+    """
+
+    means2d: np.ndarray
+    conics: np.ndarray
+    covs2d: np.ndarray
+    depths: np.ndarray
+    radii: np.ndarray
+
+    @property
+    def visible(self) -> np.ndarray:
+        """``[N]`` bool: not culled."""
+        return np.all(self.radii > 0, axis=1)
+
+
+@dataclass(frozen=True)
+class TileBins:
+    """Gaussian lists per tile, each sorted front to back.
+
+    ``gaussian_ids: [M]`` int32 Gaussian indices of all (tile, Gaussian) pairs, sorted
+    by tile, then depth, then index; ``tile_ranges: [tiles_y * tiles_x, 2]`` int32
+    ``[start, end)`` into ``gaussian_ids`` per tile (row-major tile order).
+    """
+
+    gaussian_ids: np.ndarray
+    tile_ranges: np.ndarray
+    width: int
+    height: int
+    tile_size: int
+
+    @property
+    def tiles_x(self) -> int:
+        return -(-self.width // self.tile_size)
+
+    @property
+    def tiles_y(self) -> int:
+        return -(-self.height // self.tile_size)
+
+
+def _device(device):
+    try:
+        return wp.get_device(device)
+    except Exception as exc:  # Warp raises RuntimeError / ValueError by version
+        raise InputError("render", "device", f"unknown or unavailable Warp device {device!r} ({exc})") from None
+
+
+def project(means, covariances, opacities, camera: Camera, *, device: str = "cpu") -> Projection:
+    """Project 3D Gaussians to the image plane (EWA splatting, as in 3DGS).
+
+    Parameters
+    ----------
+    means: [N, 3]
+        Gaussian centres in world coordinates.
+    covariances: [N, 3, 3]
+        World-space covariances ``Sigma``.
+    opacities: [N]
+        Opacities in [0, 1]; they set the screen-space extent used for tile binning.
+    camera:
+        The :class:`Camera`.
+    device:
+        Warp device, e.g. ``"cpu"`` or ``"cuda:0"``.
+
+    Returns
+    -------
+    Projection
+        With ``Sigma_2D = J W Sigma W^T J^T + 0.3 I`` (``W`` the camera rotation, ``J``
+        the perspective Jacobian at the view direction clamped to 1.3x the half field
+        of view) and culling of ``z <= 0.01``.
+    """
+    src = "render.project"
+    means = as_float_array(means, src, "means", (-1, 3))
+    n = means.shape[0]
+    covariances = as_float_array(covariances, src, "covariances", (-1, 3, 3))
+    check_count(covariances, n, src, "covariances", "means")
+    covariances = 0.5 * (covariances + np.swapaxes(covariances, 1, 2))
+    opacities = as_float_array(opacities, src, "opacities", (-1,))
+    check_count(opacities, n, src, "opacities", "means")
+    check_range(opacities, 0.0, 1.0, src, "opacities")
+    if not isinstance(camera, Camera):
+        raise InputError(src, "camera", f"expected a Camera, got {type(camera).__name__}")
+    dev = _device(device)
+    if n == 0:
+        z2, z3 = np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32)
+        return Projection(z2, z3, z3.copy(), np.zeros(0, np.float32), z2.copy())
+
+    f32 = np.float32
+    w_means = wp.array(means.astype(f32), dtype=wp.vec3f, device=dev)
+    w_covs = wp.array(covariances.astype(f32), dtype=wp.mat33f, device=dev)
+    w_opac = wp.array(opacities.astype(f32), dtype=wp.float32, device=dev)
+    means2d = wp.zeros(n, dtype=wp.vec2f, device=dev)
+    conics = wp.zeros(n, dtype=wp.vec3f, device=dev)
+    covs2d = wp.zeros(n, dtype=wp.vec3f, device=dev)
+    depths = wp.zeros(n, dtype=wp.float32, device=dev)
+    radii = wp.zeros(n, dtype=wp.vec2f, device=dev)
+    lims = C.jacobian_limits(camera)
+    wp.launch(
+        project_kernel,
+        dim=n,
+        inputs=[
+            w_means, w_covs, w_opac,
+            wp.mat33f(*camera.rotation.astype(f32).ravel()),
+            wp.vec3f(*camera.translation.astype(f32)),
+            camera.fx, camera.fy, camera.cx, camera.cy, *lims,
+            C.NEAR_PLANE, C.LOW_PASS, C.ALPHA_MIN,
+        ],
+        outputs=[means2d, conics, covs2d, depths, radii],
+        device=dev,
+    )
+    return Projection(
+        means2d=means2d.numpy(),
+        conics=conics.numpy(),
+        covs2d=covs2d.numpy(),
+        depths=depths.numpy(),
+        radii=radii.numpy(),
+    )
+
+
+def bin_tiles(projection: Projection, width: int, height: int, *, tile_size: int = C.TILE_SIZE) -> TileBins:
+    """Assign visible Gaussians to the ``tile_size`` x ``tile_size`` tiles they overlap.
+
+    A Gaussian goes to every tile that holds a pixel centre inside its box
+    ``means2d +- radii`` (widened by half a pixel against rounding). Each tile's list
+    is sorted by depth, ties by Gaussian index (a stable host sort on (tile, depth)).
+    """
+    src = "render.bin_tiles"
+    for name, v in (("width", width), ("height", height), ("tile_size", tile_size)):
+        if isinstance(v, bool) or int(v) != v or int(v) < 1:
+            raise InputError(src, name, f"must be a positive integer, got {v!r}")
+    width, height, tile_size = int(width), int(height), int(tile_size)
+    tiles_x = -(-width // tile_size)
+    tiles_y = -(-height // tile_size)
+    n_tiles = tiles_x * tiles_y
+
+    ids = np.flatnonzero(projection.visible)
+    m = projection.means2d[ids].astype(np.float64)
+    r = projection.radii[ids].astype(np.float64) + 0.5
+    # Pixel centres c = i + 0.5 inside [m - r, m + r] have i in [m - r - 0.5, m + r - 0.5].
+    lo = np.floor((m - r - 0.5) / tile_size)
+    hi = np.floor((m + r - 0.5) / tile_size)
+    lim = np.array([tiles_x - 1, tiles_y - 1], dtype=np.float64)
+    lo = np.clip(lo, 0, lim + 1).astype(np.int64)  # clip in float: boxes may be huge
+    hi = np.clip(hi, -1, lim).astype(np.int64)
+    span = np.maximum(hi - lo + 1, 0)  # 0 where the box misses the image
+    counts = span[:, 0] * span[:, 1]
+    total = int(counts.sum())
+    owner = np.repeat(np.arange(ids.size), counts)
+    local = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
+    tx = lo[owner, 0] + local % span[owner, 0]
+    ty = lo[owner, 1] + local // span[owner, 0]
+    tile = ty * tiles_x + tx
+    depth = projection.depths[ids][owner]
+    order = np.lexsort((depth, tile))  # stable: ties keep increasing Gaussian index
+    tile = tile[order]
+    gaussian_ids = ids[owner[order]].astype(np.int32)
+    starts = np.searchsorted(tile, np.arange(n_tiles), side="left")
+    ends = np.searchsorted(tile, np.arange(n_tiles), side="right")
+    tile_ranges = np.stack([starts, ends], axis=1).astype(np.int32)
+    return TileBins(gaussian_ids=gaussian_ids, tile_ranges=tile_ranges,
+                    width=width, height=height, tile_size=tile_size)
+
+
+def rasterize(
+    projection: Projection,
+    colors,
+    opacities,
+    bins: TileBins,
+    *,
+    background=(1.0, 1.0, 1.0),
+    device: str = "cpu",
+) -> RenderOutput:
+    """Composite the binned Gaussians front to back, one Warp thread per pixel.
+
+    Parameters
+    ----------
+    projection:
+        From :func:`project`.
+    colors: [N, 3]
+        RGB in [0, 1] (DC colour).
+    opacities: [N]
+        In [0, 1].
+    bins:
+        From :func:`bin_tiles`; sets the image size.
+    background: [3]
+        RGB in [0, 1], added with the final transmittance.
+
+    Per pixel, in each tile's depth order: ``alpha = min(0.99, o exp(-0.5 d^T
+    Sigma_2D^-1 d))``; Gaussians with ``alpha < 1/255`` are skipped; compositing stops
+    before a Gaussian that would take the transmittance ``T`` below 1e-4 (that Gaussian
+    is not added), as in 3DGS.
+    """
+    src = "render.rasterize"
+    n = projection.means2d.shape[0]
+    colors = as_float_array(colors, src, "colors", (-1, 3))
+    check_count(colors, n, src, "colors", "projection.means2d")
+    check_range(colors, 0.0, 1.0, src, "colors")
+    opacities = as_float_array(opacities, src, "opacities", (-1,))
+    check_count(opacities, n, src, "opacities", "projection.means2d")
+    check_range(opacities, 0.0, 1.0, src, "opacities")
+    bg = check_background(background, src)
+    if bins.tile_ranges.shape != (bins.tiles_x * bins.tiles_y, 2):
+        raise InputError(src, "bins.tile_ranges", "does not match the bins' image size")
+    if bins.gaussian_ids.size and int(bins.gaussian_ids.max()) >= n:
+        raise InputError(src, "bins.gaussian_ids", f"refers to Gaussians beyond the {n} projected")
+    dev = _device(device)
+    h, w = bins.height, bins.width
+    f32 = np.float32
+
+    def arr(a, dtype):
+        a = np.ascontiguousarray(a)
+        if a.shape[0] == 0:  # Warp needs a valid (non-null) array; pad with one unused entry
+            a = np.zeros((1,) + a.shape[1:], dtype=a.dtype)
+        return wp.array(a, dtype=dtype, device=dev)
+
+    out_rgb = wp.zeros((h, w), dtype=wp.vec3f, device=dev)
+    out_depth = wp.zeros((h, w), dtype=wp.float32, device=dev)
+    out_alpha = wp.zeros((h, w), dtype=wp.float32, device=dev)
+    wp.launch(
+        rasterize_kernel,
+        dim=(h, w),
+        inputs=[
+            arr(projection.means2d.astype(f32), wp.vec2f),
+            arr(projection.conics.astype(f32), wp.vec3f),
+            arr(colors.astype(f32), wp.vec3f),
+            arr(opacities.astype(f32), wp.float32),
+            arr(projection.depths.astype(f32), wp.float32),
+            arr(bins.gaussian_ids.astype(np.int32), wp.int32),
+            arr(bins.tile_ranges[:, 0].astype(np.int32), wp.int32),
+            arr(bins.tile_ranges[:, 1].astype(np.int32), wp.int32),
+            bins.tiles_x,
+            bins.tile_size,
+            wp.vec3f(*bg.astype(f32)),
+            C.ALPHA_MIN,
+            C.ALPHA_MAX,
+            C.TRANSMITTANCE_MIN,
+        ],
+        outputs=[out_rgb, out_depth, out_alpha],
+        device=dev,
+    )
+    return RenderOutput(rgb=out_rgb.numpy(), depth=out_depth.numpy(), alpha=out_alpha.numpy())
+
+
+def render(
+    means,
+    covariances,
+    colors,
+    opacities,
+    camera: Camera,
+    *,
+    background=(1.0, 1.0, 1.0),
+    device: str = "cpu",
+) -> RenderOutput:
+    """Render 3D Gaussians with ``camera``: :func:`project`, :func:`bin_tiles`, :func:`rasterize`.
+
+    Parameters
+    ----------
+    means: [N, 3]
+        Centres (world coordinates).
+    covariances: [N, 3, 3]
+        World-space covariances (symmetrized on input).
+    colors: [N, 3]
+        RGB in [0, 1].
+    opacities: [N]
+        In [0, 1].
+    camera:
+        The :class:`Camera`; sets the image size H x W.
+    background: [3]
+        RGB in [0, 1].
+    device:
+        Warp device (``"cpu"`` by default, ``"cuda:0"`` on a GPU).
+
+    Returns
+    -------
+    RenderOutput
+        ``rgb [H, W, 3]``, ``depth [H, W]`` (alpha-weighted, not normalized),
+        ``alpha [H, W]``, all float32.
+    """
+    src = "render.render"
+    means, covariances, colors, opacities = check_scene(means, covariances, colors, opacities, src)
+    if not isinstance(camera, Camera):
+        raise InputError(src, "camera", f"expected a Camera, got {type(camera).__name__}")
+    check_background(background, src)
+    proj = project(means, covariances, opacities, camera, device=device)
+    bins = bin_tiles(proj, camera.width, camera.height)
+    return rasterize(proj, colors, opacities, bins, background=background, device=device)
