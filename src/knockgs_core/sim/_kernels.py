@@ -1,0 +1,297 @@
+"""Warp kernels of the MLS-MPM / APIC solver (quadratic B-splines, fixed-corotated elasticity).
+
+One thread per particle or per grid node; inputs before outputs. The same kernels run on
+the CPU and on CUDA. Grid kernels run over the *active box* only (the grid region that the
+particles' stencils can reach), given as an offset ``lo`` and the launch dimensions.
+
+Conventions: ``n_grid`` nodes per axis at positions ``i * dx``; a particle at ``x`` scatters
+to the 3x3x3 nodes starting at ``base = int(x / dx - 0.5)``.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+# keep Warp's start-up banner out of logs and CLI output (older and newer config names)
+wp.config.quiet = True
+if hasattr(wp, "LOG_WARNING"):
+    wp.config.log_level = wp.LOG_WARNING
+
+wp.set_module_options({"enable_backward": False})
+
+
+# --------------------------------------------------------------------------------------
+# shared math
+# --------------------------------------------------------------------------------------
+@wp.func
+def bspline_weights(fx: wp.vec3) -> wp.mat33:
+    """Quadratic B-spline weights; row ``k`` holds the weight of stencil node ``k`` per axis.
+
+    ``fx`` is the particle position relative to its base node, in cells (in [0.5, 1.5)).
+    """
+    a = wp.vec3(1.5) - fx
+    b = fx - wp.vec3(1.0)
+    c = fx - wp.vec3(0.5)
+    w0 = 0.5 * wp.cw_mul(a, a)
+    w1 = wp.vec3(0.75) - wp.cw_mul(b, b)
+    w2 = 0.5 * wp.cw_mul(c, c)
+    return wp.mat33(w0[0], w0[1], w0[2], w1[0], w1[1], w1[2], w2[0], w2[1], w2[2])
+
+
+@wp.func
+def polar_rotation(A: wp.mat33, q0: wp.quat, max_iter: int) -> wp.quat:
+    """Rotation of the polar decomposition of ``A`` (det A > 0), warm-started from ``q0``.
+
+    Mueller et al. 2016, "A Robust Method to Extract the Rotational Part of Deformations":
+    rotate ``q`` about the axis that aligns its columns with those of ``A`` until the
+    correction angle is negligible. No SVD; 1-2 iterations when warm-started.
+    """
+    q = q0
+    a0 = wp.vec3(A[0, 0], A[1, 0], A[2, 0])
+    a1 = wp.vec3(A[0, 1], A[1, 1], A[2, 1])
+    a2 = wp.vec3(A[0, 2], A[1, 2], A[2, 2])
+    for _ in range(max_iter):
+        R = wp.quat_to_matrix(q)
+        r0 = wp.vec3(R[0, 0], R[1, 0], R[2, 0])
+        r1 = wp.vec3(R[0, 1], R[1, 1], R[2, 1])
+        r2 = wp.vec3(R[0, 2], R[1, 2], R[2, 2])
+        num = wp.cross(r0, a0) + wp.cross(r1, a1) + wp.cross(r2, a2)
+        den = wp.abs(wp.dot(r0, a0) + wp.dot(r1, a1) + wp.dot(r2, a2)) + 1.0e-9
+        omega = num / den
+        angle = wp.length(omega)
+        if angle < 1.0e-7:
+            break
+        q = wp.normalize(wp.quat_from_axis_angle(omega / angle, angle) * q)
+    return q
+
+
+@wp.func
+def fixed_corotated_kirchhoff(F: wp.mat33, R: wp.mat33, mu: float, lam: float) -> wp.mat33:
+    """Kirchhoff stress tau = P F^T = 2 mu (F - R) F^T + lam (J - 1) J I [Pa]."""
+    J = wp.determinant(F)
+    return 2.0 * mu * (F - R) * wp.transpose(F) + wp.identity(n=3, dtype=float) * (lam * (J - 1.0) * J)
+
+
+# --------------------------------------------------------------------------------------
+# grid kernels (launched over the active box)
+# --------------------------------------------------------------------------------------
+@wp.kernel
+def grid_zero(lo: wp.vec3i, grid_mv: wp.array3d(dtype=wp.vec3), grid_m: wp.array3d(dtype=float)):
+    i, j, k = wp.tid()
+    gi = i + lo[0]
+    gj = j + lo[1]
+    gk = k + lo[2]
+    grid_mv[gi, gj, gk] = wp.vec3(0.0)
+    grid_m[gi, gj, gk] = 0.0
+
+
+@wp.kernel
+def grid_update(
+    lo: wp.vec3i,
+    dt: float,
+    gravity: wp.vec3,
+    damping: float,
+    grid_m: wp.array3d(dtype=float),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+):
+    """Momentum -> velocity, gravity, velocity damping (scale per substep); in place."""
+    i, j, k = wp.tid()
+    gi = i + lo[0]
+    gj = j + lo[1]
+    gk = k + lo[2]
+    m = grid_m[gi, gj, gk]
+    v = wp.vec3(0.0)
+    if m > 1.0e-15:
+        v = (grid_mv[gi, gj, gk] / m + dt * gravity) * damping
+    grid_mv[gi, gj, gk] = v
+
+
+@wp.kernel
+def grid_bc_walls(
+    lo: wp.vec3i,
+    n_grid: int,
+    padding: int,
+    sticky: int,
+    grid_v: wp.array3d(dtype=wp.vec3),
+):
+    """Domain walls: nodes within ``padding`` of a face lose their outward normal
+    velocity (``sticky=0``, slip) or all velocity (``sticky=1``)."""
+    i, j, k = wp.tid()
+    g = wp.vec3i(i + lo[0], j + lo[1], k + lo[2])
+    v = grid_v[g[0], g[1], g[2]]
+    for a in range(3):
+        if g[a] < padding and v[a] < 0.0:
+            if sticky == 1:
+                v = wp.vec3(0.0)
+            else:
+                v[a] = 0.0
+        if g[a] >= n_grid - padding and v[a] > 0.0:
+            if sticky == 1:
+                v = wp.vec3(0.0)
+            else:
+                v[a] = 0.0
+    grid_v[g[0], g[1], g[2]] = v
+
+
+@wp.kernel
+def grid_bc_cuboid(
+    lo: wp.vec3i,
+    dx: float,
+    center: wp.vec3,
+    half_size: wp.vec3,
+    velocity: wp.vec3,
+    grid_v: wp.array3d(dtype=wp.vec3),
+):
+    """A held support: nodes inside the box take the prescribed velocity."""
+    i, j, k = wp.tid()
+    gi = i + lo[0]
+    gj = j + lo[1]
+    gk = k + lo[2]
+    p = wp.vec3(float(gi), float(gj), float(gk)) * dx - center
+    if wp.abs(p[0]) <= half_size[0] and wp.abs(p[1]) <= half_size[1] and wp.abs(p[2]) <= half_size[2]:
+        grid_v[gi, gj, gk] = velocity
+
+
+# --------------------------------------------------------------------------------------
+# particle kernels
+# --------------------------------------------------------------------------------------
+@wp.kernel
+def p2g(
+    x: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    mass: wp.array(dtype=float),
+    vol: wp.array(dtype=float),
+    mu: wp.array(dtype=float),
+    lam: wp.array(dtype=float),
+    probe_mask: wp.array(dtype=wp.int32),
+    probe_force: wp.vec3,
+    probe_on: int,
+    inv_dx: float,
+    dt: float,
+    polar_iters: int,
+    lo: wp.vec3i,
+    hi: wp.vec3i,
+    v: wp.array(dtype=wp.vec3),
+    rot: wp.array(dtype=wp.quat),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_m: wp.array3d(dtype=float),
+    overrun: wp.array(dtype=wp.int32),
+):
+    """Probe impulse (``v += f / m dt``), fixed-corotated stress, APIC scatter to the grid."""
+    p = wp.tid()
+    m = mass[p]
+    vp = v[p]
+    if probe_on == 1 and probe_mask[p] != 0:
+        vp = vp + probe_force * (dt / m)
+        v[p] = vp
+
+    Fp = F[p]
+    q = polar_rotation(Fp, rot[p], polar_iters)
+    rot[p] = q
+    tau = fixed_corotated_kirchhoff(Fp, wp.quat_to_matrix(q), mu[p], lam[p])
+    dx = 1.0 / inv_dx
+    affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * C[p]
+
+    gx = x[p] * inv_dx
+    base = wp.vec3i(int(gx[0] - 0.5), int(gx[1] - 0.5), int(gx[2] - 0.5))
+    if base[0] < lo[0] or base[1] < lo[1] or base[2] < lo[2] or base[0] + 2 >= hi[0] or base[1] + 2 >= hi[1] or base[2] + 2 >= hi[2]:
+        wp.atomic_add(overrun, 0, 1)
+        return
+    fx = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    w = bspline_weights(fx)
+    mv = m * vp
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                weight = w[i, 0] * w[j, 1] * w[k, 2]
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * dx
+                gi = base[0] + i
+                gj = base[1] + j
+                gk = base[2] + k
+                wp.atomic_add(grid_mv, gi, gj, gk, weight * (mv + affine * dpos))
+                wp.atomic_add(grid_m, gi, gj, gk, weight * m)
+
+
+@wp.kernel
+def g2p(
+    grid_v: wp.array3d(dtype=wp.vec3),
+    inv_dx: float,
+    dt: float,
+    trans_mask: wp.array(dtype=wp.int32),
+    trans_velocity: wp.vec3,
+    trans_on: int,
+    lo: wp.vec3i,
+    hi: wp.vec3i,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    overrun: wp.array(dtype=wp.int32),
+):
+    """APIC gather: new velocity and affine matrix, F <- (I + dt C) F, advect."""
+    p = wp.tid()
+    gx = x[p] * inv_dx
+    base = wp.vec3i(int(gx[0] - 0.5), int(gx[1] - 0.5), int(gx[2] - 0.5))
+    if base[0] < lo[0] or base[1] < lo[1] or base[2] < lo[2] or base[0] + 2 >= hi[0] or base[1] + 2 >= hi[1] or base[2] + 2 >= hi[2]:
+        wp.atomic_add(overrun, 0, 1)
+        return
+    fx = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    w = bspline_weights(fx)
+    new_v = wp.vec3(0.0)
+    new_C = wp.mat33(0.0)
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                weight = w[i, 0] * w[j, 1] * w[k, 2]
+                dpos = wp.vec3(float(i), float(j), float(k)) - fx
+                gv = grid_v[base[0] + i, base[1] + j, base[2] + k]
+                new_v = new_v + weight * gv
+                new_C = new_C + (4.0 * inv_dx * weight) * wp.outer(gv, dpos)
+    if trans_on == 1 and trans_mask[p] != 0:
+        new_v = trans_velocity
+        new_C = wp.mat33(0.0)
+    F[p] = (wp.identity(n=3, dtype=float) + dt * new_C) * F[p]
+    C[p] = new_C
+    v[p] = new_v
+    x[p] = x[p] + dt * new_v
+
+
+@wp.kernel
+def particle_stats(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    F: wp.array(dtype=wp.mat33),
+    inv_dx: float,
+    out_f: wp.array(dtype=float),
+    out_i: wp.array(dtype=wp.int32),
+):
+    """Guard statistics: out_f[0] = max |v|^2, out_f[1] = min det F;
+    out_i[0] = non-finite count, out_i[1:4] = min cell, out_i[4:7] = max cell."""
+    p = wp.tid()
+    xp = x[p]
+    vp = v[p]
+    Fp = F[p]
+    s = xp[0] + xp[1] + xp[2] + vp[0] + vp[1] + vp[2]
+    for a in range(3):
+        for b in range(3):
+            s = s + Fp[a, b]
+    if not wp.isfinite(s):
+        wp.atomic_add(out_i, 0, 1)
+        return
+    wp.atomic_max(out_f, 0, wp.dot(vp, vp))
+    wp.atomic_min(out_f, 1, wp.determinant(Fp))
+    for a in range(3):
+        c = int(wp.floor(xp[a] * inv_dx))
+        wp.atomic_min(out_i, 1 + a, c)
+        wp.atomic_max(out_i, 4 + a, c)
+
+
+@wp.kernel
+def particle_momentum(
+    v: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    out: wp.array(dtype=wp.vec3),
+):
+    p = wp.tid()
+    wp.atomic_add(out, 0, mass[p] * v[p])

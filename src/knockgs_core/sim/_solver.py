@@ -1,0 +1,386 @@
+"""MLS-MPM solver: a static :class:`Model`, a time-varying :class:`State`, and
+:class:`MPMSolver` whose :meth:`~MPMSolver.step` advances one substep.
+
+The grid kernels run only over the *active box*, the part of the grid that the particles'
+stencils can reach before the next guard check, so grid work scales with the occupied
+region rather than with ``n_grid^3``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import warp as wp
+
+from ..errors import InputError, SimulationError
+from . import _kernels as K
+from ._config import DomainWalls, FixedCuboid, ParticleTranslation, Probe, SimParams
+
+__all__ = ["Model", "State", "MPMSolver", "SimResult", "build_model", "particle_volumes", "default_device", "simulate"]
+
+_WARP_READY = False
+
+
+def _init_warp() -> None:
+    global _WARP_READY
+    if not _WARP_READY:
+        wp.init()
+        _WARP_READY = True
+
+
+def default_device() -> str:
+    """The Warp device used when none is given: ``$KNOCKGS_DEVICE`` or ``"cpu"``."""
+    return os.environ.get("KNOCKGS_DEVICE", "cpu")
+
+
+def particle_volumes(positions: np.ndarray, dx: float) -> np.ndarray:
+    """Particle volume [m^3] from initial particles per grid cell (PhysGaussian):
+    each particle gets ``dx^3 / (particles in its cell)``. Shape (particle_count,)."""
+    cells = np.floor(np.asarray(positions, dtype=np.float64) / dx).astype(np.int64)
+    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    return (dx**3 / counts[inverse.reshape(-1)]).astype(np.float32)
+
+
+@dataclass
+class Model:
+    """Static description of one simulation (Warp arrays live on ``device``).
+
+    particle_mass [kg], particle_vol [m^3], particle_mu / particle_lam [Pa]: shape
+    (particle_count,). ``probe_mask`` marks the particles the probe acts on (selected once
+    at t = 0); ``probe_force`` is the per-step force on each of them [N] for steps
+    ``probe_first <= step < probe_first + probe_steps``.
+    """
+
+    params: SimParams
+    device: str
+    particle_count: int
+    particle_mass: wp.array
+    particle_vol: wp.array
+    particle_mu: wp.array
+    particle_lam: wp.array
+    probe_mask: wp.array
+    probe_force: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    probe_first: int = 0
+    probe_steps: int = 0
+    probe_count: int = 0
+    translations: list[tuple[ParticleTranslation, wp.array]] = field(default_factory=list)
+    mass_host: np.ndarray | None = None
+    max_wave_speed: float = 0.0
+
+    @property
+    def total_probe_force(self) -> tuple[float, float, float]:
+        """Per-step force times the number of selected particles [N]."""
+        return tuple(f * self.probe_count for f in self.probe_force)
+
+    @property
+    def probe_impulse(self) -> tuple[float, float, float]:
+        """Total impulse the probe delivers [N s]."""
+        return tuple(f * self.probe_steps * self.params.dt for f in self.total_probe_force)
+
+
+@dataclass
+class State:
+    """Time-varying simulation state.
+
+    particle_x [m] (particle_count, 3); particle_v [m/s]; particle_F deformation gradient
+    (particle_count, 3, 3); particle_C APIC affine velocity [1/s]; particle_rot warm-start
+    rotation of F's polar decomposition (quaternion xyzw); grid_mv grid momentum, then
+    velocity (n_grid^3, 3); grid_m grid mass [kg]. ``step`` counts substeps taken.
+    """
+
+    particle_x: wp.array
+    particle_v: wp.array
+    particle_F: wp.array
+    particle_C: wp.array
+    particle_rot: wp.array
+    grid_mv: wp.array
+    grid_m: wp.array
+    step: int = 0
+
+
+@dataclass
+class SimResult:
+    """Exported frames: ``times`` [s] (T,), ``positions`` [m] (T, N, 3) float32, and the
+    deformation gradient ``F`` (T, n_F, 3, 3) float32 of the first ``n_F`` particles when
+    asked for. ``stats`` holds guard statistics (max CFL number, min det F, steps)."""
+
+    times: np.ndarray
+    positions: np.ndarray
+    F: np.ndarray | None
+    stats: dict
+
+
+def _as_particle_array(value, n: int, name: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim == 0:
+        arr = np.full(n, float(arr))
+    if arr.shape != (n,):
+        raise InputError("material", name, f"expected a scalar or shape ({n},), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError("material", name, "non-finite value")
+    return arr
+
+
+def build_model(
+    positions: np.ndarray,
+    *,
+    E,
+    nu,
+    rho,
+    params: SimParams,
+    volumes: np.ndarray | None = None,
+    probe: Probe | None = None,
+    probe_force_scale: float = 1.0,
+    device: str | None = None,
+) -> Model:
+    """Build the static model for particles at ``positions`` [m] (N, 3).
+
+    ``E`` [Pa], ``nu`` [-], ``rho`` [kg/m^3]: scalars or per-particle arrays (theta already
+    applied). ``volumes`` [m^3] default to initial particles per cell. The probe's per-particle
+    force is multiplied by ``probe_force_scale`` and rescaled so its impulse is kept at
+    ``params.dt``; its contact box selects particles once, here.
+    """
+    _init_warp()
+    device = device or default_device()
+    x = np.ascontiguousarray(positions, dtype=np.float32)
+    if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] == 0:
+        raise InputError("positions", "shape", f"expected (N, 3) with N > 0, got {x.shape}")
+    if not np.all(np.isfinite(x)):
+        raise InputError("positions", "x", "non-finite particle position")
+    n = x.shape[0]
+    dx = params.dx
+    lo_ok = 3 * dx
+    hi_ok = params.grid_lim - 3 * dx
+    if x.min() < lo_ok or x.max() > hi_ok:
+        raise InputError("positions", "x", f"particles must lie in [{lo_ok:g}, {hi_ok:g}]^3 (3 cells inside the domain)")
+    E = _as_particle_array(E, n, "E")
+    nu = _as_particle_array(nu, n, "nu")
+    rho = _as_particle_array(rho, n, "rho")
+    if np.any(E <= 0) or np.any(rho <= 0) or np.any(nu <= -1) or np.any(nu >= 0.5):
+        raise InputError("material", "E/nu/rho", "need E > 0, rho > 0, -1 < nu < 0.5")
+    vol = particle_volumes(x, dx) if volumes is None else np.asarray(volumes, dtype=np.float32)
+    if vol.shape != (n,) or np.any(~np.isfinite(vol)) or np.any(vol <= 0):
+        raise InputError("volumes", "volume", "need positive finite per-particle volumes")
+    mass = (rho * vol).astype(np.float32)
+    mu = (E / (2.0 * (1.0 + nu))).astype(np.float32)
+    lam = (E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))).astype(np.float32)
+    wave = float(np.max(np.sqrt((lam.astype(np.float64) + 2.0 * mu) / rho)))
+
+    mask = np.zeros(n, dtype=np.int32)
+    force = (0.0, 0.0, 0.0)
+    first = steps = count = 0
+    if probe is not None:
+        sel = np.ones(n, dtype=bool) if probe.box is None else probe.box.contains(x)
+        count = int(sel.sum())
+        if count == 0:
+            raise InputError(f"probe {probe.name}", "box", "the contact box selects no particles")
+        mask[sel] = 1
+        first, steps, f = probe.schedule(params.dt)
+        force = tuple(float(c) * probe_force_scale for c in f)
+
+    translations = []
+    for bc in params.boundaries:
+        if isinstance(bc, ParticleTranslation):
+            sel = bc.box.contains(x).astype(np.int32)
+            translations.append((bc, wp.array(sel, dtype=wp.int32, device=device)))
+
+    return Model(
+        params=params,
+        device=device,
+        particle_count=n,
+        particle_mass=wp.array(mass, dtype=float, device=device),
+        particle_vol=wp.array(vol, dtype=float, device=device),
+        particle_mu=wp.array(mu, dtype=float, device=device),
+        particle_lam=wp.array(lam, dtype=float, device=device),
+        probe_mask=wp.array(mask, dtype=wp.int32, device=device),
+        probe_force=force,
+        probe_first=first,
+        probe_steps=steps,
+        probe_count=count,
+        translations=translations,
+        mass_host=mass,
+        max_wave_speed=wave,
+    )
+
+
+def make_state(model: Model, positions: np.ndarray, velocities: np.ndarray | None = None) -> State:
+    """Initial state: given positions [m] (N, 3), velocities [m/s] (default 0), F = I, C = 0."""
+    n, dev, g = model.particle_count, model.device, model.params.n_grid
+    x = np.ascontiguousarray(positions, dtype=np.float32)
+    v = np.zeros_like(x) if velocities is None else np.ascontiguousarray(velocities, dtype=np.float32)
+    eye = np.tile(np.eye(3, dtype=np.float32), (n, 1, 1))
+    rot = np.tile(np.array([0, 0, 0, 1], dtype=np.float32), (n, 1))
+    return State(
+        particle_x=wp.array(x, dtype=wp.vec3, device=dev),
+        particle_v=wp.array(v, dtype=wp.vec3, device=dev),
+        particle_F=wp.array(eye, dtype=wp.mat33, device=dev),
+        particle_C=wp.zeros(n, dtype=wp.mat33, device=dev),
+        particle_rot=wp.array(rot, dtype=wp.quat, device=dev),
+        grid_mv=wp.zeros((g, g, g), dtype=wp.vec3, device=dev),
+        grid_m=wp.zeros((g, g, g), dtype=float, device=dev),
+    )
+
+
+class MPMSolver:
+    """Advances a :class:`State` of a :class:`Model` by substeps of ``params.dt``.
+
+    A guard runs every ``params.guard_every`` substeps (and on demand): non-finite values,
+    a CFL number ``max|v| dt / dx`` above ``params.cfl_limit``, or particles leaving the
+    domain stop the run with a :class:`~knockgs_core.errors.SimulationError`. The guard also
+    sizes the active grid box for the next substeps.
+    """
+
+    polar_iters = 4
+
+    def __init__(self, model: Model):
+        self.model = model
+        p = model.params
+        self._inv_dx = 1.0 / p.dx
+        self._lo = (0, 0, 0)
+        self._hi = (p.n_grid, p.n_grid, p.n_grid)
+        dev = model.device
+        self._stats_f = wp.zeros(2, dtype=float, device=dev)
+        self._stats_i = wp.zeros(7, dtype=wp.int32, device=dev)
+        self._overrun = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._zero_mask = wp.zeros(model.particle_count, dtype=wp.int32, device=dev)
+        self.max_cfl = 0.0
+        self.min_det_F = 1.0
+
+    # -- guard -----------------------------------------------------------------------
+    def check(self, state: State) -> dict:
+        """Run the guard; resize the active box. Returns the statistics."""
+        m, p = self.model, self.model.params
+        self._stats_f.assign(np.array([0.0, np.inf], dtype=np.float32))
+        big = np.iinfo(np.int32).max
+        self._stats_i.assign(np.array([0, big, big, big, -big, -big, -big], dtype=np.int32))
+        wp.launch(K.particle_stats, dim=m.particle_count, inputs=[state.particle_x, state.particle_v, state.particle_F, self._inv_dx], outputs=[self._stats_f, self._stats_i], device=m.device)
+        sf = self._stats_f.numpy()
+        si = self._stats_i.numpy()
+        overrun = int(self._overrun.numpy()[0])
+        t = state.step * p.dt
+        where = f"at step {state.step} (t = {t:.6g} s)"
+        if si[0] > 0:
+            raise SimulationError(
+                f"simulation blew up {where}: {int(si[0])} particles have non-finite state. "
+                f"Likely cause: substep dt = {p.dt:g} s too large for the stiffest material "
+                f"(p-wave speed {m.max_wave_speed:.4g} m/s needs dt <~ {p.dx / max(m.max_wave_speed, 1e-12):.3g} s "
+                f"at dx = {p.dx:.4g} m), or a probe force too strong."
+            )
+        vmax = math.sqrt(max(float(sf[0]), 0.0))
+        cfl = vmax * p.dt / p.dx
+        self.max_cfl = max(self.max_cfl, cfl)
+        self.min_det_F = min(self.min_det_F, float(sf[1]))
+        if cfl > p.cfl_limit:
+            raise SimulationError(
+                f"CFL violation {where}: max|v| dt / dx = {cfl:.3g} > {p.cfl_limit:g} "
+                f"(max|v| = {vmax:.4g} m/s, dt = {p.dt:g} s, dx = {p.dx:.4g} m). "
+                f"Likely cause: dt too large for this material or probe; reduce dt."
+            )
+        if overrun:
+            raise SimulationError(
+                f"particles outran the active grid region {where} (max|v| dt / dx = {cfl:.3g} now): "
+                f"the motion accelerated between guard checks; likely cause: dt = {p.dt:g} s too large "
+                f"for this material (unstable), or lower guard_every"
+            )
+        cmin, cmax = si[1:4], si[4:7]
+        if cmin.min() < 2 or cmax.max() > p.n_grid - 3:
+            raise SimulationError(f"particles left the simulation domain {where} (cells {cmin.tolist()}..{cmax.tolist()} of {p.n_grid})")
+        # margin for the motion until the next check, in cells
+        pad = 2 + int(math.ceil(2.0 * vmax * p.guard_every * p.dt / p.dx))
+        self._lo = tuple(int(max(0, c - 1 - pad)) for c in cmin)
+        self._hi = tuple(int(min(p.n_grid, c + 3 + pad)) for c in cmax)
+        return {"cfl": cfl, "vmax": vmax, "min_det_F": float(sf[1])}
+
+    # -- one substep -----------------------------------------------------------------
+    def step(self, state: State) -> None:
+        m, p = self.model, self.model.params
+        dt, dev = p.dt, m.device
+        lo = wp.vec3i(*self._lo)
+        hi = wp.vec3i(*self._hi)
+        dims = tuple(h - l for l, h in zip(self._lo, self._hi))
+        t = state.step * dt
+        probe_on = int(m.probe_steps > 0 and m.probe_first <= state.step < m.probe_first + m.probe_steps)
+
+        wp.launch(K.grid_zero, dim=dims, inputs=[lo], outputs=[state.grid_mv, state.grid_m], device=dev)
+        wp.launch(
+            K.p2g,
+            dim=m.particle_count,
+            inputs=[state.particle_x, state.particle_C, state.particle_F, m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
+                    m.probe_mask, wp.vec3(*m.probe_force), probe_on, self._inv_dx, dt, self.polar_iters, lo, hi],
+            outputs=[state.particle_v, state.particle_rot, state.grid_mv, state.grid_m, self._overrun],
+            device=dev,
+        )
+        damping = p.grid_v_damping_scale if p.grid_v_damping_scale < 1.0 else 1.0
+        wp.launch(K.grid_update, dim=dims, inputs=[lo, dt, wp.vec3(*p.gravity), damping, state.grid_m], outputs=[state.grid_mv], device=dev)
+        for bc in p.boundaries:
+            if isinstance(bc, DomainWalls):
+                wp.launch(K.grid_bc_walls, dim=dims, inputs=[lo, p.n_grid, bc.padding, int(bc.mode == "sticky")], outputs=[state.grid_mv], device=dev)
+            elif isinstance(bc, FixedCuboid) and bc.start_time <= t < bc.end_time:
+                wp.launch(K.grid_bc_cuboid, dim=dims, inputs=[lo, p.dx, wp.vec3(*bc.box.center), wp.vec3(*bc.box.half_size), wp.vec3(*bc.velocity)], outputs=[state.grid_mv], device=dev)
+        trans_mask, trans_v, trans_on = self._zero_mask, wp.vec3(0.0), 0
+        for bc, mask in m.translations:  # at most one active translation is supported per step
+            if bc.start_time <= t < bc.end_time:
+                trans_mask, trans_v, trans_on = mask, wp.vec3(*bc.velocity), 1
+        wp.launch(
+            K.g2p,
+            dim=m.particle_count,
+            inputs=[state.grid_mv, self._inv_dx, dt, trans_mask, trans_v, trans_on, lo, hi],
+            outputs=[state.particle_x, state.particle_v, state.particle_C, state.particle_F, self._overrun],
+            device=dev,
+        )
+        state.step += 1
+
+    def momentum(self, state: State) -> np.ndarray:
+        """Total particle momentum [kg m/s], accumulated in float64 on the host."""
+        v = state.particle_v.numpy().astype(np.float64)
+        return (self.model.mass_host.astype(np.float64)[:, None] * v).sum(axis=0)
+
+
+def simulate(
+    model: Model,
+    state: State,
+    *,
+    frame_dt: float,
+    n_frames: int,
+    export_F: int = 0,
+    progress: Callable[[int, int, dict], None] | None = None,
+) -> SimResult:
+    """Run from ``state`` (at step 0) and export ``n_frames`` frames every ``frame_dt`` [s],
+    the first at t = 0. ``export_F`` > 0 also exports the deformation gradient of the first
+    ``export_F`` particles (the Gaussian-associated ones). ``progress(frame, n_frames, stats)``
+    is called after each exported frame."""
+    p = model.params
+    ratio = frame_dt / p.dt
+    steps_per_frame = int(round(ratio))
+    if steps_per_frame < 1 or abs(ratio - steps_per_frame) > 1e-6 * max(1.0, ratio):
+        raise InputError("simulation", "frame_dt", f"frame_dt = {frame_dt:g} s must be a whole multiple of dt = {p.dt:g} s")
+    solver = MPMSolver(model)
+    n = model.particle_count
+    positions = np.empty((n_frames, n, 3), dtype=np.float32)
+    Fs = np.empty((n_frames, export_F, 3, 3), dtype=np.float32) if export_F else None
+    stats = solver.check(state)
+    positions[0] = state.particle_x.numpy()
+    if Fs is not None:
+        Fs[0] = state.particle_F.numpy()[:export_F]
+    for frame in range(1, n_frames):
+        for s in range(steps_per_frame):
+            solver.step(state)
+            if state.step % p.guard_every == 0:
+                stats = solver.check(state)
+        stats = solver.check(state)
+        positions[frame] = state.particle_x.numpy()
+        if Fs is not None:
+            Fs[frame] = state.particle_F.numpy()[:export_F]
+        if progress is not None:
+            progress(frame, n_frames, stats)
+    times = np.arange(n_frames, dtype=np.float64) * frame_dt
+    return SimResult(
+        times=times,
+        positions=positions,
+        F=Fs,
+        stats={"max_cfl": solver.max_cfl, "min_det_F": solver.min_det_F, "steps": state.step, "steps_per_frame": steps_per_frame},
+    )
