@@ -1,0 +1,19 @@
+"""Probe-A response descriptors: five numbers from an exported particle rollout (SPEC §5)."""
+
+from ._impl import (
+    FEATURE_NAMES,
+    descriptor,
+    descriptor_from_rollout,
+    descriptor_table,
+    read_positions,
+    rms_curves,
+)
+
+__all__ = [
+    "FEATURE_NAMES",
+    "rms_curves",
+    "descriptor",
+    "read_positions",
+    "descriptor_from_rollout",
+    "descriptor_table",
+]

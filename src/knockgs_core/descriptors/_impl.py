@@ -1,0 +1,315 @@
+"""The five-dimensional Probe-A response descriptor (SPEC §5).
+
+All arithmetic on positions is float32, as in the authors' release; the returned
+descriptor holds those float32 values promoted to float64 so downstream tables
+and estimators work in double precision without re-rounding.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Mapping
+from typing import Union
+
+import numpy as np
+
+from ..errors import InputError
+
+__all__ = [
+    "FEATURE_NAMES",
+    "rms_curves",
+    "descriptor",
+    "read_positions",
+    "descriptor_from_rollout",
+    "descriptor_table",
+]
+
+#: descriptor column names, spelled as in the authors' released tables
+FEATURE_NAMES: tuple[str, ...] = (
+    "norm_auc_rms_disp",
+    "norm_initial_slope_rms_0_5",
+    "norm_peak_rms_velocity_proxy",
+    "norm_auc_rms_velocity_proxy",
+    "early_velocity_ratio",
+)
+
+#: frames needed to form the initial slope (r^5 - r^0) / 5
+_MIN_FRAMES = 6
+#: the early window of the velocity ratio: frames 1..5
+_EARLY = 5
+
+_F32 = np.float32
+_EPS32 = float(np.finfo(np.float32).eps)
+_TINY32 = float(np.finfo(np.float32).tiny)
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+
+def _checked_positions(positions, source: object, n_frames: int | None = None) -> np.ndarray:
+    """Positions as a float32 array [T, N, 3], or an InputError naming ``source``."""
+    try:
+        x = np.asarray(positions)
+    except Exception as exc:  # ragged nested lists and the like
+        raise InputError(source, "positions", f"not an array: {exc}") from None
+    if x.ndim != 3 or x.shape[2] != 3:
+        raise InputError(source, "positions", f"expected shape [T, N, 3], got {list(x.shape)}")
+    if n_frames is not None and x.shape[0] != n_frames:
+        raise InputError(source, "frame", f"expected {n_frames} frames, got {x.shape[0]}")
+    if x.shape[0] < _MIN_FRAMES:
+        raise InputError(
+            source, "frame", f"need at least {_MIN_FRAMES} frames (t = 0..5), got {x.shape[0]}"
+        )
+    if x.shape[1] < 1:
+        raise InputError(source, "particle", "no particles")
+    if not (np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)):
+        raise InputError(source, "positions", f"expected real numbers, got dtype {x.dtype}")
+    x = x.astype(_F32, copy=False)
+    finite = np.isfinite(x)
+    if not finite.all():
+        t, i, _ = np.argwhere(~finite)[0]
+        raise InputError(
+            source, "positions", f"non-finite value (first at frame {int(t)}, particle {int(i)})"
+        )
+    return x
+
+
+def _bbox_diagonal(x0: np.ndarray, source: object) -> np.float32:
+    """D = ||max_i x_i^0 - min_i x_i^0||, rejected when not resolvable in float32."""
+    d = np.float32(np.linalg.norm(x0.max(axis=0) - x0.min(axis=0)))
+    scale = float(np.abs(x0).max())
+    if not d > max(_TINY32, 4.0 * _EPS32 * scale):
+        raise InputError(
+            source,
+            "positions",
+            f"degenerate frame-0 bounding box (diagonal {float(d):.3g}); "
+            "the descriptor is normalized by it",
+        )
+    return d
+
+
+def _curves(x: np.ndarray, d: np.float32) -> tuple[np.ndarray, np.ndarray]:
+    disp = x - x[0]
+    r = np.sqrt(np.mean(np.sum(disp * disp, axis=2, dtype=_F32), axis=1, dtype=_F32)) / d
+    step = x[1:] - x[:-1]
+    v = np.zeros(x.shape[0], dtype=_F32)
+    v[1:] = np.sqrt(np.mean(np.sum(step * step, axis=2, dtype=_F32), axis=1, dtype=_F32)) / d
+    return r.astype(_F32, copy=False), v
+
+
+def rms_curves(positions, *, source: object = "positions") -> tuple[np.ndarray, np.ndarray]:
+    """Normalized RMS displacement and RMS velocity-proxy curves.
+
+    Parameters
+    ----------
+    positions:
+        Particle positions [m], shape (T, N, 3), frame 0 being the rest state.
+    source:
+        Named in errors (a file path or a short description).
+
+    Returns
+    -------
+    r, v:
+        float32 arrays of shape (T,): ``r[t] = sqrt(mean_i |x_i^t - x_i^0|^2) / D`` and
+        ``v[t] = sqrt(mean_i |x_i^t - x_i^{t-1}|^2) / D`` with ``v[0] = 0``, where ``D`` is
+        the diagonal of the frame-0 bounding box.
+
+    Raises
+    ------
+    InputError
+        Wrong shape, fewer than 6 frames, non-finite values, degenerate bounding box.
+    """
+    x = _checked_positions(positions, source)
+    return _curves(x, _bbox_diagonal(x[0], source))
+
+
+def descriptor(positions, *, n_frames: int | None = 31, source: object = "positions") -> np.ndarray:
+    """The five-dimensional response descriptor phi of SPEC §5.
+
+    ``phi = [sum_t r^t, (r^5 - r^0)/5, max_t v^t, sum_t v^t, sum_{t=1..5} v^t / sum_t v^t]``
+    in the order of :data:`FEATURE_NAMES`, computed in float32 from all supplied particles.
+
+    Parameters
+    ----------
+    positions:
+        Particle positions [m], shape (T, N, 3), frame 0 being the rest state.
+    n_frames:
+        Required frame count T (31 exported frames including t = 0); ``None`` accepts any
+        T >= 6.
+    source:
+        Named in errors (a file path or a short description).
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape (5,), float64 holding the float32 results.
+
+    Raises
+    ------
+    InputError
+        Wrong shape or frame count, non-finite values, degenerate bounding box, or no motion
+        at all (the early-velocity ratio would be 0/0).
+    """
+    x = _checked_positions(positions, source, n_frames)
+    r, v = _curves(x, _bbox_diagonal(x[0], source))
+    v_sum = np.sum(v, dtype=_F32)
+    if not v_sum > 0:
+        raise InputError(
+            source, "positions", "no motion: every frame equals frame 0, the descriptor is undefined"
+        )
+    phi = np.array(
+        [
+            np.sum(r, dtype=_F32),
+            (r[_EARLY] - r[0]) / _F32(_EARLY),
+            np.max(v),
+            v_sum,
+            np.sum(v[1 : _EARLY + 1], dtype=_F32) / v_sum,
+        ],
+        dtype=_F32,
+    )
+    return phi.astype(np.float64)
+
+
+_ROLLOUT_COLUMNS = ("frame", "particle", "x", "y", "z")
+
+
+def read_positions(path: PathLike, *, particles: Iterable[int] | None = None) -> np.ndarray:
+    """Read a long-format rollout Parquet file into positions [T, N, 3] (float32).
+
+    The file has one row per (frame, particle) with columns ``frame``, ``particle``
+    (integers) and ``x``, ``y``, ``z``. Rows are sorted by (frame, particle); frames must be
+    0..T-1 without gaps and every frame must hold the same particle set.
+
+    Parameters
+    ----------
+    path:
+        The Parquet file.
+    particles:
+        Optional particle ids to keep (in ascending id order in the result).
+
+    Raises
+    ------
+    InputError
+        Unreadable file, missing column, nulls, duplicate or missing (frame, particle) rows,
+        unknown particle ids in ``particles``.
+    """
+    import pyarrow.parquet as pq
+
+    source = os.fspath(path)
+    try:
+        schema = pq.read_schema(source)
+    except Exception as exc:
+        raise InputError(source, "file", f"cannot read Parquet file: {exc}") from None
+    for col in _ROLLOUT_COLUMNS:
+        if col not in schema.names:
+            raise InputError(source, col, "missing column")
+    table = pq.read_table(source, columns=list(_ROLLOUT_COLUMNS))
+    cols = {}
+    for col in _ROLLOUT_COLUMNS:
+        arr = table.column(col)
+        if arr.null_count:
+            raise InputError(source, col, f"{arr.null_count} null values")
+        values = arr.to_numpy()
+        want_int = col in ("frame", "particle")
+        ok = np.issubdtype(values.dtype, np.integer) if want_int else (
+            np.issubdtype(values.dtype, np.floating) or np.issubdtype(values.dtype, np.integer)
+        )
+        if not ok:
+            kind = "integers" if want_int else "real numbers"
+            raise InputError(source, col, f"expected {kind}, got {arr.type}")
+        cols[col] = values
+    if table.num_rows == 0:
+        raise InputError(source, "frame", "no rows")
+
+    frame = cols["frame"].astype(np.int64)
+    particle = cols["particle"].astype(np.int64)
+    order = np.lexsort((particle, frame))
+    frame, particle = frame[order], particle[order]
+    xyz = np.stack([cols[c][order] for c in ("x", "y", "z")], axis=1).astype(_F32)
+
+    frames, counts = np.unique(frame, return_counts=True)
+    if frames[0] != 0 or not np.array_equal(frames, np.arange(frames.size)):
+        missing = sorted(set(range(int(frames[-1]) + 1)) - set(frames.tolist()))
+        detail = f"missing frame(s) {missing[:5]}" if missing else f"frames start at {frames[0]}"
+        raise InputError(source, "frame", f"frames must be 0..T-1 without gaps: {detail}")
+    if np.any(counts != counts[0]):
+        t = int(frames[np.argmax(counts != counts[0])])
+        raise InputError(
+            source,
+            "particle",
+            f"frame {t} has {int(counts[frames == t][0])} rows, frame 0 has {int(counts[0])}: "
+            "every frame needs the same particles",
+        )
+    n_t, n_p = frames.size, int(counts[0])
+    ids = particle.reshape(n_t, n_p)
+    dup = ids[:, 1:] == ids[:, :-1]
+    if dup.any():
+        t, j = np.argwhere(dup)[0]
+        raise InputError(
+            source, "particle", f"duplicate row for frame {int(t)}, particle {int(ids[t, j])}"
+        )
+    differ = np.any(ids != ids[0], axis=1)
+    if differ.any():
+        t = int(np.argmax(differ))
+        raise InputError(
+            source, "particle", f"frame {t} holds a different particle set than frame 0"
+        )
+    positions = xyz.reshape(n_t, n_p, 3)
+    if particles is not None:
+        wanted = np.unique(np.asarray(list(particles), dtype=np.int64))
+        if wanted.size == 0:
+            raise InputError(source, "particle", "empty particle subset")
+        idx = np.searchsorted(ids[0], wanted)
+        idx_c = np.clip(idx, 0, n_p - 1)
+        absent = ids[0][idx_c] != wanted
+        if absent.any():
+            raise InputError(
+                source, "particle", f"particle ids not in the file: {wanted[absent][:5].tolist()}"
+            )
+        positions = positions[:, idx, :]
+    return positions
+
+
+def descriptor_from_rollout(
+    path: PathLike, *, particles: Iterable[int] | None = None, n_frames: int | None = 31
+) -> np.ndarray:
+    """Descriptor of a rollout Parquet file (see :func:`read_positions` and :func:`descriptor`).
+
+    ``particles`` optionally restricts the descriptor to a subset of particle ids (for
+    example the Gaussian-associated particles); errors name the file.
+    """
+    positions = read_positions(path, particles=particles)
+    return descriptor(positions, n_frames=n_frames, source=os.fspath(path))
+
+
+def descriptor_table(named_positions_or_paths, *, n_frames: int | None = 31):
+    """A tidy table: one row per case, columns ``case_name`` + :data:`FEATURE_NAMES`.
+
+    Parameters
+    ----------
+    named_positions_or_paths:
+        A mapping ``case_name -> positions [T, N, 3] or rollout Parquet path``, or an
+        iterable of ``(case_name, item)`` pairs. Row order follows the input.
+    n_frames:
+        Required frame count, as in :func:`descriptor`.
+    """
+    import pandas as pd
+
+    items = (
+        named_positions_or_paths.items()
+        if isinstance(named_positions_or_paths, Mapping)
+        else named_positions_or_paths
+    )
+    names, rows = [], []
+    for name, item in items:
+        if isinstance(item, (str, os.PathLike)):
+            phi = descriptor_from_rollout(item, n_frames=n_frames)
+        else:
+            phi = descriptor(item, n_frames=n_frames, source=f"case {name!r}")
+        names.append(str(name))
+        rows.append(phi)
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise InputError("descriptor table", "case_name", f"duplicate case names {dup}")
+    table = pd.DataFrame(np.reshape(rows, (len(rows), len(FEATURE_NAMES))), columns=FEATURE_NAMES)
+    table.insert(0, "case_name", names)
+    return table
