@@ -46,7 +46,7 @@ def check_range(arr: np.ndarray, lo: float, hi: float, source: str, field: str) 
 def check_scene(means, covariances, colors, opacities, source: str):
     """Validate one Gaussian scene; return float64 ``(means, covariances, colors, opacities)``.
 
-    ``means: [N, 3]``, ``covariances: [N, 3, 3]`` (symmetrized here), ``colors: [N, 3]``
+    ``means: [N, 3]``, ``covariances: [N, 3, 3]``, ``colors: [N, 3]``
     in [0, 1], ``opacities: [N]`` in [0, 1].
     """
     means = as_float_array(means, source, "means", (-1, 3))
@@ -59,7 +59,6 @@ def check_scene(means, covariances, colors, opacities, source: str):
     opacities = as_float_array(opacities, source, "opacities", (-1,))
     check_count(opacities, n, source, "opacities", "means")
     check_range(opacities, 0.0, 1.0, source, "opacities")
-    covariances = 0.5 * (covariances + np.swapaxes(covariances, 1, 2))
     return means, covariances, colors, opacities
 
 

@@ -35,6 +35,7 @@ def render_reference(
     if not isinstance(camera, Camera):
         raise InputError(src, "camera", f"expected a Camera, got {type(camera).__name__}")
     bg = check_background(background, src)
+    covs = 0.5 * (covs + np.swapaxes(covs, 1, 2))
     h, w = camera.height, camera.width
     R, t = camera.rotation, camera.translation
     lim_xn, lim_xp, lim_yn, lim_yp = C.jacobian_limits(camera)

@@ -1,0 +1,309 @@
+"""Tests of knockgs_core.render: the Warp rasterizer against a NumPy reference and
+against closed-form single-Gaussian images."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from knockgs_core.errors import InputError
+from knockgs_core.render import (
+    TILE_SIZE,
+    Camera,
+    bin_tiles,
+    deform_covariances,
+    deformed_scene,
+    project,
+    rasterize,
+    render,
+    render_reference,
+)
+
+TOL = 1e-4  # Warp (float32) vs reference (float64), max abs per pixel
+
+
+def random_scene(rng, n=40, *, scale=(0.03, 0.3), opacity=(0.02, 1.0)):
+    """``n`` anisotropic Gaussians around the origin: means [n, 3], covariances [n, 3, 3], ..."""
+    means = rng.normal(0.0, 0.5, (n, 3))
+    rot = Rotation.random(n, random_state=int(rng.integers(2**31))).as_matrix()
+    s = rng.uniform(*scale, (n, 3))
+    cov = np.einsum("nij,nj,nkj->nik", rot, s**2, rot)
+    return means, cov, rng.uniform(0.0, 1.0, (n, 3)), rng.uniform(*opacity, n)
+
+
+def axis_camera(width, height, f, cx, cy):
+    """Camera at the world origin looking down +z (world_to_camera = identity)."""
+    return Camera(width=width, height=height, fx=f, fy=f, cx=cx, cy=cy, world_to_camera=np.eye(4))
+
+
+CAMERAS = {
+    "front_48x40": lambda: Camera.look_at([0.2, -0.1, -3.0], [0, 0, 0], [0, -1, 0], fov_deg=50, width=48, height=40),
+    "oblique_37x29": lambda: Camera.look_at([2.0, 1.5, 1.8], [0.1, 0, 0], [0, 0, 1], fov_deg=60, width=37, height=29),
+    "close_off_centre_50x33": lambda: Camera(
+        width=50, height=33, fx=40.0, fy=46.0, cx=21.3, cy=18.9,
+        world_to_camera=np.block([[Rotation.from_euler("xyz", [0.3, -0.2, 0.1]).as_matrix(),
+                                   np.array([[0.1], [0.0], [1.2]])], [np.zeros((1, 3)), np.ones((1, 1))]]),
+    ),
+}
+
+
+def assert_matches_reference(scene, camera, background=(1.0, 1.0, 1.0)):
+    fast = render(*scene, camera, background=background)
+    ref = render_reference(*scene, camera, background=background)
+    assert fast.rgb.shape == (camera.height, camera.width, 3) and fast.rgb.dtype == np.float32
+    assert fast.depth.shape == fast.alpha.shape == (camera.height, camera.width)
+    for name in ("rgb", "depth", "alpha"):
+        err = np.abs(getattr(fast, name) - getattr(ref, name)).max()
+        assert err < TOL, f"{name}: max abs difference {err:.3g}"
+    return fast, ref
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("camera_name", sorted(CAMERAS))
+def test_warp_matches_reference_on_random_scenes(seed, camera_name):
+    rng = np.random.default_rng(seed)
+    scene = random_scene(rng)
+    camera = CAMERAS[camera_name]()
+    bg = tuple(rng.uniform(0, 1, 3))
+    fast, ref = assert_matches_reference(scene, camera, background=bg)
+    assert ref.alpha.max() > 0.5  # the scene is in view
+
+
+def test_warp_matches_reference_with_early_termination():
+    rng = np.random.default_rng(7)
+    scene = random_scene(rng, n=40, scale=(0.2, 0.5), opacity=(0.8, 1.0))
+    camera = CAMERAS["front_48x40"]()
+    _, ref = assert_matches_reference(scene, camera, background=(0.2, 0.4, 0.6))
+    # Many pixels saturate: compositing stopped there before T < 1e-4.
+    assert (ref.alpha > 0.999).sum() > 100
+
+
+def test_culled_gaussians_match_reference():
+    rng = np.random.default_rng(3)
+    means, cov, colors, opac = random_scene(rng, n=40)
+    camera = axis_camera(48, 40, 40.0, 24.0, 20.0)
+    means[:, 2] += 2.0
+    means[0] = [0.0, 0.0, -1.0]  # behind the camera
+    means[1] = [0.0, 0.0, 0.005]  # in front of the near plane z = 0.01
+    means[2] = [5.0, 0.0, 1.0]  # far outside the field of view (clamped Jacobian)
+    means[3] = [0.0, 0.0, 0.02]  # just past the near plane: covers the whole image
+    cov[3] = 1e-6 * np.eye(3)
+    opac[4] = 0.5 / 255  # below the 1/255 alpha cut everywhere
+    proj = project(means, cov, opac, camera)
+    assert not proj.visible[[0, 1, 4]].any()
+    assert proj.visible[[2, 3]].all()
+    assert_matches_reference((means, cov, colors, opac), camera)
+
+
+def test_equal_depths_composite_in_index_order():
+    # Two overlapping Gaussians at the same depth: ties go to the lower index first,
+    # in the tiled path as in the reference, and the order visibly matters.
+    camera = axis_camera(40, 36, 50.0, 20.0, 18.0)
+    means = np.array([[-0.05, 0.0, 2.0], [0.05, 0.0, 2.0]])
+    cov = np.stack([0.15**2 * np.eye(3)] * 2)
+    colors = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    opac = np.array([0.9, 0.9])
+    a, _ = assert_matches_reference((means, cov, colors, opac), camera)
+    b, _ = assert_matches_reference((means[::-1], cov, colors[::-1], opac), camera)
+    centre = a.rgb[18, 20]
+    assert centre[0] > centre[2]  # red (index 0) in front
+    assert b.rgb[18, 20][2] > b.rgb[18, 20][0]
+
+
+@pytest.mark.parametrize("sigma,z,o", [(0.05, 2.0, 0.8), (0.01, 1.5, 0.6)])
+def test_single_isotropic_gaussian_alpha_is_analytic(sigma, z, o):
+    # On the optical axis J = diag(f/z, f/z): Sigma_2D = ((f sigma / z)^2 + 0.3) I.
+    f = 60.0
+    camera = axis_camera(49, 41, f, 24.5, 20.5)  # Gaussian centre on pixel (20, 24)'s centre
+    means, cov = np.array([[0.0, 0.0, z]]), sigma**2 * np.eye(3)[None]
+    out = render(means, cov, np.array([[0.3, 0.6, 0.9]]), np.array([o]), camera)
+    s2 = (f * sigma / z) ** 2 + 0.3
+    proj = project(means, cov, np.array([o]), camera)
+    np.testing.assert_allclose(proj.covs2d[0], [s2, 0.0, s2], rtol=1e-5, atol=1e-6)
+    for dr, dc in [(0, 0), (0, 1), (2, 0), (-3, 0), (3, 4), (0, -5)]:
+        expected = o * math.exp(-0.5 * (dr * dr + dc * dc) / s2)
+        if expected < 1 / 255:
+            expected = 0.0  # below the alpha cut
+        assert out.alpha[20 + dr, 24 + dc] == pytest.approx(expected, abs=1e-5), (dr, dc)
+
+
+def test_single_gaussian_depth_and_colour():
+    z, o = 2.5, 0.95
+    camera = axis_camera(40, 40, 50.0, 20.0, 20.0)
+    colour, bg = np.array([0.3, 0.6, 0.9]), np.array([0.1, 0.2, 0.0])
+    # centre at (u, v) = (22.5, 19.5): the centre of pixel (19, 22)
+    out = render([[0.125, -0.025, z]], 0.1**2 * np.eye(3)[None], colour[None], [o], camera, background=bg)
+    assert out.alpha[19, 22] == pytest.approx(o, abs=1e-6)
+    np.testing.assert_allclose(out.depth, z * out.alpha, atol=1e-5)
+    np.testing.assert_allclose(out.rgb, out.alpha[..., None] * colour + (1 - out.alpha[..., None]) * bg, atol=1e-5)
+
+
+def test_compositing_stops_before_transmittance_below_1e_4():
+    # Five wide Gaussians stacked on the axis, opacity 0.95 each: at the centre pixel
+    # T = 0.05, 0.0025, 1.25e-4; the fourth would take T to 6.25e-6 < 1e-4, so it and
+    # the fifth are not added.
+    camera = axis_camera(17, 17, 30.0, 8.5, 8.5)
+    n = 5
+    means = np.array([[0.0, 0.0, 1.0 + 0.1 * i] for i in range(n)])
+    cov = np.stack([np.eye(3)] * n)
+    colors = np.zeros((n, 3))
+    colors[3] = [1.0, 1.0, 1.0]
+    colors[0] = [0.0, 0.0, 1.0]
+    out = render(means, cov, colors, np.full(n, 0.95), camera, background=(0, 0, 0))
+    centre = out.rgb[8, 8]
+    assert centre[0] == pytest.approx(0.0, abs=1e-7)  # the fourth (white) Gaussian never added
+    assert centre[2] == pytest.approx(0.95, abs=1e-6)
+    assert out.alpha[8, 8] == pytest.approx(1 - 0.05**3, abs=1e-6)
+
+
+def test_empty_scene_is_background():
+    camera = axis_camera(20, 18, 20.0, 10.0, 9.0)
+    out = render(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0), camera,
+                 background=(0.25, 0.5, 0.75))
+    np.testing.assert_array_equal(out.rgb, np.broadcast_to([0.25, 0.5, 0.75], (18, 20, 3)))
+    assert not out.alpha.any() and not out.depth.any()
+
+
+def test_bin_tiles_lists_overlapped_tiles_in_depth_order():
+    camera = axis_camera(50, 40, 50.0, 0.0, 0.0)  # u = 50 x / z, v = 50 y / z
+    # Gaussian 0: tiny, at pixel (u, v) = (24, 8): tile (tx, ty) = (1, 0) only.
+    # Gaussian 1: wide, nearer, centred on the image: several tiles. Gaussian 2: behind.
+    means = np.array([[0.96, 0.32, 2.0], [0.5, 0.4, 1.0], [0.0, 0.0, -1.0]])
+    cov = np.stack([1e-8 * np.eye(3), 0.05**2 * np.eye(3), np.eye(3)])
+    proj = project(means, cov, np.ones(3), camera)
+    bins = bin_tiles(proj, 50, 40)
+    assert (bins.tiles_x, bins.tiles_y) == (4, 3) and bins.tile_size == TILE_SIZE
+    lists = {t: bins.gaussian_ids[s:e].tolist() for t, (s, e) in enumerate(bins.tile_ranges)}
+    assert 2 not in bins.gaussian_ids
+    assert [t for t, ids in lists.items() if 0 in ids] == [1]
+    tiles_of_1 = [t for t, ids in lists.items() if 1 in ids]
+    assert len(tiles_of_1) >= 4
+    assert lists[1] == [1, 0]  # front to back: the nearer wide Gaussian first
+    assert bins.tile_ranges[-1, 1] == bins.gaussian_ids.size
+
+
+def test_rasterize_uses_the_binned_lists_only():
+    # Dropping a tile's list removes that tile's content: the per-pixel kernel reads bins.
+    rng = np.random.default_rng(4)
+    scene = random_scene(rng)
+    camera = CAMERAS["front_48x40"]()
+    proj = project(scene[0], scene[1], scene[3], camera)
+    bins = bin_tiles(proj, camera.width, camera.height)
+    full = rasterize(proj, scene[2], scene[3], bins)
+    ranges = bins.tile_ranges.copy()
+    ranges[0, 1] = ranges[0, 0]
+    cut = rasterize(proj, scene[2], scene[3], type(bins)(bins.gaussian_ids, ranges, bins.width, bins.height, bins.tile_size))
+    assert full.alpha[:16, :16].max() > 0.1
+    assert not cut.alpha[:16, :16].any()
+    np.testing.assert_array_equal(cut.rgb[16:], full.rgb[16:])
+
+
+def test_look_at_camera_conventions():
+    cam = Camera.look_at([0, 0, 5], [0, 0, 0], [0, 1, 0], fov_deg=90, width=64, height=48)
+    R = cam.rotation
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    assert cam.fx == cam.fy == pytest.approx(24.0)  # (H / 2) / tan(45 deg)
+    assert (cam.cx, cam.cy) == (32.0, 24.0)
+    target_cam = cam.world_to_camera @ [0, 0, 0, 1]
+    np.testing.assert_allclose(target_cam[:3], [0, 0, 5], atol=1e-12)  # on the axis, z forward
+    up_point = cam.world_to_camera @ [0, 1, 0, 1]
+    assert up_point[1] < 0  # world up is image up (y down)
+    right_point = cam.world_to_camera @ [1, 0, 0, 1]  # looking down -z with y up: +x is right
+    assert right_point[0] > 0
+
+
+def test_deform_identity_leaves_image_unchanged():
+    rng = np.random.default_rng(5)
+    means, cov, colors, opac = random_scene(rng)
+    camera = CAMERAS["front_48x40"]()
+    F = np.broadcast_to(np.eye(3), (40, 3, 3))
+    np.testing.assert_array_equal(deform_covariances(cov, F), cov)
+    scene = deformed_scene(means, cov, colors, opac, means, F, np.zeros(40, bool))
+    np.testing.assert_array_equal(render(*scene, camera).rgb, render(means, cov, colors, opac, camera).rgb)
+
+
+def test_deform_2i_quadruples_covariance_and_widens_splat():
+    rng = np.random.default_rng(6)
+    cov = random_scene(rng, n=5)[1]
+    F = np.broadcast_to(2 * np.eye(3), (5, 3, 3))
+    np.testing.assert_allclose(deform_covariances(cov, F), 4 * cov, rtol=1e-14)
+    shear = np.eye(3) + np.array([[0, 0.5, 0], [0, 0, 0], [0, 0, 0]])
+    np.testing.assert_allclose(deform_covariances(cov[:1], shear[None])[0], shear @ cov[0] @ shear.T)
+    # Rendered: the on-axis splat variance becomes 4 (f sigma / z)^2 + 0.3.
+    f, sigma, z = 60.0, 0.03, 2.0
+    camera = axis_camera(49, 41, f, 24.5, 20.5)
+    scene = deformed_scene([[0, 0, z]], sigma**2 * np.eye(3)[None], [[1, 1, 1]], [0.9],
+                           [[0, 0, z]], 2 * np.eye(3)[None], np.array([False]))
+    out = render(*scene, camera)
+    s2 = 4 * (f * sigma / z) ** 2 + 0.3
+    assert out.alpha[20, 27] == pytest.approx(0.9 * math.exp(-0.5 * 9 / s2), abs=1e-5)
+
+
+def test_deformed_scene_moves_only_simulated_gaussians():
+    rng = np.random.default_rng(8)
+    means, cov, colors, opac = random_scene(rng, n=6)
+    static = np.array([True, False, False, True, False, False])
+    pos = rng.normal(size=(4, 3))
+    F = np.eye(3) + 0.1 * rng.normal(size=(4, 3, 3))
+    scene = deformed_scene(means, cov, colors, opac, pos, F, static)
+    np.testing.assert_array_equal(scene.means[static], means[static])
+    np.testing.assert_array_equal(scene.covariances[static], cov[static])
+    np.testing.assert_array_equal(scene.means[~static], pos)
+    np.testing.assert_allclose(scene.covariances[~static], F @ cov[~static] @ np.swapaxes(F, 1, 2))
+    # One row per Gaussian is accepted too; static rows are ignored.
+    full_pos = np.full((6, 3), 99.0)
+    full_pos[~static] = pos
+    full_F = np.broadcast_to(7 * np.eye(3), (6, 3, 3)).copy()
+    full_F[~static] = F
+    again = deformed_scene(means, cov, colors, opac, full_pos, full_F, static)
+    np.testing.assert_array_equal(again.means, scene.means)
+    np.testing.assert_array_equal(again.covariances, scene.covariances)
+    with pytest.raises(InputError, match="positions_t"):
+        deformed_scene(means, cov, colors, opac, pos[:3], F[:3], static)
+    with pytest.raises(InputError, match="static_mask"):
+        deformed_scene(means, cov, colors, opac, pos, F, static.astype(int))
+
+
+@pytest.mark.parametrize(
+    "change,field",
+    [
+        (lambda s: (s[0][:, :2],) + s[1:], "means"),
+        (lambda s: (s[0], s[1][:-1]) + s[2:], "covariances"),
+        (lambda s: (s[0], s[1][:, :2]) + s[2:], "covariances"),
+        (lambda s: s[:2] + (s[2] * 2,) + s[3:], "colors"),
+        (lambda s: s[:3] + (s[3][:, None],), "opacities"),
+        (lambda s: s[:3] + (s[3] + 1,), "opacities"),
+        (lambda s: (np.where(np.arange(3)[None] == 0, np.nan, s[0]),) + s[1:], "means"),
+    ],
+)
+def test_shape_and_value_errors_name_the_field(change, field):
+    scene = random_scene(np.random.default_rng(0), n=4)
+    camera = CAMERAS["front_48x40"]()
+    with pytest.raises(InputError) as info:
+        render(*change(scene), camera)
+    assert info.value.field == field
+    with pytest.raises(InputError) as info:
+        render_reference(*change(scene), camera)
+    assert info.value.field == field
+
+
+def test_camera_and_option_errors():
+    scene = random_scene(np.random.default_rng(0), n=4)
+    with pytest.raises(InputError, match="camera"):
+        render(*scene, "not a camera")
+    with pytest.raises(InputError, match="background"):
+        render(*scene, CAMERAS["front_48x40"](), background=(1, 1))
+    with pytest.raises(InputError, match="device"):
+        render(*scene, CAMERAS["front_48x40"](), device="no-such-device")
+    with pytest.raises(InputError, match="width"):
+        Camera(width=0, height=4, fx=1, fy=1, cx=0, cy=0, world_to_camera=np.eye(4))
+    with pytest.raises(InputError, match="world_to_camera"):
+        Camera(width=4, height=4, fx=1, fy=1, cx=0, cy=0, world_to_camera=np.eye(3))
+    with pytest.raises(InputError, match="up"):
+        Camera.look_at([0, 0, 1], [0, 0, 0], [0, 0, 2], fov_deg=40, width=8, height=8)
+    with pytest.raises(InputError, match="cov0"):
+        deform_covariances(np.eye(3), np.eye(3)[None])
