@@ -1,0 +1,119 @@
+"""Simulator throughput: particle-substeps per second and seconds per 6000-substep rollout.
+
+Body: a block of jelly (E = 1e4 Pa, nu = 0.3, rho = 2000 kg/m^3) with 8 particles per cell,
+centred in the [0, 2]^3 domain, knocked by a one-step global probe (as the Pillow contract),
+dt = 1e-4 s. Each case runs ``--steps`` substeps after a warm-up and reports the median of
+``--repeats`` timings. ``--cold`` measures the cold kernel compile in an empty cache.
+
+    python3 benchmarks/sim_bench.py --device cpu
+    python3 benchmarks/sim_bench.py --device cuda:0 --cases 100000:100 700000:100
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+
+def block(n_particles: int, n_grid: int, grid_lim: float = 2.0, ppc: int = 8) -> np.ndarray:
+    dx = grid_lim / n_grid
+    per_axis = round(ppc ** (1 / 3))
+    cells = max(1, round((n_particles / ppc) ** (1 / 3)))
+    if cells > n_grid - 8:
+        raise SystemExit(f"{n_particles} particles at 8 per cell do not fit n_grid {n_grid}")
+    h = dx / per_axis
+    side = cells * dx
+    axis = (grid_lim - side) / 2 + h * (np.arange(cells * per_axis) + 0.5)
+    X = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    return X.astype(np.float32)
+
+
+def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: str) -> dict:
+    import warp as wp
+
+    from knockgs_core.sim import MPMSolver, Probe, SimParams, build_model, make_state
+
+    X = block(n_particles, n_grid)
+    params = SimParams(n_grid=n_grid, dt=1e-4)
+    model = build_model(X, E=1e4, nu=0.3, rho=2000.0, params=params, probe=Probe("standard_x", (-0.18, 0.0, 0.0)), device=device)
+    state = make_state(model, X)
+    solver = MPMSolver(model)
+    solver.check(state)
+    for _ in range(20):  # warm-up (kernel load, caches)
+        solver.step(state)
+    wp.synchronize_device(device)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for s in range(steps):
+            solver.step(state)
+            if state.step % params.guard_every == 0:
+                solver.check(state)
+        wp.synchronize_device(device)
+        times.append(time.perf_counter() - t0)
+    med = statistics.median(times)
+    rate = len(X) * steps / med
+    return {
+        "particles": len(X),
+        "n_grid": n_grid,
+        "steps": steps,
+        "median_s": med,
+        "particle_substeps_per_s": rate,
+        "s_per_6000_substeps": 6000 * med / steps,
+        "ms_per_substep": 1000 * med / steps,
+    }
+
+
+def cold_compile_seconds() -> float:
+    """Seconds to import, initialise and compile the solver module in an empty kernel cache."""
+    code = (
+        "import time, numpy as np; t0 = time.perf_counter();"
+        "import warp as wp; wp.config.kernel_cache_dir = __import__('os').environ['WC'];"
+        "from knockgs_core.sim import SimParams, build_model, make_state, MPMSolver;"
+        "X = np.full((8, 3), 1.0, np.float32) + np.random.default_rng(0).uniform(0, .05, (8, 3)).astype(np.float32);"
+        "m = build_model(X, E=1e4, nu=.3, rho=1e3, params=SimParams(n_grid=32, dt=1e-4)); s = make_state(m, X);"
+        "sv = MPMSolver(m); sv.check(s); sv.step(s); print(time.perf_counter() - t0)"
+    )
+    with tempfile.TemporaryDirectory() as d:
+        out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "WC": d}, capture_output=True, text=True, check=True)
+    return float(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--cases", nargs="*", default=["5000:32", "5000:64", "5000:100", "20000:32", "20000:64", "100000:64", "100000:100"], help="PARTICLES:N_GRID")
+    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--cold", action="store_true", help="also measure a cold compile")
+    ap.add_argument("--json", help="write results here")
+    args = ap.parse_args()
+    rows = []
+    print(f"# device {args.device}, {platform.processor() or platform.machine()}, python {platform.python_version()}")
+    print("| particles | n_grid | particle-substeps/s | ms/substep | s per 6000-substep rollout |")
+    print("|---:|---:|---:|---:|---:|")
+    for case in args.cases:
+        n, g = (int(v) for v in case.split(":"))
+        r = run_case(n, g, args.steps, args.repeats, args.device)
+        rows.append(r)
+        print(f"| {r['particles']:,} | {g} | {r['particle_substeps_per_s']:.3g} | {r['ms_per_substep']:.3f} | {r['s_per_6000_substeps']:.2f} |", flush=True)
+    out = {"device": args.device, "rows": rows}
+    if args.cold:
+        out["cold_compile_s"] = cold_compile_seconds()
+        print(f"cold compile (import + init + build + first step, empty cache): {out['cold_compile_s']:.1f} s")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(out, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()

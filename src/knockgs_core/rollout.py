@@ -1,0 +1,225 @@
+"""Run one rollout of an object contract and store it as Parquet.
+
+Rollout file (one per object, profile, parameter case and probe), long format::
+
+    frame (int32), particle (int32), x, y, z (float32)
+
+one row per (frame, particle), particles ``0 .. n_gs - 1`` Gaussian-associated, then fill
+particles. The schema metadata key ``knockgs`` holds JSON: theta, probe, export times,
+n_gs, n_fill, the total probe force, the contract hash, solver settings, guard statistics
+and package versions. The deformation gradient of the Gaussian-associated particles, when
+asked for, goes to a second Parquet file (``frame, particle, F00 .. F22``).
+
+Files are written to a temporary name and renamed, so an interrupted run never leaves a
+partial rollout behind.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from . import __version__
+from .errors import InputError
+from .sim import Probe, SimResult, build_model, make_state, simulate
+
+__all__ = ["Rollout", "run_rollout", "write_rollout", "read_rollout", "read_rollout_meta", "write_deformation", "read_deformation", "theta_tag"]
+
+META_KEY = b"knockgs"
+F_COLUMNS = [f"F{i}{j}" for i in range(3) for j in range(3)]
+
+
+@dataclass
+class Rollout:
+    """A finished rollout: positions [m] (T, N, 3) float32, optional F (T, n_gs, 3, 3), metadata."""
+
+    positions: np.ndarray
+    F: np.ndarray | None
+    meta: dict[str, Any]
+
+
+def theta_tag(theta: tuple[float, float]) -> str:
+    """A file-name tag for a parameter pair, exact to 1e-6: ``sE0.950000_sR1.350000``."""
+    return f"sE{theta[0]:.6f}_sR{theta[1]:.6f}"
+
+
+def _jsonable(obj):
+    if dataclasses.is_dataclass(obj):
+        return {k: _jsonable(v) for k, v in dataclasses.asdict(obj).items()}
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return str(obj)
+    if isinstance(obj, (np.floating, np.integer)):
+        return obj.item()
+    return obj
+
+
+def run_rollout(
+    contract,
+    theta: tuple[float, float],
+    probe_name: str,
+    *,
+    particles=None,
+    device: str | None = None,
+    export_F: bool = False,
+    probe: Probe | None = None,
+    progress: Callable[[int, int, dict], None] | None = None,
+    sim_overrides: dict | None = None,
+) -> Rollout:
+    """Simulate ``contract`` at ``theta = (s_E, s_rho)`` under its probe ``probe_name``.
+
+    ``particles`` (a :class:`knockgs_core.assets.ParticleSet`) defaults to building the
+    contract's asset. ``probe`` overrides the contract's probe of that name (diagnostics).
+    ``sim_overrides`` replaces fields of the contract's :class:`~knockgs_core.sim.SimParams`.
+    """
+    import warp as wp
+
+    s_e, s_rho = (float(t) for t in theta)
+    if not (s_e > 0 and s_rho > 0 and math.isfinite(s_e) and math.isfinite(s_rho)):
+        raise InputError(f"object {contract.name}", "theta", f"scales must be positive and finite, got {theta}")
+    if probe is None:
+        if probe_name not in contract.probes:
+            raise InputError(contract.source, "probes", f"unknown probe '{probe_name}'; known: {sorted(contract.probes)}")
+        probe = contract.probes[probe_name]
+    if particles is None:
+        from .assets import build_asset
+
+        particles = build_asset(contract).particles
+    params = contract.sim
+    if sim_overrides:
+        params = dataclasses.replace(params, **sim_overrides)
+    E, nu, rho = contract.particle_materials(particles, (s_e, s_rho))
+    n = len(particles.positions)
+    ref = getattr(contract, "probe_reference_particles", None)
+    force_scale = float(ref) / n if ref else 1.0
+    t0 = time.perf_counter()
+    model = build_model(
+        particles.positions, E=E, nu=nu, rho=rho, params=params, volumes=particles.volumes,
+        probe=probe, probe_force_scale=force_scale, device=device,
+    )
+    state = make_state(model, particles.positions)
+    result: SimResult = simulate(
+        model, state, frame_dt=probe.export.frame_dt, n_frames=probe.export.n_frames,
+        export_F=particles.n_gs if export_F else 0, progress=progress,
+    )
+    wall = time.perf_counter() - t0
+    meta = {
+        "object": contract.name,
+        "profile": contract.profile,
+        "contract_hash": contract.hash,
+        "theta": [s_e, s_rho],
+        "probe": _jsonable(probe),
+        "probe_force_scale": force_scale,
+        "probe_selected_count": model.probe_count,
+        "probe_force_per_particle_step": list(model.probe_force),
+        "total_probe_force": list(model.total_probe_force),
+        "probe_impulse": list(model.probe_impulse),
+        "export_times": result.times.tolist(),
+        "n_gs": int(particles.n_gs),
+        "n_fill": int(n - particles.n_gs),
+        "sim": _jsonable(params),
+        "stats": _jsonable(result.stats),
+        "device": model.device,
+        "wall_seconds": wall,
+        "versions": {"knockgs": __version__, "warp": wp.config.version, "numpy": np.__version__},
+    }
+    return Rollout(positions=result.positions, F=result.F, meta=meta)
+
+
+def _atomic_write_table(table: pa.Table, path: Path) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    pq.write_table(table, tmp, compression="zstd")
+    os.replace(tmp, path)
+
+
+def write_rollout(path, rollout: Rollout) -> None:
+    """Write positions in the long Parquet format with the metadata (atomically)."""
+    X = np.asarray(rollout.positions, dtype=np.float32)
+    if not np.all(np.isfinite(X)):
+        raise InputError(path, "x", "refusing to write non-finite positions")
+    T, N, _ = X.shape
+    table = pa.table(
+        {
+            "frame": pa.array(np.repeat(np.arange(T, dtype=np.int32), N)),
+            "particle": pa.array(np.tile(np.arange(N, dtype=np.int32), T)),
+            "x": pa.array(X[:, :, 0].reshape(-1)),
+            "y": pa.array(X[:, :, 1].reshape(-1)),
+            "z": pa.array(X[:, :, 2].reshape(-1)),
+        }
+    )
+    table = table.replace_schema_metadata({META_KEY: json.dumps(rollout.meta).encode()})
+    _atomic_write_table(table, path)
+
+
+def write_deformation(path, rollout: Rollout) -> None:
+    """Write the deformation gradients (frame, particle, F00..F22) of the GS particles."""
+    if rollout.F is None:
+        raise InputError(path, "F", "the rollout was run without export_F")
+    F = np.asarray(rollout.F, dtype=np.float32)
+    T, N = F.shape[:2]
+    cols = {"frame": pa.array(np.repeat(np.arange(T, dtype=np.int32), N)), "particle": pa.array(np.tile(np.arange(N, dtype=np.int32), T))}
+    flat = F.reshape(T * N, 9)
+    for c, name in enumerate(F_COLUMNS):
+        cols[name] = pa.array(flat[:, c])
+    table = pa.table(cols).replace_schema_metadata({META_KEY: json.dumps(rollout.meta).encode()})
+    _atomic_write_table(table, path)
+
+
+def read_rollout_meta(path) -> dict:
+    """The ``knockgs`` metadata of a rollout file."""
+    try:
+        md = pq.read_schema(path).metadata or {}
+    except (OSError, pa.ArrowInvalid) as exc:
+        raise InputError(path, "file", f"not a readable Parquet file ({exc})") from None
+    if META_KEY not in md:
+        raise InputError(path, "metadata.knockgs", "missing: not a KnockGS rollout")
+    return json.loads(md[META_KEY])
+
+
+def _reshape(table: pa.Table, path, value_cols: list[str]) -> np.ndarray:
+    for col in ["frame", "particle", *value_cols]:
+        if col not in table.column_names:
+            raise InputError(path, col, "missing column")
+    frame = table.column("frame").to_numpy()
+    particle = table.column("particle").to_numpy()
+    T = int(frame.max()) + 1 if len(frame) else 0
+    N = int(particle.max()) + 1 if len(particle) else 0
+    if T * N != len(frame):
+        raise InputError(path, "frame", f"{len(frame)} rows do not form {T} frames x {N} particles (missing rows)")
+    order = np.lexsort((particle, frame))
+    if not (np.array_equal(frame[order], np.repeat(np.arange(T), N)) and np.array_equal(particle[order], np.tile(np.arange(N), T))):
+        raise InputError(path, "particle", "duplicate or missing (frame, particle) rows")
+    vals = np.stack([table.column(c).to_numpy()[order].astype(np.float32) for c in value_cols], axis=-1)
+    if not np.all(np.isfinite(vals)):
+        raise InputError(path, value_cols[0], "non-finite values")
+    return vals.reshape(T, N, len(value_cols))
+
+
+def read_rollout(path) -> Rollout:
+    """Read a rollout file: positions (T, N, 3) float32 and its metadata."""
+    meta = read_rollout_meta(path)
+    table = pq.read_table(path)
+    X = _reshape(table, path, ["x", "y", "z"])
+    return Rollout(positions=X, F=None, meta=meta)
+
+
+def read_deformation(path) -> np.ndarray:
+    """Deformation gradients (T, n_gs, 3, 3) float32 from a file of :func:`write_deformation`."""
+    table = pq.read_table(path)
+    F = _reshape(table, path, F_COLUMNS)
+    return F.reshape(F.shape[0], F.shape[1], 3, 3)
