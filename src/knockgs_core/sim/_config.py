@@ -167,6 +167,11 @@ class SimParams:
     boundaries: tuple[BoundaryCondition, ...] = (DomainWalls(),)
     cfl_limit: float = 1.0
     guard_every: int = 50
+    effects: tuple = ()
+    """Optional extra physics (see :mod:`knockgs_core.sim` docs): frozen dataclasses with any of
+    ``materials(positions, E, nu, rho) -> (E, nu, rho)`` (applied once when the model is built),
+    ``apply_grid(solver, state, lo, dims, t)`` (after boundary conditions, each substep) and
+    ``apply_particles(solver, state, t)`` (after the grid-to-particle transfer, each substep)."""
 
     @property
     def dx(self) -> float:

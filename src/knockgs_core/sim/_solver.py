@@ -160,6 +160,9 @@ def build_model(
     E = _as_particle_array(E, n, "E")
     nu = _as_particle_array(nu, n, "nu")
     rho = _as_particle_array(rho, n, "rho")
+    for effect in params.effects:
+        if hasattr(effect, "materials"):
+            E, nu, rho = (np.asarray(a, dtype=np.float64) for a in effect.materials(x, E, nu, rho))
     if np.any(E <= 0) or np.any(rho <= 0) or np.any(nu <= -1) or np.any(nu >= 0.5):
         raise InputError("material", "E/nu/rho", "need E > 0, rho > 0, -1 < nu < 0.5")
     vol = particle_volumes(x, dx) if volumes is None else np.asarray(volumes, dtype=np.float32)
@@ -321,6 +324,9 @@ class MPMSolver:
                 wp.launch(K.grid_bc_walls, dim=dims, inputs=[lo, p.n_grid, bc.padding, int(bc.mode == "sticky")], outputs=[state.grid_mv], device=dev)
             elif isinstance(bc, FixedCuboid) and bc.start_time <= t < bc.end_time:
                 wp.launch(K.grid_bc_cuboid, dim=dims, inputs=[lo, p.dx, wp.vec3(*bc.box.center), wp.vec3(*bc.box.half_size), wp.vec3(*bc.velocity)], outputs=[state.grid_mv], device=dev)
+        for effect in p.effects:
+            if hasattr(effect, "apply_grid"):
+                effect.apply_grid(self, state, lo, dims, t)
         trans_mask, trans_v, trans_on = self._zero_mask, wp.vec3(0.0), 0
         for bc, mask in m.translations:  # at most one active translation is supported per step
             if bc.start_time <= t < bc.end_time:
@@ -332,6 +338,9 @@ class MPMSolver:
             outputs=[state.particle_x, state.particle_v, state.particle_C, state.particle_F, self._overrun],
             device=dev,
         )
+        for effect in p.effects:
+            if hasattr(effect, "apply_particles"):
+                effect.apply_particles(self, state, t)
         state.step += 1
 
     def momentum(self, state: State) -> np.ndarray:
