@@ -1,0 +1,75 @@
+"""Renderer speed: seconds per frame of ``knockgs_core.render.render`` by scene size.
+
+Scene: ``N`` anisotropic Gaussians (random rotations, axis scales log-uniform in
+[0.005, 0.03]), centres uniform in the unit cube around (1, 1, 1) -- the object box
+of the MPM domain -- opacities uniform in [0.3, 1]; camera 2.6 from the centre, 40
+degree vertical field of view, so the object fills most of the frame. Each case runs
+one warm-up render, then ``--repeats`` timed renders, and reports medians of the full
+render and of its stages (project, bin_tiles on the host, rasterize).
+
+    python3 benchmarks/render_bench.py                      # CPU, 5k/50k x 256/512
+    python3 benchmarks/render_bench.py --device cuda:0 --counts 50000 600000
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import time
+
+import numpy as np
+import warp as wp
+from scipy.spatial.transform import Rotation
+
+from knockgs_core.render import Camera, bin_tiles, project, rasterize, render
+
+
+def scene(n: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    means = rng.uniform(0.5, 1.5, (n, 3))
+    rot = Rotation.random(n, random_state=seed).as_matrix()
+    s = np.exp(rng.uniform(np.log(0.005), np.log(0.03), (n, 3)))
+    cov = np.einsum("nij,nj,nkj->nik", rot, s**2, rot)
+    return means, cov, rng.uniform(0.0, 1.0, (n, 3)), rng.uniform(0.3, 1.0, n)
+
+
+def timed(fn, repeats: int):
+    out = fn()  # warm-up (and kernel load)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--counts", type=int, nargs="+", default=[5_000, 50_000])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512], help="square image side [px]")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--device", default="cpu")
+    args = ap.parse_args()
+
+    wp.init()
+    print(f"device: {args.device} ({wp.get_device(args.device).name}); {platform.processor() or platform.machine()}; "
+          f"warp {wp.__version__}; median of {args.repeats} repeats")
+    print()
+    print("| Gaussians | image | render [s/frame] | project [s] | bin_tiles [s] | rasterize [s] | tile pairs |")
+    print("|---:|---:|---:|---:|---:|---:|---:|")
+    for n in args.counts:
+        means, cov, colors, opac = scene(n)
+        for size in args.sizes:
+            cam = Camera.look_at([1.0, -1.6, 1.9], [1.0, 1.0, 1.0], [0.0, 0.0, 1.0],
+                                 fov_deg=40.0, width=size, height=size)
+            t_render, _ = timed(lambda: render(means, cov, colors, opac, cam, device=args.device), args.repeats)
+            t_proj, proj = timed(lambda: project(means, cov, opac, cam, device=args.device), args.repeats)
+            t_bin, bins = timed(lambda: bin_tiles(proj, size, size), args.repeats)
+            t_rast, _ = timed(lambda: rasterize(proj, colors, opac, bins, device=args.device), args.repeats)
+            print(f"| {n:,} | {size}x{size} | {t_render:.4f} | {t_proj:.4f} | {t_bin:.4f} | {t_rast:.4f} "
+                  f"| {bins.gaussian_ids.size:,} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
