@@ -821,7 +821,9 @@ def _as_table(table, default_source: str):
             raise InputError(source, "file", "no such file") from None
         except Exception as exc:
             raise InputError(source, "file", f"cannot read CSV: {exc}") from None
-    raise InputError(default_source, "table", f"expected a DataFrame or a CSV path, got {type(table).__name__}")
+    raise InputError(
+        default_source, "table", f"expected a DataFrame or a CSV path, got {type(table).__name__}"
+    )
 
 
 def _case_names(df, source) -> list[str]:

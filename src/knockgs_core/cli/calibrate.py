@@ -46,7 +46,8 @@ def _parse_k(text: str):
     try:
         return int(text)
     except ValueError:
-        raise InputError("command line", "--k", f"expected an integer or 'cv', got {text!r}") from None
+        message = f"expected an integer or 'cv', got {text!r}"
+        raise InputError("command line", "--k", message) from None
 
 
 def _parse_alpha(text: str):
@@ -55,7 +56,8 @@ def _parse_alpha(text: str):
     try:
         return float(text)
     except ValueError:
-        raise InputError("command line", "--alpha", f"expected a number or 'cv', got {text!r}") from None
+        message = f"expected a number or 'cv', got {text!r}"
+        raise InputError("command line", "--alpha", message) from None
 
 
 def run(args: argparse.Namespace) -> int:

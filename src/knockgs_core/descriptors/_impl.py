@@ -154,7 +154,9 @@ def descriptor(positions, *, n_frames: int | None = 31, source: object = "positi
     v_sum = np.sum(v, dtype=_F32)
     if not v_sum > 0:
         raise InputError(
-            source, "positions", "no motion: every frame equals frame 0, the descriptor is undefined"
+            source,
+            "positions",
+            "no motion: every frame equals frame 0, the descriptor is undefined",
         )
     phi = np.array(
         [
