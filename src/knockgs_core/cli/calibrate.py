@@ -1,4 +1,4 @@
-"""``knockgs calibrate``: estimate (s_E, s_rho) for query descriptors from a candidate library.
+"""Estimate (s_E, s_rho) for query descriptors from a candidate library.
 
 Reads a library CSV (``case_name, E_scale, density_scale`` + the five descriptor columns)
 and a query CSV (``case_name`` + the five columns; other columns, labels included, are
