@@ -115,7 +115,7 @@ class Camera:
                    world_to_camera=m)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class RenderOutput:
     """A rendered frame.
 

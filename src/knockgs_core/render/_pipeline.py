@@ -15,7 +15,7 @@ from ._checks import as_float_array, check_background, check_count, check_range,
 from ._kernels import project_kernel, rasterize_kernel
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Projection:
     """Per-Gaussian screen-space quantities (host arrays, N = number of Gaussians).
 
@@ -40,7 +40,7 @@ class Projection:
         return np.all(self.radii > 0, axis=1)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TileBins:
     """Gaussian lists per tile, each sorted front to back.
 
