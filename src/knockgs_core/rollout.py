@@ -90,14 +90,14 @@ def run_rollout(
     s_e, s_rho = (float(t) for t in theta)
     if not (s_e > 0 and s_rho > 0 and math.isfinite(s_e) and math.isfinite(s_rho)):
         raise InputError(f"object {contract.name}", "theta", f"scales must be positive and finite, got {theta}")
-    if probe is None:
-        if probe_name not in contract.probes:
-            raise InputError(contract.source, "probes", f"unknown probe '{probe_name}'; known: {sorted(contract.probes)}")
-        probe = contract.probes[probe_name]
+    if probe is None and probe_name not in contract.probes:
+        raise InputError(contract.source, "probes", f"unknown probe '{probe_name}'; known: {sorted(contract.probes)}")
     if particles is None:
         from .assets import build_asset
 
         particles = build_asset(contract).particles
+    if probe is None:  # contact boxes checked and matched-total-force probes rescaled
+        probe = contract.resolve_probes(particles)[probe_name]
     params = contract.sim
     if sim_overrides:
         params = dataclasses.replace(params, **sim_overrides)

@@ -1,0 +1,158 @@
+"""Audits of a workflow run; each returns a JSON-ready verdict ``{"passed": bool, ...}``.
+
+- leakage: no deployable estimator read a Probe-B file, a target label or anything but the
+  candidate library and the Probe-A query table; the query table carries no labels; no
+  target is a library candidate; library rollouts are Probe-A rollouts of candidates.
+- non-finite: every rollout and table is finite.
+- missing frames: every rollout holds every exported frame of every particle.
+- duplicates: no duplicate case names or parameter pairs among candidates and targets.
+- completion: every expected output exists and every main table has every method.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+
+from .descriptors import FEATURE_NAMES
+
+__all__ = ["audit_leakage", "audit_nonfinite", "audit_missing_frames", "audit_duplicates", "audit_completion"]
+
+LABEL_COLUMNS = ("E_scale", "density_scale", "E_true", "rho_true")
+
+
+def audit_leakage(
+    estimate_files: Iterable,
+    *,
+    calibration_probes: Mapping[str, str],
+    candidates: pd.DataFrame,
+    targets: pd.DataFrame,
+    library_rollouts: Iterable = (),
+) -> dict:
+    """Leakage from recorded inputs. ``calibration_probes``: object -> Probe-A name.
+    Estimate files live at ``.../estimates/{object}/{split}/{method}.json``."""
+    problems: list[str] = []
+    checked = 0
+    for f in estimate_files:
+        f = Path(f)
+        doc = json.loads(f.read_text())
+        if not doc.get("deployable", False):
+            continue  # the oracle is evaluation-only by construction
+        checked += 1
+        obj = f.parent.parent.name
+        inputs = [str(x) for x in doc.get("rule_inputs", [])] or [str(x) for x in doc.get("inputs", {}).values()]
+        if not inputs:
+            problems.append(f"{f}: no recorded inputs")
+        for inp in inputs:
+            name = Path(inp).name
+            allowed = name == "library.csv" or (name.startswith("queries_") and name.endswith(".csv"))
+            if not allowed:
+                problems.append(f"{f}: deployable estimator read '{inp}' (only library.csv and queries_*.csv are allowed)")
+            if "/eval/" in inp or "/rollouts/" in inp or "targets" in name or "ground_truth" in name:
+                problems.append(f"{f}: input '{inp}' is a rollout or label file")
+        for inp in inputs:
+            if Path(inp).name.startswith("queries_") and Path(inp).exists():
+                cols = set(pd.read_csv(inp, nrows=1).columns)
+                bad = cols & set(LABEL_COLUMNS)
+                extra = cols - {"case_name", *FEATURE_NAMES}
+                if bad:
+                    problems.append(f"{inp}: query table carries label columns {sorted(bad)}")
+                if extra - bad:
+                    problems.append(f"{inp}: query table carries unexpected columns {sorted(extra - bad)}")
+        _ = obj
+    cand_pairs = {(round(a, 9), round(b, 9)) for a, b in zip(candidates.E_scale, candidates.density_scale)}
+    for r in targets.itertuples(index=False):
+        if (round(r.E_scale, 9), round(r.density_scale, 9)) in cand_pairs:
+            problems.append(f"target {r.case_name} ({r.E_scale}, {r.density_scale}) is a library candidate")
+    n_lib = 0
+    for f in library_rollouts:
+        n_lib += 1
+        md = json.loads(pq.read_schema(f).metadata[b"knockgs"])
+        want = calibration_probes.get(md["object"])
+        if md["probe"]["name"] != want:
+            problems.append(f"{f}: library rollout under probe '{md['probe']['name']}', not Probe A '{want}'")
+        if (round(md["theta"][0], 6), round(md["theta"][1], 6)) not in {(round(a, 6), round(b, 6)) for a, b in cand_pairs}:
+            problems.append(f"{f}: library rollout at theta {md['theta']} is not a candidate")
+    return {"passed": not problems, "deployable_estimates_checked": checked, "library_rollouts_checked": n_lib, "problems": problems}
+
+
+def _rollout_files(dirs: Sequence) -> list[Path]:
+    files: list[Path] = []
+    for d in dirs:
+        files += sorted(p for p in Path(d).rglob("*.parquet") if not p.name.endswith(".F.parquet"))
+    return files
+
+
+def audit_nonfinite(rollout_dirs: Sequence, tables: Iterable) -> dict:
+    """Every rollout coordinate and every numeric table cell is finite."""
+    problems = []
+    files = _rollout_files(rollout_dirs)
+    for f in files:
+        t = pq.read_table(f, columns=["x", "y", "z"])
+        for c in ("x", "y", "z"):
+            if not np.all(np.isfinite(t.column(c).to_numpy())):
+                problems.append(f"{f}: non-finite {c}")
+    n_tables = 0
+    for f in tables:
+        n_tables += 1
+        df = pd.read_csv(f)
+        num = df.select_dtypes(include=[np.number])
+        vals = num.to_numpy(dtype=float)
+        # +inf PSNR (identical frames) is a legitimate value; NaN and -inf are not
+        bad = np.isnan(vals) | np.isneginf(vals)
+        if bad.any():
+            cols = sorted({num.columns[j] for j in np.nonzero(bad)[1]})
+            problems.append(f"{f}: NaN in {cols}")
+    return {"passed": not problems, "rollouts_checked": len(files), "tables_checked": n_tables, "problems": problems}
+
+
+def audit_missing_frames(rollout_dirs: Sequence) -> dict:
+    """Every rollout has rows for all frames x particles and as many frames as its probe exports."""
+    problems = []
+    files = _rollout_files(rollout_dirs)
+    for f in files:
+        md = json.loads(pq.read_schema(f).metadata[b"knockgs"])
+        t = pq.read_table(f, columns=["frame", "particle"])
+        frames = t.column("frame").to_numpy()
+        n_frames = md["probe"]["export"]["n_frames"]
+        n = md["n_gs"] + md["n_fill"]
+        counts = np.bincount(frames, minlength=n_frames)
+        if len(counts) != n_frames or np.any(counts != n):
+            problems.append(f"{f}: expected {n_frames} frames x {n} particles, found frame counts {counts.tolist()[:8]}...")
+    return {"passed": not problems, "rollouts_checked": len(files), "problems": problems}
+
+
+def audit_duplicates(candidates: pd.DataFrame, targets: pd.DataFrame, library_tables: Iterable = ()) -> dict:
+    """No duplicate case names or parameter pairs among candidates, targets and libraries."""
+    problems = []
+    for name, df in [("candidates", candidates), ("targets", targets)]:
+        if df.case_name.duplicated().any():
+            problems.append(f"{name}: duplicate case names {sorted(df.case_name[df.case_name.duplicated()])}")
+        pairs = df[["E_scale", "density_scale"]].round(9)
+        if pairs.duplicated().any():
+            problems.append(f"{name}: duplicate parameter pairs {pairs[pairs.duplicated()].values.tolist()}")
+    for f in library_tables:
+        lib = pd.read_csv(f)
+        if lib.case_name.duplicated().any() or lib[["E_scale", "density_scale"]].round(9).duplicated().any():
+            problems.append(f"{f}: duplicate cases")
+        if len(lib) != len(candidates):
+            problems.append(f"{f}: {len(lib)} rows for {len(candidates)} candidates")
+    return {"passed": not problems, "candidates": len(candidates), "targets": len(targets), "problems": problems}
+
+
+def audit_completion(expected: Iterable, main_tables: Iterable = (), methods: Sequence[str] = ()) -> dict:
+    """Every expected output exists (non-empty) and every main table lists every method."""
+    expected = [str(e) for e in expected]
+    missing = [e for e in expected if not Path(e).exists() or Path(e).stat().st_size == 0]
+    problems = [f"missing output {m}" for m in missing]
+    for f in main_tables:
+        got = set(pd.read_csv(f)["method"])
+        lost = [m for m in methods if m not in got]
+        if lost:
+            problems.append(f"{f}: methods missing {lost}")
+    return {"passed": not problems, "expected": len(expected), "problems": problems}

@@ -1,0 +1,227 @@
+"""The studies behind each table: descriptor tables, frozen estimates, Probe-A/B evaluation.
+
+Workflow scripts call one function here each. Method names in tables follow the paper
+(``fixed_default`` ... ``parameter_nearest_oracle``); :data:`CALIBRATION_METHOD` maps them to
+:mod:`knockgs_core.calibration` method keys. The oracle is evaluation-only: it is built here
+from hidden labels and never reachable from :func:`frozen_estimate` for deployable methods.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+
+from .descriptors import FEATURE_NAMES, descriptor
+from .errors import InputError
+from .metrics import curve_metrics, joint_error_pct, trajectory_rmse
+from .rollout import read_rollout, theta_tag
+
+__all__ = [
+    "TABLE_METHODS",
+    "DEPLOYABLE_METHODS",
+    "CALIBRATION_METHOD",
+    "library_table",
+    "query_table",
+    "frozen_estimate",
+    "oracle_estimate",
+    "evaluate_method",
+    "file_sha256",
+    "theta_tag",
+]
+
+#: table method name -> calibration method key (None: evaluation-only oracle)
+CALIBRATION_METHOD: dict[str, str | None] = {
+    "fixed_default": "default",
+    "response_nearest": "nearest",
+    "response_knn": "knn",
+    "global_ridge": "global_ridge",
+    "local_ridge": "local_ridge",
+    "parameter_nearest_oracle": None,
+}
+TABLE_METHODS = tuple(CALIBRATION_METHOD)
+DEPLOYABLE_METHODS = tuple(m for m, k in CALIBRATION_METHOD.items() if k is not None)
+
+
+def file_sha256(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _descriptor_of(path) -> np.ndarray:
+    ro = read_rollout(path)
+    return descriptor(ro.positions, n_frames=ro.positions.shape[0], source=str(path))
+
+
+def library_table(candidates: pd.DataFrame, rollouts: Mapping[str, str]) -> pd.DataFrame:
+    """Candidate library: ``case_name, E_scale, density_scale`` + the five descriptor
+    features of each candidate's Probe-A rollout (``rollouts[case_name] -> path``)."""
+    rows = []
+    for rec in candidates.itertuples(index=False):
+        phi = _descriptor_of(rollouts[rec.case_name])
+        rows.append({"case_name": rec.case_name, "E_scale": rec.E_scale, "density_scale": rec.density_scale, **dict(zip(FEATURE_NAMES, phi))})
+    return pd.DataFrame(rows)
+
+
+def query_table(rollouts: Mapping[str, str]) -> pd.DataFrame:
+    """Query descriptors of the targets' Probe-A rollouts: ``case_name`` + five features,
+    no labels (the labels never enter a deployable estimator)."""
+    return pd.DataFrame([{"case_name": name, **dict(zip(FEATURE_NAMES, _descriptor_of(p)))} for name, p in rollouts.items()])
+
+
+def frozen_estimate(method: str, library_csv, queries_csv, params: Mapping | None = None, *, config_hash: str = "") -> dict:
+    """A deployable method's frozen estimates: the calibration output plus provenance
+    (inputs and their hashes, configuration hash). Reads only the library and query tables."""
+    from .calibration import calibrate
+
+    key = CALIBRATION_METHOD.get(method)
+    if key is None:
+        raise InputError("estimate", "method", f"'{method}' is not deployable; deployable: {', '.join(DEPLOYABLE_METHODS)}")
+    out = calibrate(str(library_csv), str(queries_csv), key, **dict(params or {}))
+    out["table_method"] = method
+    out["deployable"] = True
+    out["inputs"] = {"library": str(library_csv), "queries": str(queries_csv)}
+    out["input_sha256"] = {"library": file_sha256(library_csv), "queries": file_sha256(queries_csv)}
+    out["config_hash"] = config_hash
+    return out
+
+
+def oracle_estimate(library_csv, targets: pd.DataFrame, *, config_hash: str = "") -> dict:
+    """Parameter-nearest oracle (reads the hidden targets; a diagnostic, never deployable)."""
+    from .calibration.oracle import ParameterNearestOracle
+
+    lib = pd.read_csv(library_csv)
+    oracle = ParameterNearestOracle().fit(None, lib[["E_scale", "density_scale"]].to_numpy(), lib["case_name"].tolist())
+    est = oracle.predict(targets[["E_scale", "density_scale"]].to_numpy(), names=targets["case_name"].tolist())
+    return {
+        "method": "parameter_nearest_oracle",
+        "table_method": "parameter_nearest_oracle",
+        "deployable": False,
+        "params": {},
+        "predictions": [e.to_dict() for e in est],
+        "inputs": {"library": str(library_csv), "targets": "hidden target labels"},
+        "input_sha256": {"library": file_sha256(library_csv)},
+        "config_hash": config_hash,
+    }
+
+
+def estimate_thetas(estimate: Mapping) -> dict[str, tuple[float, float]]:
+    """target name -> frozen (s_E, s_rho) of an estimates JSON document."""
+    return {p["case_name"]: (float(p["E_scale"]), float(p["density_scale"])) for p in estimate["predictions"]}
+
+
+def evaluate_method(
+    estimate: Mapping,
+    targets: pd.DataFrame,
+    rollout_path,
+    probes: Sequence[str],
+    *,
+    max_particles: int = 100_000,
+    seed: int = 42,
+) -> pd.DataFrame:
+    """Frozen write-back evaluation: one row per (target, probe) with the joint parameter
+    error, trajectory RMSE over Gaussian-associated particles and curve metrics.
+
+    ``rollout_path(probe, theta) -> path`` locates rollouts; a target's truth is the rollout
+    at its hidden theta.
+    """
+    thetas = estimate_thetas(estimate)
+    rows = []
+    for rec in targets.itertuples(index=False):
+        if rec.case_name not in thetas:
+            raise InputError("estimates", "predictions", f"no estimate for target {rec.case_name}")
+        est = thetas[rec.case_name]
+        truth = (float(rec.E_scale), float(rec.density_scale))
+        err = joint_error_pct(est, truth)
+        for probe in probes:
+            pred = read_rollout(rollout_path(probe, est))
+            true = read_rollout(rollout_path(probe, truth))
+            n_gs = int(true.meta["n_gs"])
+            if pred.positions.shape != true.positions.shape:
+                raise InputError(rollout_path(probe, est), "positions", "shape differs from the target rollout")
+            P, X = pred.positions[:, :n_gs], true.positions[:, :n_gs]
+            row = {
+                "target": rec.case_name,
+                "E_true": truth[0],
+                "rho_true": truth[1],
+                "E_hat": est[0],
+                "rho_hat": est[1],
+                "joint_error_pct": err,
+                "probe": probe,
+                "traj_rmse": trajectory_rmse(P, X, max_particles=max_particles, seed=seed),
+            }
+            row.update(curve_metrics(P, X))
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def write_json(obj, path) -> None:
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as fh:
+        json.dump(obj, fh, indent=1, allow_nan=False)
+
+
+# ------------------------------------------------------------------------------------
+# rendered frames
+# ------------------------------------------------------------------------------------
+def camera_from_contract(camera: Mapping, *, width: int | None = None, height: int | None = None):
+    """The contract's look-at camera, optionally at another image size (same field of view)."""
+    from .render import Camera
+
+    return Camera.look_at(camera["eye"], camera["target"], camera["up"], fov_deg=camera["fov_deg"],
+                          width=int(width or camera["width"]), height=int(height or camera["height"]))
+
+
+def render_rollout(gaussians, static_mask, gaussian_index, positions, F, camera, *, device: str = "cpu"):
+    """Render every frame of a rollout as PhysGaussian does: Gaussian-associated particles
+    move the means of their Gaussians, covariances become F Sigma_0 F^T, static support
+    Gaussians stay, fill particles are not rendered.
+
+    ``positions`` (T, N, 3) (the first ``len(gaussian_index)`` rows are GS particles),
+    ``F`` (T, n_gs, 3, 3). Returns ``rgb`` (T, H, W, 3) and ``alpha`` (T, H, W), float32.
+    """
+    from .render import deform_covariances, render
+
+    means0 = np.asarray(gaussians.means, dtype=np.float64)
+    cov0 = np.asarray(gaussians.covariances(), dtype=np.float64)
+    colors = np.asarray(gaussians.colors(), dtype=np.float64)
+    opac = np.asarray(gaussians.opacities, dtype=np.float64)
+    idx = np.asarray(gaussian_index)
+    n_gs = len(idx)
+    if F is not None and F.shape[1] != n_gs:
+        raise InputError("deformation", "F", f"{F.shape[1]} deformation gradients for {n_gs} Gaussian-associated particles")
+    rgbs, alphas = [], []
+    for t in range(positions.shape[0]):
+        means = means0.copy()
+        cov = cov0.copy()
+        means[idx] = positions[t, :n_gs]
+        if F is not None:
+            cov[idx] = deform_covariances(cov0[idx], F[t])
+        out = render(means, cov, colors, opac, camera, device=device)
+        rgbs.append(out.rgb)
+        alphas.append(out.alpha)
+    return np.stack(rgbs), np.stack(alphas)
+
+
+def render_metrics_rows(estimate: Mapping, targets: pd.DataFrame, render_path, probes: Sequence[str]) -> pd.DataFrame:
+    """Foreground PSNR and object-crop SSIM of each target x probe (prediction vs truth,
+    same renderer and camera). ``render_path(probe, theta)`` locates a render ``.npz``."""
+    from .metrics import crop_ssim, foreground_psnr
+
+    thetas = estimate_thetas(estimate)
+    rows = []
+    for rec in targets.itertuples(index=False):
+        truth = (float(rec.E_scale), float(rec.density_scale))
+        for probe in probes:
+            a = np.load(render_path(probe, thetas[rec.case_name]))
+            b = np.load(render_path(probe, truth))
+            pr, pa, tr, ta = (x.astype(np.float32) for x in (a["rgb"], a["alpha"], b["rgb"], b["alpha"]))
+            rows.append({"target": rec.case_name, "probe": probe, "psnr_fg": foreground_psnr(pr, tr, pa, ta), "ssim_crop": crop_ssim(pr, tr, pa, ta)})
+    return pd.DataFrame(rows)

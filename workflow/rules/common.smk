@@ -1,0 +1,99 @@
+# Config helpers, wildcard constraints and path helpers shared by every rule file.
+import os
+
+from knockgs_core.contract import load_candidates, load_contract, load_targets
+from knockgs_core.rollout import theta_tag
+
+PROFILE = config["profile"]
+P = f"results/{PROFILE}"
+DEVICE = config.get("device", "cpu")
+OBJECTS = list(config["objects"])
+SPLIT = config.get("split", "main")
+METHODS = list(config["methods"])
+RENDER = {"enabled": True, "width": 160, "height": 120, "gif_target": "target_001", **config.get("render", {})}
+ON_GPU = DEVICE.startswith("cuda")
+
+CANDIDATES = load_candidates()
+CONTRACTS = {o: load_contract(o, PROFILE) for o in OBJECTS}
+
+
+wildcard_constraints:
+    object="[A-Za-z0-9_]+",
+    probe="[A-Za-z0-9_]+",
+    theta=r"sE[0-9.]+_sR[0-9.]+",
+    split="[A-Za-z0-9_]+",
+    method="[a-z_]+",
+
+
+def targets(split=SPLIT):
+    return load_targets(split)
+
+
+def calibration_probe(obj):
+    return CONTRACTS[obj].roles["calibration"]
+
+
+def heldout_probes(obj):
+    return list(CONTRACTS[obj].roles["heldout"])
+
+
+def eval_probes(obj):
+    """Probe A then every held-out Probe B of the object (the main-table columns)."""
+    return [calibration_probe(obj)] + heldout_probes(obj)
+
+
+def parse_theta(tag):
+    se, sr = tag[2:].split("_sR")
+    return float(se), float(sr)
+
+
+def lib_rollout(obj, case):
+    row = CANDIDATES.set_index("case_name").loc[case]
+    return f"{P}/rollouts/{obj}/lib/{theta_tag((row.E_scale, row.density_scale))}.parquet"
+
+
+def eval_rollout(obj, probe, theta):
+    return f"{P}/rollouts/{obj}/eval/{probe}/{theta_tag(theta)}.parquet"
+
+
+def eval_deformation(obj, probe, theta):
+    return f"{P}/rollouts/{obj}/eval/{probe}/{theta_tag(theta)}.F.parquet"
+
+
+def target_thetas(split=SPLIT):
+    t = targets(split)
+    return {r.case_name: (r.E_scale, r.density_scale) for r in t.itertuples(index=False)}
+
+
+def config_hash():
+    import hashlib, json
+
+    return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def estimate_json(wc):
+    """The frozen-estimate file of (object, split, method): a checkpoint, so rules that
+    depend on the estimated thetas are scheduled once it exists."""
+    cp = checkpoints.oracle_estimate if wc.method == "parameter_nearest_oracle" else checkpoints.estimate
+    return cp.get(object=wc.object, split=wc.split, method=wc.method).output.json
+
+
+def estimated_thetas(wc):
+    import json
+
+    with open(estimate_json(wc)) as fh:
+        doc = json.load(fh)
+    return {p["case_name"]: (p["E_scale"], p["density_scale"]) for p in doc["predictions"]}
+
+
+def all_outputs():
+    out = []
+    for o in OBJECTS:
+        out += [f"results/tables/main_{o}.csv", f"results/tables/main_{o}.md", f"results/tables/targetwise_{o}.csv",
+                f"results/tables/targetwise_{o}.md", f"results/figures/main_{o}.png", f"results/figures/fill_{o}.png"]
+        if RENDER["enabled"]:
+            out += [f"results/tables/render_{o}.csv", f"results/tables/render_{o}.md", f"results/figures/qualitative_{o}.png", f"results/figures/compare_{o}.gif"]
+    out += ["results/tables/objects.csv", "results/tables/objects.md", "results/figures/objects.png"]
+    out += [f"results/audits/{a}.json" for a in AUDITS]
+    out += globals().get("DISCREPANCY_OUTPUTS", [])
+    return out

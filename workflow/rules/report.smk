@@ -1,0 +1,51 @@
+# Tables and figures: the paper's main table per object, target-wise table, three-object table.
+
+
+rule main_table:
+    input:
+        metrics=lambda wc: [f"{P}/metrics/{wc.object}/{SPLIT}/{m}.csv" for m in METHODS],
+    output:
+        csv=report("results/tables/main_{object}.csv", caption="../report/main_table.rst", category="Tables", subcategory="{object}"),
+        md="results/tables/main_{object}.md",
+        targetwise=report("results/tables/targetwise_{object}.csv", caption="../report/targetwise.rst", category="Tables", subcategory="{object}"),
+        targetwise_md="results/tables/targetwise_{object}.md",
+    log:
+        f"logs/{PROFILE}/tables/main_{{object}}.log",
+    params:
+        methods=METHODS,
+        probes=lambda wc: eval_probes(wc.object),
+        profile=PROFILE,
+    script:
+        "../scripts/main_table.py"
+
+
+rule main_figure:
+    input:
+        csv="results/tables/main_{object}.csv",
+    output:
+        report("results/figures/main_{object}.png", caption="../report/main_figure.rst", category="Figures", subcategory="{object}"),
+    log:
+        f"logs/{PROFILE}/figures/main_{{object}}.log",
+    params:
+        probes=lambda wc: eval_probes(wc.object),
+        profile=PROFILE,
+    script:
+        "../scripts/main_figure.py"
+
+
+rule objects_table:
+    input:
+        mains=expand("results/tables/main_{object}.csv", object=OBJECTS),
+    output:
+        csv=report("results/tables/objects.csv", caption="../report/objects.rst", category="Tables"),
+        md="results/tables/objects.md",
+        png=report("results/figures/objects.png", caption="../report/objects.rst", category="Figures"),
+    log:
+        f"logs/{PROFILE}/tables/objects.log",
+    params:
+        objects=OBJECTS,
+        heldout={o: heldout_probes(o) for o in OBJECTS},
+        calibration={o: calibration_probe(o) for o in OBJECTS},
+        profile=PROFILE,
+    script:
+        "../scripts/objects_table.py"

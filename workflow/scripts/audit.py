@@ -1,0 +1,32 @@
+"""Run one audit; write its verdict; fail the job (and so the run) if it did not pass."""
+import json
+import sys
+from pathlib import Path
+
+from knockgs_core import audits
+from knockgs_core.contract import load_candidates, load_targets
+
+sys.stderr = open(snakemake.log[0], "w")
+name = snakemake.rule.removeprefix("audit_")
+p = snakemake.params
+if name == "leakage":
+    verdict = audits.audit_leakage(snakemake.input.estimates, calibration_probes=p.calibration, candidates=load_candidates(),
+                                   targets=load_targets(p.split), library_rollouts=snakemake.input.library)
+elif name == "nonfinite":
+    verdict = audits.audit_nonfinite(p.rollout_dirs, snakemake.input.tables)
+elif name == "missing_frames":
+    verdict = audits.audit_missing_frames(p.rollout_dirs)
+elif name == "duplicates":
+    verdict = audits.audit_duplicates(load_candidates(), load_targets(p.split), snakemake.input.libraries)
+elif name == "completion":
+    verdict = audits.audit_completion(p.expected, p.mains, p.methods)
+else:
+    raise SystemExit(f"unknown audit {name}")
+verdict["audit"] = name
+text = json.dumps(verdict, indent=1)
+Path(snakemake.output[0]).write_text(text)
+if not verdict["passed"]:
+    failed = Path(snakemake.log[0]).with_suffix(".failed.json")
+    failed.write_text(text)
+    print(text, file=sys.stderr)
+    raise SystemExit(f"audit {name} failed: {verdict['problems'][:5]} (verdict in {failed})")

@@ -1,0 +1,17 @@
+"""Write-back evaluation of one method's frozen estimates under Probe A and each Probe B."""
+import json
+import sys
+
+from knockgs_core.contract import load_targets
+from knockgs_core.experiments import evaluate_method
+from knockgs_core.rollout import theta_tag
+
+sys.stderr = open(snakemake.log[0], "w")
+p = snakemake.params
+with open(snakemake.input.estimate) as fh:
+    est = json.load(fh)
+targets = load_targets(p.split, snakemake.input.targets)
+df = evaluate_method(est, targets, lambda probe, th: f"{p.rollout_dir}/{probe}/{theta_tag(th)}.parquet", p.probes)
+df.insert(0, "method", snakemake.wildcards.method)
+df.insert(0, "object", snakemake.wildcards.object)
+df.to_csv(snakemake.output.table, index=False, float_format="%.10g")

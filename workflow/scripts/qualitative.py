@@ -1,0 +1,16 @@
+"""Qualitative figure and animated comparison of one object."""
+import sys
+
+import numpy as np
+
+from knockgs_core.reporting import comparison_gif, qualitative_figure
+
+sys.stderr = open(snakemake.log[0], "w")
+p = snakemake.params
+frames = [np.load(f) for f in snakemake.input.frames]
+names = ["target"] + list(p.methods)
+rgb = [f["rgb"].astype(np.float32) for f in frames]
+alpha = [f["alpha"].astype(np.float32) for f in frames]
+qualitative_figure(names, rgb, alpha, snakemake.output.png, title=f"{snakemake.wildcards.object}: {p.target} under held-out {p.probe}")
+pick = [names.index(n) for n in ("target", "local_ridge", "fixed_default") if n in names]
+comparison_gif([names[i] for i in pick], [rgb[i] for i in pick], snakemake.output.gif)

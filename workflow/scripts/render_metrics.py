@@ -1,0 +1,16 @@
+"""Foreground PSNR and crop SSIM of one method's frozen estimates."""
+import json
+import sys
+
+from knockgs_core.contract import load_targets
+from knockgs_core.experiments import render_metrics_rows
+from knockgs_core.rollout import theta_tag
+
+sys.stderr = open(snakemake.log[0], "w")
+p = snakemake.params
+with open(snakemake.input.estimate) as fh:
+    est = json.load(fh)
+targets = load_targets(snakemake.wildcards.split, snakemake.input.targets)
+df = render_metrics_rows(est, targets, lambda probe, th: f"{p.render_dir}/{probe}/{theta_tag(th)}.npz", p.probes)
+df.insert(0, "method", snakemake.wildcards.method)
+df.to_csv(snakemake.output.table, index=False, float_format="%.8g")
