@@ -1,0 +1,43 @@
+"""Gaussian assets: 3DGS PLY files, PhysGaussian preprocessing, interior fill,
+procedural Pillow / Ficus / Vasedeck stand-ins, and contract-driven building.
+
+Conventions: :class:`GaussianSet` holds *activated* parameters (scales as standard
+deviations, unit wxyz quaternions, opacities in (0, 1)); positions of
+:class:`ParticleSet` are in the normalized domain ``[0, 2]^3`` with the object's largest
+extent 1 and centre (1, 1, 1); Gaussian-associated particles come first, fill after.
+"""
+
+from ._build import BuiltAsset, build_asset, load_source_gaussians
+from ._fill import FillResult, density_grid, fill_interior, interior_cells
+from ._gaussians import SH_C0, GaussianSet, matrix_to_quat, quat_multiply, quat_to_matrix
+from ._particles import ParticleSet, load_particles, save_particles
+from ._ply import read_ply, write_ply
+from ._procedural import CAPTURE_ROTATION, PROCEDURAL_ASSETS, make_procedural
+from ._transform import Normalization, preprocess, rotation_matrix, transform_gaussians
+
+__all__ = [
+    "SH_C0",
+    "GaussianSet",
+    "read_ply",
+    "write_ply",
+    "Normalization",
+    "preprocess",
+    "rotation_matrix",
+    "transform_gaussians",
+    "ParticleSet",
+    "save_particles",
+    "load_particles",
+    "FillResult",
+    "fill_interior",
+    "density_grid",
+    "interior_cells",
+    "PROCEDURAL_ASSETS",
+    "CAPTURE_ROTATION",
+    "make_procedural",
+    "BuiltAsset",
+    "build_asset",
+    "load_source_gaussians",
+    "quat_to_matrix",
+    "matrix_to_quat",
+    "quat_multiply",
+]

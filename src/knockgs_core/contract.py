@@ -1,0 +1,671 @@
+"""Object contracts: config/objects/NAME.yaml -> a validated, frozen :class:`ObjectContract`.
+
+Finding the configuration directory (:func:`find_config_dir`), first match wins:
+
+1. the ``config_dir`` argument;
+2. the environment variable ``KNOCKGS_CONFIG_DIR``;
+3. a ``config/`` folder holding ``objects/`` in the current working directory or one of
+   its parents;
+4. the ``config/`` folder of the source checkout this package was imported from.
+
+The JSON Schema ``workflow/schemas/object.schema.yaml`` is looked up next to that
+``config/`` folder (``../workflow/schemas``). Every problem with a contract raises
+:class:`~knockgs_core.errors.InputError` naming the file and the field (a dotted path,
+``probes.standard_x.force[0]``).
+
+Defaults live in the frozen dataclasses (this module and :mod:`knockgs_core.sim._config`);
+the schema mirrors them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import re
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from fractions import Fraction
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from .errors import InputError
+from .sim._config import (
+    Box,
+    DomainWalls,
+    ExportSchedule,
+    FixedCuboid,
+    Material,
+    ParticleTranslation,
+    Probe,
+    SimParams,
+)
+
+__all__ = [
+    "ObjectContract",
+    "AssetSettings",
+    "FillSettings",
+    "Profile",
+    "PROFILES",
+    "THETA_STIFFEST",
+    "load_contract",
+    "list_objects",
+    "find_config_dir",
+    "schema_path",
+    "cfl_dt",
+    "load_candidates",
+    "load_targets",
+]
+
+#: the resolution profiles every contract defines
+PROFILES = ("ci", "default", "paper")
+#: (s_E, s_rho) of the stiffest, lightest candidate: the fastest waves of the library
+THETA_STIFFEST = (1.15, 0.75)
+_ENV = "KNOCKGS_CONFIG_DIR"
+
+
+# --------------------------------------------------------------------------- settings
+
+@dataclass(frozen=True)
+class AssetSettings:
+    """Where the Gaussians come from and how they are preprocessed.
+
+    ``procedural`` (a built-in asset name) or ``ply`` (path to a 3DGS PLY); ``seed`` of the
+    procedural geometry or of the PLY subsampling; ``opacity_threshold``; ``rotations``
+    ((axis, degrees) pairs, applied in order); ``crop`` (a :class:`Box` in the rotated
+    source frame, or None); ``static_boxes`` (support Gaussians rendered, not simulated;
+    normalized domain); ``n_gaussians`` (from the profile; None keeps every PLY Gaussian).
+    """
+
+    procedural: str | None = None
+    ply: Path | None = None
+    seed: int = 0
+    opacity_threshold: float = 0.0
+    rotations: tuple[tuple[str, float], ...] = ()
+    crop: Box | None = None
+    static_boxes: tuple[Box, ...] = ()
+    n_gaussians: int | None = None
+
+
+@dataclass(frozen=True)
+class FillSettings:
+    """Interior fill (see :func:`knockgs_core.assets.fill_interior`); ``resolution`` comes
+    from the profile."""
+
+    enabled: bool = False
+    box: Box | None = None
+    density_threshold: float = 0.3
+    max_particles_per_cell: int = 4
+    seed: int = 0
+    resolution: int = 128
+
+
+@dataclass(frozen=True)
+class Profile:
+    """What a resolution profile may change."""
+
+    n_gaussians: int | None
+    n_grid: int
+    fill_resolution: int
+    dt: float
+
+
+# --------------------------------------------------------------------------- CFL
+
+def _p_wave_speed(mat: Material, theta) -> float:
+    return Material(mat.E * theta[0], mat.nu, mat.rho * theta[1]).p_wave_speed()
+
+
+def _frame_gcd(frame_dts: Sequence[float]) -> Fraction:
+    g = Fraction(0)
+    for f in frame_dts:
+        q = Fraction(f).limit_denominator(10 ** 9)
+        g = q if g == 0 else Fraction(math.gcd(g.numerator * q.denominator, q.numerator * g.denominator),
+                                      g.denominator * q.denominator)
+    return g
+
+
+def cfl_dt(materials: Mapping[str, Material] | Sequence[Material], *, n_grid: int,
+           grid_lim: float = 2.0, theta_max: tuple[float, float] = THETA_STIFFEST,
+           safety: float = 0.3, frame_dts: Sequence[float] = ()) -> float:
+    """Largest stable substep ``safety * dx / c_p`` [s] for the fastest p-wave speed over
+    ``materials`` at ``theta_max`` (E scaled by ``theta_max[0]``, rho by ``theta_max[1]``).
+
+    With ``frame_dts``, the largest dt below that bound that divides every export
+    interval exactly: ``g / ceil(g / dt_max)`` with ``g`` their greatest common divisor.
+    """
+    mats = list(materials.values()) if isinstance(materials, Mapping) else list(materials)
+    c = max(_p_wave_speed(m, theta_max) for m in mats)
+    dt_max = safety * (grid_lim / n_grid) / c
+    if not frame_dts:
+        return dt_max
+    g = _frame_gcd(frame_dts)
+    return float(g / math.ceil(g / Fraction(dt_max)))
+
+
+# --------------------------------------------------------------------------- contract
+
+@dataclass(frozen=True, eq=False)
+class ObjectContract:
+    """One object's fixed simulator contract at one resolution profile.
+
+    ``probes`` hold the nominal forces from the file; :meth:`resolve_probes` (used by
+    :func:`knockgs_core.assets.build_asset`, which stores the result as
+    ``BuiltAsset.probes``) applies ``match_total_force`` against the built particles.
+    ``hash`` is the sha256 of the canonical JSON of :meth:`to_dict`.
+    """
+
+    name: str
+    profile: str
+    source: Path
+    description: str
+    asset: AssetSettings
+    fill: FillSettings
+    sim: SimParams
+    materials: dict[str, Material]
+    regions: dict[str, tuple[Box, ...]]
+    probes: dict[str, Probe]
+    probe_force_match: dict[str, str]
+    roles: dict[str, Any]
+    probe_reference_particles: int
+    camera: dict[str, Any]
+    candidates_path: Path
+    targets_path: Path
+    profiles: dict[str, Profile]
+    hash: str = ""
+
+    # ---- derived views
+    @property
+    def region_names(self) -> tuple[str, ...]:
+        """``("base", *regions)``: the region index order of particles."""
+        return ("base", *self.regions)
+
+    @property
+    def calibration_probe(self) -> Probe:
+        return self.probes[self.roles["calibration"]]
+
+    def cfl_dt(self, *, safety: float = 0.3, theta_max=THETA_STIFFEST) -> float:
+        """:func:`cfl_dt` for this contract's materials, grid and probe export intervals."""
+        return cfl_dt(self.materials, n_grid=self.sim.n_grid, grid_lim=self.sim.grid_lim,
+                      theta_max=theta_max, safety=safety,
+                      frame_dts=[p.export.frame_dt for p in self.probes.values()])
+
+    def assign_regions(self, positions) -> np.ndarray:
+        """Region index [N] int32 of normalized-domain ``positions``: the first region
+        (in file order) with a box containing the point, else 0 (base)."""
+        pos = np.asarray(positions, dtype=np.float64)
+        region = np.zeros(len(pos), dtype=np.int32)
+        free = np.ones(len(pos), dtype=bool)
+        for k, boxes in enumerate(self.regions.values(), start=1):
+            inside = np.zeros(len(pos), dtype=bool)
+            for b in boxes:
+                inside |= b.contains(pos)
+            hit = inside & free
+            region[hit] = k
+            free &= ~hit
+        return region
+
+    def particle_materials(self, particles, theta=(1.0, 1.0)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per-particle ``(E, nu, rho)`` float32 arrays of length N; E and rho of every
+        region are multiplied by ``theta = (s_E, s_rho)``."""
+        s_e, s_rho = (float(t) for t in theta)
+        if not (s_e > 0 and s_rho > 0 and math.isfinite(s_e) and math.isfinite(s_rho)):
+            raise InputError(self.source, "theta", f"scales must be finite and > 0, got {theta!r}")
+        names = tuple(particles.region_names)
+        table = []
+        for nm in names:
+            if nm not in self.materials:
+                raise InputError(self.source, "materials",
+                                 f"particles use region {nm!r}, which has no material")
+            m = self.materials[nm]
+            table.append((m.E * s_e, m.nu, m.rho * s_rho))
+        t = np.asarray(table, dtype=np.float64)[np.asarray(particles.region)]
+        return t[:, 0].astype(np.float32), t[:, 1].astype(np.float32), t[:, 2].astype(np.float32)
+
+    def probe_selection(self, probe: Probe | str, positions) -> np.ndarray:
+        """[N] bool: particles a probe acts on (all of them for a global probe)."""
+        p = self.probes[probe] if isinstance(probe, str) else probe
+        pos = np.asarray(positions)
+        return np.ones(len(pos), dtype=bool) if p.box is None else p.box.contains(pos)
+
+    def resolve_probes(self, particles) -> dict[str, Probe]:
+        """Probes checked against built ``particles`` (:class:`~knockgs_core.assets.ParticleSet`).
+
+        A box that selects no particle raises :class:`InputError`. A probe with
+        ``match_total_force: REF`` keeps its direction and gets the magnitude
+        ``|f_REF| * n_REF / n_self`` (n: selected particles), so both deliver the same
+        total force and impulse.
+        """
+        counts = {}
+        for name, p in self.probes.items():
+            n = int(np.count_nonzero(self.probe_selection(p, particles.positions)))
+            if n == 0:
+                raise InputError(self.source, f"probes.{name}.box",
+                                 f"selects no particles (box {p.box.center} +- {p.box.half_size}, "
+                                 f"{len(particles)} particles)")
+            counts[name] = n
+        out = dict(self.probes)
+        for name, ref in self.probe_force_match.items():
+            f = np.asarray(self.probes[name].force, dtype=np.float64)
+            mag = np.linalg.norm(self.probes[ref].force) * counts[ref] / counts[name]
+            out[name] = replace(self.probes[name],
+                                force=tuple(float(x) for x in f / np.linalg.norm(f) * mag))
+        return out
+
+    def load_candidates(self):
+        return load_candidates(self.candidates_path)
+
+    def load_targets(self, split: str = "main"):
+        return load_targets(split, self.targets_path)
+
+    def to_dict(self) -> dict:
+        """The resolved contract (defaults filled, this profile only) as JSON-able data;
+        a procedural asset adds its generator version."""
+        d = {
+            "name": self.name, "profile": self.profile, "description": self.description,
+            "asset": _jsonable(self.asset), "fill": _jsonable(self.fill), "sim": _jsonable(self.sim),
+            "materials": _jsonable(self.materials),
+            "regions": {k: _jsonable(v) for k, v in self.regions.items()},
+            "probes": _jsonable(self.probes), "probe_force_match": dict(self.probe_force_match),
+            "roles": _jsonable(self.roles), "probe_reference_particles": self.probe_reference_particles,
+            "camera": _jsonable(self.camera),
+            "candidates": self.candidates_path.name, "targets": self.targets_path.name,
+        }
+        if self.asset.procedural is not None:
+            from .assets._procedural import GENERATOR_VERSION
+
+            d["asset"]["generator_version"] = GENERATOR_VERSION
+        return d
+
+
+def _jsonable(obj):
+    if is_dataclass(obj) and not isinstance(obj, type):
+        d = {f.name: _jsonable(getattr(obj, f.name)) for f in fields(obj)}
+        if isinstance(obj, (DomainWalls, FixedCuboid, ParticleTranslation)):
+            d["type"] = _BOUNDARY_TYPES_INV[type(obj)]
+        return d
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return obj.name
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else str(obj)
+    if isinstance(obj, (np.floating, np.integer)):
+        return _jsonable(obj.item())
+    return obj
+
+
+def _canonical_hash(d: dict) -> str:
+    text = json.dumps(d, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+# --------------------------------------------------------------------------- locating files
+
+def find_config_dir(config_dir: str | os.PathLike | None = None) -> Path:
+    """The configuration directory (see the module docstring for the search order)."""
+    if config_dir is not None:
+        p = Path(config_dir)
+        if not p.is_dir():
+            raise InputError(p, "config_dir", "is not a directory")
+        return p.resolve()
+    env = os.environ.get(_ENV)
+    if env:
+        p = Path(env)
+        if not p.is_dir():
+            raise InputError(p, _ENV, "is not a directory")
+        return p.resolve()
+    here = Path.cwd().resolve()
+    for d in (here, *here.parents):
+        if (d / "config" / "objects").is_dir():
+            return d / "config"
+    pkg_root = Path(__file__).resolve().parents[2] / "config"
+    if (pkg_root / "objects").is_dir():
+        return pkg_root
+    raise InputError(here, "config_dir", f"no config/objects folder here or above; set {_ENV}")
+
+
+def schema_path(config_dir: str | os.PathLike | None = None) -> Path:
+    """``workflow/schemas/object.schema.yaml`` next to the configuration directory."""
+    cfg = find_config_dir(config_dir)
+    for root in (cfg.parent, Path(__file__).resolve().parents[2]):
+        p = root / "workflow" / "schemas" / "object.schema.yaml"
+        if p.is_file():
+            return p
+    raise InputError(cfg.parent / "workflow/schemas/object.schema.yaml", "schema", "not found")
+
+
+def list_objects(config_dir: str | os.PathLike | None = None) -> list[str]:
+    """Names of the contracts in ``config/objects``."""
+    return sorted(p.stem for p in (find_config_dir(config_dir) / "objects").glob("*.yaml"))
+
+
+# --------------------------------------------------------------------------- YAML and schema
+
+def _yaml_loader():
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        """SafeLoader that rejects duplicate keys and reads 1e-4 as a float (YAML 1.2)."""
+
+    def construct_mapping(loader, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = loader.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {key!r}", key_node.start_mark)
+            seen.add(key)
+        return loader.construct_mapping(node, deep=deep)
+
+    Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, construct_mapping)
+    Loader.add_implicit_resolver(
+        "tag:yaml.org,2002:float",
+        re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+                    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+                    |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+                    |[-+]?\.(?:inf|Inf|INF)
+                    |\.(?:nan|NaN|NAN))$""", re.X),
+        list("-+0123456789."))
+    return Loader
+
+
+def _read_yaml(path: Path) -> Any:
+    import yaml
+
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise InputError(path, "file", "does not exist") from None
+    try:
+        return yaml.load(text, Loader=_yaml_loader())
+    except yaml.YAMLError as exc:
+        raise InputError(path, "yaml", f"not valid YAML: {exc}") from None
+
+
+@lru_cache(maxsize=4)
+def _validator(path: str):
+    from jsonschema import Draft202012Validator
+
+    schema = _read_yaml(Path(path))
+    Draft202012Validator.check_schema(schema)
+    return Draft202012Validator(schema)
+
+
+def _field_of(error) -> str:
+    parts = []
+    for p in error.absolute_path:
+        if isinstance(p, int):
+            parts.append(f"[{p}]")
+        else:
+            parts.append(("." if parts else "") + str(p))
+    base = "".join(parts)
+
+    def join(key):
+        return f"{base}.{key}" if base else str(key)
+
+    if error.validator == "additionalProperties" and isinstance(error.instance, dict):
+        allowed = set(error.schema.get("properties", {}))
+        extra = sorted(k for k in error.instance if k not in allowed)
+        if extra:
+            return join(extra[0])
+    if error.validator == "required":
+        m = re.match(r"'([^']+)' is a required property", error.message)
+        if m:
+            return join(m.group(1))
+    return base or "(top level)"
+
+
+def _validate(data: Any, path: Path, schema: Path) -> None:
+    from jsonschema.exceptions import best_match
+
+    if not isinstance(data, dict):
+        raise InputError(path, "(top level)", "the contract must be a YAML mapping")
+    validator = _validator(str(schema))
+    errors = list(validator.iter_errors(data))
+    if not errors:
+        return
+    err = best_match(errors)
+    # descend into oneOf / if-then errors for the most specific message
+    while err.context:
+        err = best_match(err.context)
+    fld = _field_of(err)
+    msg = err.message
+    if err.validator == "additionalProperties":
+        msg = f"unknown key ({msg})"
+    if fld == "asset" and err.validator in ("oneOf", "not", "required"):
+        msg = "exactly one of 'procedural' and 'ply' must be given"
+    raise InputError(path, fld, msg)
+
+
+# --------------------------------------------------------------------------- building
+
+def _box(d: Mapping | None) -> Box | None:
+    if d is None:
+        return None
+    return Box(tuple(float(x) for x in d["center"]), tuple(float(x) for x in d["half_size"]))
+
+
+def _vec(v) -> tuple[float, float, float]:
+    return tuple(float(x) for x in v)
+
+
+def _kwargs(d: Mapping, names: Sequence[str]) -> dict:
+    return {k: d[k] for k in names if k in d}
+
+
+def _end_time(d: Mapping) -> dict:
+    if "end_time" in d:
+        return {"end_time": math.inf if d["end_time"] is None else float(d["end_time"])}
+    return {}
+
+
+def _boundary(d: Mapping):
+    kind = d["type"]
+    if kind == "domain_walls":
+        return DomainWalls(**_kwargs(d, ("padding", "mode")))
+    cls = FixedCuboid if kind == "fixed_cuboid" else ParticleTranslation
+    kw = _kwargs(d, ("start_time",))
+    if "velocity" in d:
+        kw["velocity"] = _vec(d["velocity"])
+    return cls(box=_box(d["box"]), **kw, **_end_time(d))
+
+
+_BOUNDARY_TYPES_INV = {DomainWalls: "domain_walls", FixedCuboid: "fixed_cuboid",
+                       ParticleTranslation: "particle_translation"}
+
+
+def _probe(name: str, d: Mapping) -> Probe:
+    kw = _kwargs(d, ("start_time", "n_steps", "dt_ref"))
+    if "export" in d:
+        kw["export"] = ExportSchedule(float(d["export"]["frame_dt"]), int(d["export"]["n_frames"]))
+    return Probe(name=name, force=_vec(d["force"]), box=_box(d.get("box")), **kw)
+
+
+def _resolve_path(name_or_path: str | os.PathLike, config_dir) -> Path:
+    s = str(name_or_path)
+    if s.endswith((".yaml", ".yml")) or os.sep in s or "/" in s:
+        return Path(s).resolve()
+    cfg = find_config_dir(config_dir)
+    p = cfg / "objects" / f"{s}.yaml"
+    if not p.is_file():
+        raise InputError(cfg / "objects", "name",
+                         f"no contract {s!r}; available: {', '.join(list_objects(cfg)) or 'none'}")
+    return p
+
+
+def load_contract(name_or_path: str | os.PathLike, profile: str = "default", *,
+                  config_dir: str | os.PathLike | None = None) -> ObjectContract:
+    """Load, validate and resolve an object contract at one profile.
+
+    ``name_or_path``: an object name (``config/objects/NAME.yaml`` under the configuration
+    directory, see :func:`find_config_dir`) or a path to a YAML file. ``profile`` in the
+    file's ``profiles`` (``ci``, ``default``, ``paper``). Unknown keys, wrong types and
+    inconsistent references raise :class:`InputError` naming the file and the field.
+    """
+    path = _resolve_path(name_or_path, config_dir)
+    cfg = find_config_dir(config_dir) if config_dir is not None or not path.parent.name == "objects" \
+        else path.parent.parent
+    data = _read_yaml(path)
+    _validate(data, path, schema_path(cfg))
+    return _build(data, path, cfg, profile)
+
+
+def _build(data: dict, path: Path, cfg: Path, profile: str) -> ObjectContract:
+    if profile not in data["profiles"]:
+        raise InputError(path, "profile", f"unknown profile {profile!r}; the file defines "
+                         f"{', '.join(data['profiles'])}")
+    profiles = {k: Profile(v["n_gaussians"], int(v["n_grid"]), int(v["fill_resolution"]), float(v["dt"]))
+                for k, v in data["profiles"].items()}
+    prof = profiles[profile]
+
+    a = data["asset"]
+    ply = None
+    if "ply" in a:
+        ply = Path(a["ply"]) if os.path.isabs(a["ply"]) else (path.parent / a["ply"]).resolve()
+        if not ply.is_file():
+            raise InputError(path, "asset.ply", f"file {ply} does not exist")
+    asset = AssetSettings(
+        procedural=a.get("procedural"), ply=ply,
+        **_kwargs(a, ("seed",)),
+        **({"opacity_threshold": float(a["opacity_threshold"])} if "opacity_threshold" in a else {}),
+        rotations=tuple((r["axis"], float(r["degrees"])) for r in a.get("rotations", [])),
+        crop=_box(a.get("crop")),
+        static_boxes=tuple(_box(b) for b in a.get("static_boxes", [])),
+        n_gaussians=prof.n_gaussians)
+    if asset.procedural is not None and asset.n_gaussians is None:
+        raise InputError(path, f"profiles.{profile}.n_gaussians", "a procedural asset needs a count")
+
+    f = data.get("fill", {})
+    fill = FillSettings(**_kwargs(f, ("enabled", "density_threshold", "max_particles_per_cell", "seed")),
+                        box=_box(f.get("box")), resolution=prof.fill_resolution)
+    if fill.enabled and fill.box is None:
+        raise InputError(path, "fill.box", "required when fill.enabled is true")
+
+    s = data["sim"]
+    sim_kw = _kwargs(s, ("grid_lim", "grid_v_damping_scale", "cfl_limit", "guard_every"))
+    if "gravity" in s:
+        sim_kw["gravity"] = _vec(s["gravity"])
+    if "boundaries" in s:
+        sim_kw["boundaries"] = tuple(_boundary(b) for b in s["boundaries"])
+    sim = SimParams(n_grid=prof.n_grid, dt=prof.dt, **sim_kw)
+
+    materials = {k: Material(float(v["E"]), float(v["nu"]), float(v["rho"]))
+                 for k, v in data["materials"].items()}
+    regions = {k: tuple(_box(b) for b in v) for k, v in data.get("regions", {}).items()}
+    for k in regions:
+        if k not in materials:
+            raise InputError(path, f"regions.{k}", f"region {k!r} has no materials entry")
+    for k in materials:
+        if k != "base" and k not in regions:
+            raise InputError(path, f"materials.{k}", f"material {k!r} has no regions entry")
+
+    probes = {k: _probe(k, v) for k, v in data["probes"].items()}
+    match = {}
+    for k, v in data["probes"].items():
+        ref = v.get("match_total_force")
+        if ref is None:
+            continue
+        if ref not in probes or ref == k:
+            raise InputError(path, f"probes.{k}.match_total_force", f"unknown probe {ref!r}")
+        if probes[k].box is None or probes[ref].box is None:
+            raise InputError(path, f"probes.{k}.match_total_force", "both probes need a contact box")
+        if not np.linalg.norm(probes[k].force) > 0:
+            raise InputError(path, f"probes.{k}.force", "needs a direction (non-zero force)")
+        match[k] = ref
+
+    r = data["roles"]
+    roles = {"calibration": r["calibration"], "heldout": list(r.get("heldout", [])),
+             "diagnostic": list(r.get("diagnostic", []))}
+    for key, names in (("calibration", [roles["calibration"]]), ("heldout", roles["heldout"]),
+                       ("diagnostic", roles["diagnostic"])):
+        for i, nm in enumerate(names):
+            if nm not in probes:
+                where = f"roles.{key}" if key == "calibration" else f"roles.{key}[{i}]"
+                raise InputError(path, where, f"unknown probe {nm!r}")
+
+    cam = data["camera"]
+    camera = {"width": int(cam["width"]), "height": int(cam["height"]), "fov_deg": float(cam["fov_deg"]),
+              "eye": _vec(cam["eye"]), "target": _vec(cam["target"]), "up": _vec(cam["up"])}
+    if np.allclose(camera["eye"], camera["target"]):
+        raise InputError(path, "camera.target", "coincides with camera.eye")
+
+    # every profile: dt divides the export intervals and respects the CFL bound
+    frame_dts = [p.export.frame_dt for p in probes.values()]
+    grid_lim = float(s.get("grid_lim", SimParams.grid_lim))
+    for pname, pr in profiles.items():
+        for fdt in frame_dts:
+            k = fdt / pr.dt
+            if abs(k - round(k)) > 1e-6 * max(1.0, k):
+                raise InputError(path, f"profiles.{pname}.dt",
+                                 f"{pr.dt} does not divide the export interval {fdt}")
+        limit = cfl_dt(materials, n_grid=pr.n_grid, grid_lim=grid_lim)
+        if pr.dt > limit * (1 + 1e-9):
+            raise InputError(path, f"profiles.{pname}.dt",
+                             f"{pr.dt} exceeds the CFL bound 0.3 dx / c_p = {limit:.4g} s "
+                             f"(stiffest candidate {THETA_STIFFEST})")
+
+    contract = ObjectContract(
+        name=data["name"], profile=profile, source=path, description=data.get("description", ""),
+        asset=asset, fill=fill, sim=sim, materials=materials, regions=regions, probes=probes,
+        probe_force_match=match, roles=roles,
+        probe_reference_particles=int(data["probe_reference_particles"]), camera=camera,
+        candidates_path=cfg / data.get("candidates", "candidates.csv"),
+        targets_path=cfg / data.get("targets", "targets.csv"), profiles=profiles)
+    if contract.name != path.stem:
+        raise InputError(path, "name", f"{contract.name!r} differs from the file name {path.stem!r}")
+    return replace(contract, hash=_canonical_hash(contract.to_dict()))
+
+
+# --------------------------------------------------------------------------- candidates / targets
+
+def _read_table(path: Path, columns: Sequence[str]):
+    import pandas as pd
+
+    try:
+        df = pd.read_csv(path, comment="#")
+    except FileNotFoundError:
+        raise InputError(path, "file", "does not exist") from None
+    except Exception as exc:
+        raise InputError(path, "file", f"not a readable CSV table ({exc})") from None
+    for c in columns:
+        if c not in df.columns:
+            raise InputError(path, c, "column is missing")
+    for c in ("E_scale", "density_scale"):
+        v = pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float)
+        if not np.all(np.isfinite(v) & (v > 0)):
+            raise InputError(path, c, "values must be finite numbers > 0")
+        df[c] = v
+    if df["case_name"].duplicated().any():
+        raise InputError(path, "case_name", f"duplicate case {df['case_name'][df['case_name'].duplicated()].iloc[0]!r}")
+    return df
+
+
+def _default_table(name: str, path) -> Path:
+    return Path(path) if path is not None else find_config_dir() / name
+
+
+def load_candidates(path: str | os.PathLike | None = None):
+    """Candidate table (``case_name, E_scale, density_scale``; 54 rows), default
+    ``config/candidates.csv``; duplicate names or pairs raise :class:`InputError`."""
+    path = _default_table("candidates.csv", path)
+    df = _read_table(path, ("case_name", "E_scale", "density_scale"))
+    if df.duplicated(["E_scale", "density_scale"]).any():
+        raise InputError(path, "E_scale,density_scale", "duplicate parameter pair")
+    return df[["case_name", "E_scale", "density_scale"]].reset_index(drop=True)
+
+
+def load_targets(split: str = "main", path: str | os.PathLike | None = None):
+    """Held-out targets of one ``split`` (``main`` = the paper's five), default
+    ``config/targets.csv``; returns ``case_name, E_scale, density_scale``."""
+    path = _default_table("targets.csv", path)
+    df = _read_table(path, ("split", "case_name", "E_scale", "density_scale"))
+    splits = list(dict.fromkeys(df["split"]))
+    if split not in splits:
+        raise InputError(path, "split", f"unknown split {split!r}; the file has {', '.join(splits)}")
+    return df[df["split"] == split][["case_name", "E_scale", "density_scale"]].reset_index(drop=True)
