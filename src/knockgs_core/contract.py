@@ -465,12 +465,17 @@ def _end_time(d: Mapping) -> dict:
     return {}
 
 
-def _boundary(d: Mapping):
+def _boundary(d: Mapping, i: int, path: Path):
     kind = d["type"]
     if kind == "domain_walls":
         return DomainWalls(**_kwargs(d, ("padding", "mode")))
     cls = FixedCuboid if kind == "fixed_cuboid" else ParticleTranslation
     kw = _kwargs(d, ("start_time",))
+    if d.get("friction") is not None:
+        if "friction" not in {f.name for f in fields(cls)}:
+            raise InputError(path, f"sim.boundaries[{i}].friction",
+                             "friction is not supported by this simulator version")
+        kw["friction"] = float(d["friction"])
     if "velocity" in d:
         kw["velocity"] = _vec(d["velocity"])
     return cls(box=_box(d["box"]), **kw, **_end_time(d))
@@ -552,7 +557,7 @@ def _build(data: dict, path: Path, cfg: Path, profile: str) -> ObjectContract:
     if "gravity" in s:
         sim_kw["gravity"] = _vec(s["gravity"])
     if "boundaries" in s:
-        sim_kw["boundaries"] = tuple(_boundary(b) for b in s["boundaries"])
+        sim_kw["boundaries"] = tuple(_boundary(b, i, path) for i, b in enumerate(s["boundaries"]))
     sim = SimParams(n_grid=prof.n_grid, dt=prof.dt, **sim_kw)
 
     materials = {k: Material(float(v["E"]), float(v["nu"]), float(v["rho"]))

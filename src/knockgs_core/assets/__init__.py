@@ -8,6 +8,7 @@ extent 1 and centre (1, 1, 1); Gaussian-associated particles come first, fill af
 """
 
 from ._build import BuiltAsset, build_asset, load_source_gaussians
+from ._figure import asset_figure
 from ._fill import FillResult, density_grid, fill_interior, interior_cells
 from ._gaussians import SH_C0, GaussianSet, matrix_to_quat, quat_multiply, quat_to_matrix
 from ._particles import ParticleSet, load_particles, save_particles
@@ -37,6 +38,7 @@ __all__ = [
     "BuiltAsset",
     "build_asset",
     "load_source_gaussians",
+    "asset_figure",
     "quat_to_matrix",
     "matrix_to_quat",
     "quat_multiply",

@@ -45,7 +45,7 @@ def read_ply(path: str | os.PathLike) -> GaussianSet:
 
     path = Path(path)
     try:
-        ply = PlyData.read(str(path))
+        ply = PlyData.read(str(path), mmap=False)
     except FileNotFoundError:
         raise InputError(path, "file", "does not exist") from None
     except Exception as exc:  # plyfile raises several exception types for bad files
