@@ -127,6 +127,17 @@ def test_hash_is_stable():
     assert load_contract("pillow", "ci").hash != load_contract("ficus", "ci").hash
 
 
+def test_replaced_contract_gets_its_own_hash_and_asset():
+    """Experiments vary one setting with dataclasses.replace (here the fill seed)."""
+    c = load_contract("pillow", "ci")
+    c2 = dataclasses.replace(c, fill=dataclasses.replace(c.fill, seed=c.fill.seed + 1))
+    assert c2.hash != c.hash
+    a, b = build_asset(c), build_asset(c2)
+    assert (a.contract_hash, b.contract_hash) == (c.hash, c2.hash)
+    assert a.particles.n_fill == b.particles.n_fill
+    assert not np.array_equal(a.particles.positions, b.particles.positions)
+
+
 #: probe.match_total_force lives in ObjectContract.probe_force_match (absent = None)
 CONTRACT_LEVEL = {("probe", "match_total_force"): None}
 OPTIONAL_FIELDS = {"fixed_cuboid": ("friction",)}

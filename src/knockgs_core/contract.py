@@ -26,7 +26,7 @@ import os
 import re
 from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 from fractions import Fraction
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -155,7 +155,8 @@ class ObjectContract:
     ``probes`` hold the nominal forces from the file; :meth:`resolve_probes` (used by
     :func:`knockgs_core.assets.build_asset`, which stores the result as
     ``BuiltAsset.probes``) applies ``match_total_force`` against the built particles.
-    ``hash`` is the sha256 of the canonical JSON of :meth:`to_dict`.
+    ``hash`` is the sha256 of the canonical JSON of :meth:`to_dict`. Variants for
+    experiments (another fill seed, grid, ...) are made with :func:`dataclasses.replace`.
     """
 
     name: str
@@ -175,7 +176,12 @@ class ObjectContract:
     candidates_path: Path
     targets_path: Path
     profiles: dict[str, Profile]
-    hash: str = ""
+
+    @cached_property
+    def hash(self) -> str:
+        """sha256 of the canonical JSON of :meth:`to_dict` (recomputed for a copy made
+        with :func:`dataclasses.replace`, so a changed contract never keeps a stale hash)."""
+        return _canonical_hash(self.to_dict())
 
     # ---- derived views
     @property
@@ -624,7 +630,7 @@ def _build(data: dict, path: Path, cfg: Path, profile: str) -> ObjectContract:
         targets_path=cfg / data.get("targets", "targets.csv"), profiles=profiles)
     if contract.name != path.stem:
         raise InputError(path, "name", f"{contract.name!r} differs from the file name {path.stem!r}")
-    return replace(contract, hash=_canonical_hash(contract.to_dict()))
+    return contract
 
 
 # --------------------------------------------------------------------------- candidates / targets
