@@ -1,4 +1,4 @@
-"""``knockgs asset``: make, summarize and draw an object's Gaussian asset.
+"""knockgs asset: make, summarize and draw an object's Gaussian asset.
 
     knockgs asset make NAME --profile PROFILE -o OUT.ply [--normalized] [--particles P.npz]
     knockgs asset summary NAME --profile PROFILE [--json]
