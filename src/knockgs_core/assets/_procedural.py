@@ -32,7 +32,7 @@ __all__ = ["PROCEDURAL_ASSETS", "CAPTURE_ROTATION", "GENERATOR_VERSION", "make_p
            "to_capture_frame"]
 
 #: bumped whenever a generator's output changes (it enters the contract hash)
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 
 PROCEDURAL_ASSETS = ("pillow", "ficus", "vasedeck")
 
@@ -353,7 +353,7 @@ def _ficus_parts(seed: int) -> list[_Part]:
         return _noise(col, rng, 0.03)
 
     # trunk with an S curve, then a leader to the top
-    zt = np.linspace(0.74, 1.47, 18)
+    zt = np.linspace(0.74, 1.495, 18)
     trunk = np.column_stack([1.0 + 0.025 * np.sin((zt - 0.74) * 7.0), 1.0 - 0.015 * np.sin((zt - 0.74) * 5.0), zt])
     parts.append(_tube(trunk, np.linspace(0.024, 0.008, len(zt)), bark))
     parts[-1].density = 1.5
@@ -366,7 +366,7 @@ def _ficus_parts(seed: int) -> list[_Part]:
         i0 = np.searchsorted(zt, zb)
         start = trunk[min(i0, len(zt) - 1)].copy()
         start[2] = zb
-        az = k * golden * 1.3 + 0.3 * geo.standard_normal()
+        az = k * golden + 0.3 * geo.standard_normal()
         reach = geo.uniform(0.20, 0.31)
         rise = geo.uniform(0.10, 0.24)
         out = np.array([np.cos(az), np.sin(az), 0.0])
@@ -393,7 +393,22 @@ def _ficus_parts(seed: int) -> list[_Part]:
                    "v": np.array([0.0, 1.0, 0.0]), "a": 0.036, "b": 0.017,
                    "color": np.array([0.26, 0.56, 0.20])})
     parts.append(_leaves_part(leaves))
-    return parts
+    # centre the plant: the leaves' analytic x/y extents -> (1, 1), so the normalization
+    # (bounding-box centre) keeps the pot on the axis whatever the branch layout
+    ext = np.array([np.abs(lf["u"]) * lf["a"] + np.abs(lf["v"]) * lf["b"] for lf in leaves])
+    ctr = np.array([lf["center"] for lf in leaves])
+    lo, hi = (ctr - ext).min(axis=0), (ctr + ext).max(axis=0)
+    shift = np.array([1.0 - 0.5 * (lo[0] + hi[0]), 1.0 - 0.5 * (lo[1] + hi[1]), 0.0])
+    return [_translated(part, shift) for part in parts]
+
+
+def _translated(part: _Part, shift: np.ndarray) -> _Part:
+    def sample(m, rng, spacing):
+        out = part.sample(m, rng, spacing)
+        out.points = out.points + shift
+        return out
+
+    return _Part(part.area, sample, part.density)
 
 
 def _leaf(geo: np.random.Generator, base: np.ndarray, out: np.ndarray, up: float = 0.0) -> dict:
