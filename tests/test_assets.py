@@ -263,6 +263,12 @@ def test_build_ci(name):
     np.testing.assert_array_equal(ps.positions[: ps.n_gs], g.means[ps.gaussian_index])
     assert ps.region_names == c.region_names and ps.volumes is None
     assert all(n > 0 for n in b.probe_counts.values())
+    # the support holds the bottom of the object, not the object
+    held = np.zeros(len(ps), dtype=bool)
+    for bc in c.sim.boundaries:
+        if hasattr(bc, "box"):
+            held |= bc.box.contains(ps.positions)
+    assert 0 < held.sum() < 0.2 * len(ps)
     # fill particles lie inside the simulated object's bounding box
     if has_fill:
         gs_pos = ps.positions[: ps.n_gs]
