@@ -4,7 +4,12 @@ import sys
 
 import numpy as np
 
-from knockgs_core.assets import asset_figure, build_asset, save_particles, write_ply
+from knockgs_core.assets import build_asset, save_particles, write_ply
+
+try:
+    from knockgs_core.assets import asset_figure
+except ImportError:  # older releases kept it private
+    from knockgs_core.assets._figure import asset_figure
 from knockgs_core.contract import load_contract
 
 sys.stderr = open(snakemake.log[0], "w")
