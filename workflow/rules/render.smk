@@ -13,7 +13,7 @@ rule render:
     log:
         f"logs/{PROFILE}/renders/{{object}}/{{probe}}/{{theta}}.log",
     benchmark:
-        f"benchmarks/{PROFILE}/renders/{{object}}/{{probe}}/{{theta}}.tsv"
+        f"results/{PROFILE}/benchmarks/renders/{{object}}/{{probe}}/{{theta}}.tsv"
     params:
         camera=lambda wc: CONTRACTS[wc.object].camera,
         width=RENDER["width"],

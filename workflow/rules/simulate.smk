@@ -14,7 +14,7 @@ rule rollout_library:
     log:
         f"logs/{PROFILE}/rollouts/{{object}}/lib/{{theta}}.log",
     benchmark:
-        f"benchmarks/{PROFILE}/rollouts/{{object}}/lib/{{theta}}.tsv"
+        f"results/{PROFILE}/benchmarks/rollouts/{{object}}/lib/{{theta}}.tsv"
     params:
         profile=PROFILE,
         probe=lambda wc: calibration_probe(wc.object),
@@ -41,7 +41,7 @@ rule rollout_eval:
     log:
         f"logs/{PROFILE}/rollouts/{{object}}/eval/{{probe}}/{{theta}}.log",
     benchmark:
-        f"benchmarks/{PROFILE}/rollouts/{{object}}/eval/{{probe}}/{{theta}}.tsv"
+        f"results/{PROFILE}/benchmarks/rollouts/{{object}}/eval/{{probe}}/{{theta}}.tsv"
     params:
         profile=PROFILE,
         probe=lambda wc: wc.probe,

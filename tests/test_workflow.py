@@ -1,0 +1,131 @@
+"""The workflow end to end on the ci profile (one object), audits, and a planted leak."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from knockgs_core.audits import audit_completion, audit_duplicates, audit_leakage
+from knockgs_core.contract import load_candidates, load_targets
+
+ROOT = Path(__file__).resolve().parents[1]
+METHODS = ["fixed_default", "response_nearest", "response_knn", "global_ridge", "local_ridge", "parameter_nearest_oracle"]
+
+
+def _snakemake(workdir: Path, *targets: str, extra=()):
+    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--configfile=config/ci.yaml", "--config", "objects=[pillow]", *extra, *targets]
+    return subprocess.run(cmd, cwd=workdir, capture_output=True, text=True)
+
+
+@pytest.fixture(scope="module")
+def ci_run(tmp_path_factory):
+    """One ci-profile run of the Pillow main table, render table and audits in a scratch copy."""
+    work = tmp_path_factory.mktemp("wf")
+    shutil.copy(ROOT / "Snakefile", work)
+    shutil.copytree(ROOT / "workflow", work / "workflow")
+    shutil.copytree(ROOT / "config", work / "config")
+    targets = ["results/tables/main_pillow.csv", "results/tables/render_pillow.csv", "results/figures/qualitative_pillow.png",
+               "results/figures/compare_pillow.gif", "results/figures/main_pillow.png", "results/audits/leakage.json",
+               "results/audits/duplicates.json", "results/audits/nonfinite.json", "results/audits/missing_frames.json"]
+    out = _snakemake(work, *targets)
+    assert out.returncode == 0, out.stderr[-4000:]
+    return work
+
+
+@pytest.mark.slow
+def test_ci_main_table_end_to_end(ci_run):
+    t = pd.read_csv(ci_run / "results/tables/main_pillow.csv")
+    assert list(t["method"]) == METHODS
+    for col in ["joint_error_pct", "joint_error_sd", "traj_rmse_standard_x", "traj_rmse_standard_y", "traj_rmse_strong_x", "curve_rmse_standard_y"]:
+        assert col in t.columns and t[col].notna().all()
+    e = t.set_index("method")["joint_error_pct"]
+    # the fixed default ignores the evidence: its error is a property of the targets alone
+    assert e["fixed_default"] == pytest.approx(27.3126, abs=1e-3)
+    assert e["local_ridge"] < e["response_nearest"] < e["fixed_default"]
+    assert (ci_run / "results/tables/main_pillow.md").read_text().startswith("# Main table: pillow")
+    tw = pd.read_csv(ci_run / "results/tables/targetwise_pillow.csv")
+    assert len(tw) == 5 * len(METHODS)
+
+
+@pytest.mark.slow
+def test_ci_render_outputs(ci_run):
+    r = pd.read_csv(ci_run / "results/tables/render_pillow.csv")
+    assert list(r["method"]) == METHODS
+    assert {"psnr_fg_standard_y", "ssim_crop_standard_y", "psnr_fg_strong_x"} <= set(r.columns)
+    p = r.set_index("method")
+    for probe in ["standard_x", "standard_y", "strong_x"]:
+        assert p.loc["local_ridge", f"psnr_fg_{probe}"] > p.loc["fixed_default", f"psnr_fg_{probe}"]
+    assert (ci_run / "results/figures/compare_pillow.gif").stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_ci_audits_pass_and_rerun_is_a_no_op(ci_run):
+    for name in ["leakage", "duplicates", "nonfinite", "missing_frames"]:
+        verdict = json.loads((ci_run / f"results/audits/{name}.json").read_text())
+        assert verdict["passed"], verdict
+    leak = json.loads((ci_run / "results/audits/leakage.json").read_text())
+    assert leak["deployable_estimates_checked"] == 5 and leak["library_rollouts_checked"] == 54
+    dry = _snakemake(ci_run, "results/tables/main_pillow.csv", extra=["-n"])
+    assert dry.returncode == 0 and "Nothing to be done" in dry.stdout + dry.stderr
+
+
+@pytest.mark.slow
+def test_planted_leak_fails_the_audit(ci_run, tmp_path):
+    est_dir = ci_run / "results/ci/estimates/pillow/main"
+    good = json.loads((est_dir / "local_ridge.json").read_text())
+    leaked = dict(good, rule_inputs=good["rule_inputs"] + ["results/ci/rollouts/pillow/eval/standard_y/sE0.950000_sR1.350000.parquet"])
+    f = tmp_path / "estimates/pillow/main/local_ridge.json"
+    f.parent.mkdir(parents=True)
+    f.write_text(json.dumps(leaked))
+    v = audit_leakage([f], calibration_probes={"pillow": "standard_x"}, candidates=load_candidates(), targets=load_targets())
+    assert not v["passed"] and any("standard_y" in p for p in v["problems"])
+    # and the untouched estimate passes
+    g = tmp_path / "ok/pillow/main/local_ridge.json"
+    g.parent.mkdir(parents=True)
+    g.write_text(json.dumps(dict(good, rule_inputs=[str(ci_run / x) for x in good["rule_inputs"]])))
+    assert audit_leakage([g], calibration_probes={"pillow": "standard_x"}, candidates=load_candidates(), targets=load_targets())["passed"]
+
+
+def test_leakage_audit_flags_labels_in_queries(tmp_path):
+    q = tmp_path / "queries_main.csv"
+    pd.DataFrame({"case_name": ["t1"], "E_scale": [1.0], **{c: [0.1] for c in ["norm_auc_rms_disp"]}}).to_csv(q, index=False)
+    est = tmp_path / "estimates/pillow/main/knn.json"
+    est.parent.mkdir(parents=True)
+    est.write_text(json.dumps({"deployable": True, "rule_inputs": [str(tmp_path / "library.csv"), str(q)]}))
+    v = audit_leakage([est], calibration_probes={"pillow": "standard_x"}, candidates=load_candidates(), targets=load_targets())
+    assert not v["passed"] and any("label" in p for p in v["problems"])
+
+
+def test_leakage_audit_flags_a_target_in_the_library():
+    cands = load_candidates()
+    targets = load_targets()
+    bad = pd.concat([cands, targets.iloc[:1]], ignore_index=True)
+    assert audit_leakage([], calibration_probes={}, candidates=bad, targets=targets)["passed"] is False
+    assert audit_leakage([], calibration_probes={}, candidates=cands, targets=targets)["passed"] is True
+
+
+def test_duplicates_and_completion_audits(tmp_path):
+    cands = load_candidates()
+    assert audit_duplicates(cands, load_targets())["passed"]
+    dup = pd.concat([cands, cands.iloc[:1]], ignore_index=True)
+    assert not audit_duplicates(dup, load_targets())["passed"]
+    assert not audit_completion([tmp_path / "nope.csv"])["passed"]
+
+
+def test_workflow_lints_and_dry_runs_for_all_profiles():
+    for cfg in ["config/config.yaml", "config/ci.yaml", "config/paper.yaml"]:
+        out = subprocess.run([sys.executable, "-m", "snakemake", "-n", "--quiet", "all", f"--configfile={cfg}"], cwd=ROOT, capture_output=True, text=True)
+        assert out.returncode == 0, out.stderr[-3000:]
+
+
+def test_bad_config_is_a_clear_error(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text((ROOT / "config/ci.yaml").read_text() + "\nunknown_key: 1\n")
+    out = subprocess.run([sys.executable, "-m", "snakemake", "-n", f"--configfile={bad}", "all"], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode != 0 and "unknown_key" in out.stdout + out.stderr
