@@ -3,7 +3,8 @@
 A static :class:`Model` (particles, materials, boundary conditions, probe) apart from a
 time-varying :class:`State`; :class:`MPMSolver` advances one substep; :func:`simulate` runs
 a rollout and exports frames. Boundary conditions and probes are data
-(:mod:`knockgs_core.sim._config`).
+(:mod:`knockgs_core.sim._config`). Extra physics terms, all off by default, are effects
+(:mod:`knockgs_core.sim._effects`) switched on with :func:`with_effects`.
 """
 
 from ._config import (
@@ -16,6 +17,19 @@ from ._config import (
     ParticleTranslation,
     Probe,
     SimParams,
+)
+from ._effects import (
+    BodyForcePulse,
+    Effect,
+    Gravity,
+    HiddenMass,
+    PoissonShift,
+    StiffnessGradient,
+    SupportFriction,
+    SupportSlip,
+    VelocityDamping,
+    VonMisesPlasticity,
+    with_effects,
 )
 from ._solver import MPMSolver, Model, SimResult, State, build_model, default_device, make_state, particle_volumes, simulate
 
@@ -38,4 +52,15 @@ __all__ = [
     "make_state",
     "particle_volumes",
     "simulate",
+    "Effect",
+    "VelocityDamping",
+    "Gravity",
+    "VonMisesPlasticity",
+    "PoissonShift",
+    "StiffnessGradient",
+    "SupportFriction",
+    "SupportSlip",
+    "BodyForcePulse",
+    "HiddenMass",
+    "with_effects",
 ]

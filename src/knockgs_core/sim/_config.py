@@ -56,12 +56,27 @@ class DomainWalls:
 @dataclass(frozen=True)
 class FixedCuboid:
     """A support held on the grid: nodes inside ``box`` take ``velocity`` [m/s]
-    while ``start_time <= t < end_time`` (PhysGaussian's cuboid boundary condition)."""
+    while ``start_time <= t < end_time`` (PhysGaussian's cuboid boundary condition).
+
+    ``friction=None`` keeps the support sticky; a number ``mu >= 0`` [-] makes it a Coulomb
+    contact instead: approaching nodes lose their normal velocity (relative to the support,
+    normal of the nearest box face) and their tangential speed drops by ``mu`` times the
+    removed normal speed, separating nodes are free (``mu = 0``: frictionless slip)."""
 
     box: Box
     velocity: Vec3 = (0.0, 0.0, 0.0)
     start_time: float = 0.0
     end_time: float = math.inf
+    friction: float | None = None
+
+    def __post_init__(self):
+        if self.friction is not None and not (math.isfinite(self.friction) and self.friction >= 0.0):
+            raise ValueError(f"FixedCuboid.friction must be None (sticky) or a finite number >= 0, got {self.friction!r}")
+
+    @property
+    def friction_coefficient(self) -> float:
+        """The kernel's friction argument: ``-1`` for sticky, else ``friction``."""
+        return -1.0 if self.friction is None else float(self.friction)
 
 
 @dataclass(frozen=True)

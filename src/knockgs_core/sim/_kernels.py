@@ -140,16 +140,50 @@ def grid_bc_cuboid(
     center: wp.vec3,
     half_size: wp.vec3,
     velocity: wp.vec3,
+    friction: float,
     grid_v: wp.array3d(dtype=wp.vec3),
 ):
-    """A held support: nodes inside the box take the prescribed velocity."""
+    """A held support: nodes inside the box take the prescribed velocity (``friction < 0``,
+    sticky), or meet a Coulomb contact with coefficient ``friction >= 0``.
+
+    Coulomb contact: with the relative velocity ``u = v - velocity`` and the outward normal
+    ``n`` of the box face nearest to the node, an approaching node (``u.n < 0``) loses its
+    normal component and its tangential speed drops by ``friction * |u.n|`` (to zero at
+    most: static friction); a separating node (``u.n >= 0``) is left free.
+    """
     i, j, k = wp.tid()
     gi = i + lo[0]
     gj = j + lo[1]
     gk = k + lo[2]
     p = wp.vec3(float(gi), float(gj), float(gk)) * dx - center
     if wp.abs(p[0]) <= half_size[0] and wp.abs(p[1]) <= half_size[1] and wp.abs(p[2]) <= half_size[2]:
-        grid_v[gi, gj, gk] = velocity
+        if friction < 0.0:
+            grid_v[gi, gj, gk] = velocity
+        else:
+            # outward normal of the nearest face
+            axis = int(0)
+            depth = half_size[0] - wp.abs(p[0])
+            for a in range(1, 3):
+                d = half_size[a] - wp.abs(p[a])
+                if d < depth:
+                    depth = d
+                    axis = a
+            n = wp.vec3(0.0)
+            if p[axis] >= 0.0:
+                n[axis] = 1.0
+            else:
+                n[axis] = -1.0
+            u = grid_v[gi, gj, gk] - velocity
+            un = wp.dot(u, n)
+            if un < 0.0:
+                ut = u - un * n
+                speed = wp.length(ut)
+                slowed = speed + friction * un
+                if slowed > 0.0:
+                    ut = ut * (slowed / speed)
+                else:
+                    ut = wp.vec3(0.0)
+                grid_v[gi, gj, gk] = velocity + ut
 
 
 # --------------------------------------------------------------------------------------

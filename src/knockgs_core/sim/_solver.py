@@ -323,7 +323,7 @@ class MPMSolver:
             if isinstance(bc, DomainWalls):
                 wp.launch(K.grid_bc_walls, dim=dims, inputs=[lo, p.n_grid, bc.padding, int(bc.mode == "sticky")], outputs=[state.grid_mv], device=dev)
             elif isinstance(bc, FixedCuboid) and bc.start_time <= t < bc.end_time:
-                wp.launch(K.grid_bc_cuboid, dim=dims, inputs=[lo, p.dx, wp.vec3(*bc.box.center), wp.vec3(*bc.box.half_size), wp.vec3(*bc.velocity)], outputs=[state.grid_mv], device=dev)
+                wp.launch(K.grid_bc_cuboid, dim=dims, inputs=[lo, p.dx, wp.vec3(*bc.box.center), wp.vec3(*bc.box.half_size), wp.vec3(*bc.velocity), bc.friction_coefficient], outputs=[state.grid_mv], device=dev)
         for effect in p.effects:
             if hasattr(effect, "apply_grid"):
                 effect.apply_grid(self, state, lo, dims, t)

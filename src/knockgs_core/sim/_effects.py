@@ -1,0 +1,514 @@
+"""Extra physics terms ("effects") the simulator can switch on; every one is off by default.
+
+An effect is a frozen dataclass placed in :attr:`SimParams.effects`; the solver calls its
+hooks (any subset of):
+
+* ``materials(positions, E, nu, rho) -> (E, nu, rho)``: once, when the model is built
+  (per-particle arrays, theta already applied);
+* ``apply_grid(solver, state, lo, dims, t)``: each substep, after the grid update and the
+  boundary conditions (``state.grid_mv`` then holds node velocities [m/s]);
+* ``apply_particles(solver, state, t)``: each substep, after the grid-to-particle transfer.
+
+An effect that changes static configuration instead (the support's friction) has a
+``configure(params) -> params`` method; :func:`with_effects` applies it and appends the
+effects, so ``with_effects(params, e1, e2)`` is the one way to switch effects on.
+
+Each effect has one scalar *strength* parameter, named by its class attribute
+``parameter``, whose value ``off`` (also a class attribute) makes the effect a no-op;
+``effect.value`` reads it and ``effect.with_value(v)`` returns a copy with a new value.
+Units are in each docstring; lengths are in the normalized domain [m], times [s].
+
+Catalogue (the terms a discrepancy analysis may add): :class:`VelocityDamping`,
+:class:`Gravity`, :class:`VonMisesPlasticity`, :class:`PoissonShift`,
+:class:`StiffnessGradient`, :class:`SupportSlip`, :class:`SupportFriction`. Two further terms,
+:class:`BodyForcePulse` (a time-varying external force) and :class:`HiddenMass`
+(extra mass in a region), model disturbances outside that catalogue.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+import warp as wp
+
+from ..errors import InputError
+from . import _kernels as K
+from ._config import Box, FixedCuboid, SimParams
+
+__all__ = [
+    "Effect",
+    "VelocityDamping",
+    "Gravity",
+    "VonMisesPlasticity",
+    "PoissonShift",
+    "StiffnessGradient",
+    "SupportFriction",
+    "SupportSlip",
+    "BodyForcePulse",
+    "HiddenMass",
+    "with_effects",
+]
+
+Vec3 = tuple[float, float, float]
+
+
+# --------------------------------------------------------------------------------------
+# kernels
+# --------------------------------------------------------------------------------------
+@wp.kernel
+def grid_scale_velocity(
+    lo: wp.vec3i,
+    factor: float,
+    grid_m: wp.array3d(dtype=float),
+    grid_v: wp.array3d(dtype=wp.vec3),
+):
+    """Multiply the velocity of every node with mass by ``factor``; in place."""
+    i, j, k = wp.tid()
+    gi = i + lo[0]
+    gj = j + lo[1]
+    gk = k + lo[2]
+    if grid_m[gi, gj, gk] > 1.0e-15:
+        grid_v[gi, gj, gk] = grid_v[gi, gj, gk] * factor
+
+
+@wp.kernel
+def particle_add_velocity(
+    mask: wp.array(dtype=wp.int32),
+    dv: wp.vec3,
+    v: wp.array(dtype=wp.vec3),
+):
+    """``v += dv`` for the particles with ``mask != 0``; in place."""
+    p = wp.tid()
+    if mask[p] != 0:
+        v[p] = v[p] + dv
+
+
+@wp.kernel
+def grid_support_slip(
+    lo: wp.vec3i,
+    dx: float,
+    center: wp.vec3,
+    half_size: wp.vec3,
+    factor: float,
+    grid_m: wp.array3d(dtype=float),
+    grid_v: wp.array3d(dtype=wp.vec3),
+):
+    """A still support with viscous slip: nodes with mass inside the box lose the velocity
+    component along the outward normal of the nearest box face (no penetration, no
+    separation) and keep ``factor`` of their tangential velocity; in place."""
+    i, j, k = wp.tid()
+    gi = i + lo[0]
+    gj = j + lo[1]
+    gk = k + lo[2]
+    if grid_m[gi, gj, gk] <= 1.0e-15:
+        return
+    p = wp.vec3(float(gi), float(gj), float(gk)) * dx - center
+    if wp.abs(p[0]) <= half_size[0] and wp.abs(p[1]) <= half_size[1] and wp.abs(p[2]) <= half_size[2]:
+        axis = int(0)
+        depth = half_size[0] - wp.abs(p[0])
+        for a in range(1, 3):
+            d = half_size[a] - wp.abs(p[a])
+            if d < depth:
+                depth = d
+                axis = a
+        n = wp.vec3(0.0)
+        if p[axis] >= 0.0:
+            n[axis] = 1.0
+        else:
+            n[axis] = -1.0
+        v = grid_v[gi, gj, gk]
+        grid_v[gi, gj, gk] = (v - wp.dot(v, n) * n) * factor
+
+
+@wp.func
+def _log_strain(s: float) -> float:
+    return wp.log(wp.max(s, 1.0e-6))
+
+
+@wp.kernel
+def von_mises_return(
+    mu: wp.array(dtype=float),
+    yield_stress: float,
+    F: wp.array(dtype=wp.mat33),
+    plastic: wp.array(dtype=float),
+):
+    """Von Mises return mapping on the elastic deformation gradient (PhysGaussian's).
+
+    With ``F = U diag(s) V^T`` and the Hencky strain ``e = log s``, the deviatoric Kirchhoff
+    stress of the fixed-corotated model is about ``2 mu dev(e)``; where its norm exceeds
+    ``yield_stress`` the deviatoric strain is projected back onto the yield surface,
+    ``dev(e) <- dev(e) * yield_stress / (2 mu |dev(e)|)``, keeping the volumetric part.
+    ``plastic`` accumulates the plastic strain increment ``|dev(e)| - yield_stress / (2 mu)``.
+    """
+    p = wp.tid()
+    U = wp.mat33()
+    s = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F[p], U, s, V)
+    e = wp.vec3(_log_strain(s[0]), _log_strain(s[1]), _log_strain(s[2]))
+    mean = (e[0] + e[1] + e[2]) / 3.0
+    dev = e - wp.vec3(mean)
+    norm = wp.length(dev)
+    limit = yield_stress / (2.0 * mu[p])
+    if norm > limit:
+        e = wp.vec3(mean) + dev * (limit / norm)
+        S = wp.mat33(wp.exp(e[0]), 0.0, 0.0, 0.0, wp.exp(e[1]), 0.0, 0.0, 0.0, wp.exp(e[2]))
+        F[p] = U * S * wp.transpose(V)
+        plastic[p] = plastic[p] + (norm - limit)
+
+
+# --------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------
+def _cached(solver, key, make):
+    """A per-solver cache (masks selected at t = 0, scratch arrays)."""
+    cache = solver.__dict__.setdefault("_effect_cache", {})
+    if key not in cache:
+        cache[key] = make()
+    return cache[key]
+
+
+def _finite(name: str, field: str, value: float) -> float:
+    value = float(value)
+    if not math.isfinite(value):
+        raise InputError(name, field, f"must be finite, got {value!r}")
+    return value
+
+
+def _unit(name: str, direction) -> np.ndarray:
+    d = np.asarray(direction, dtype=np.float64)
+    if d.shape != (3,) or not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0:
+        raise InputError(name, "direction", f"must be a non-zero 3-vector, got {direction!r}")
+    return d / np.linalg.norm(d)
+
+
+def _reapply_moving_supports(solver, state, lo, dims, t) -> None:
+    """Re-impose sticky supports that move (a velocity scaling would otherwise change them)."""
+    p = solver.model.params
+    for bc in p.boundaries:
+        if isinstance(bc, FixedCuboid) and bc.friction is None and any(bc.velocity) and bc.start_time <= t < bc.end_time:
+            wp.launch(
+                K.grid_bc_cuboid, dim=dims,
+                inputs=[lo, p.dx, wp.vec3(*bc.box.center), wp.vec3(*bc.box.half_size), wp.vec3(*bc.velocity), -1.0],
+                outputs=[state.grid_mv], device=solver.model.device,
+            )
+
+
+class Effect:
+    """Common interface of the effects (a mixin of the frozen dataclasses below)."""
+
+    #: catalogue key
+    name: ClassVar[str] = ""
+    #: field holding the strength parameter, its unit and its "switched off" value
+    parameter: ClassVar[str] = ""
+    unit: ClassVar[str] = ""
+    off: ClassVar[float] = 0.0
+
+    @property
+    def value(self) -> float:
+        return float(getattr(self, self.parameter))
+
+    def with_value(self, value: float):
+        """A copy with the strength parameter set to ``value``."""
+        return dataclasses.replace(self, **{self.parameter: float(value)})
+
+    @property
+    def is_off(self) -> bool:
+        return self.value == self.off
+
+    def describe(self) -> str:
+        return f"{self.name}: {self.parameter} = {self.value:.4g} {self.unit}".rstrip()
+
+
+# --------------------------------------------------------------------------------------
+# the catalogue
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class VelocityDamping(Effect):
+    """Viscous velocity damping: every substep, node velocities (nodes with mass) are
+    multiplied by ``exp(-rate * dt)``, so free motion decays as ``exp(-rate t)``.
+
+    ``rate`` [1/s] >= 0; 0 is off. (PhysGaussian's ``grid_v_damping_scale`` ``s`` per step
+    is ``rate = -log(s) / dt``.)"""
+
+    rate: float = 0.0
+    name: ClassVar[str] = "damping"
+    parameter: ClassVar[str] = "rate"
+    unit: ClassVar[str] = "1/s"
+
+    def __post_init__(self):
+        if _finite("VelocityDamping", "rate", self.rate) < 0:
+            raise InputError("VelocityDamping", "rate", f"must be >= 0, got {self.rate!r}")
+
+    def apply_grid(self, solver, state, lo, dims, t):
+        if self.rate == 0.0:
+            return
+        factor = math.exp(-self.rate * solver.model.params.dt)
+        wp.launch(grid_scale_velocity, dim=dims, inputs=[lo, factor, state.grid_m], outputs=[state.grid_mv], device=solver.model.device)
+        _reapply_moving_supports(solver, state, lo, dims, t)
+
+
+@dataclass(frozen=True)
+class Gravity(Effect):
+    """Extra uniform body acceleration ``g * direction`` [m/s^2] (self-weight: the object
+    sags onto its support). Added to particle velocities after each grid-to-particle
+    transfer, so the next transfer carries it to the grid before the boundary conditions
+    act (supports hold it). Adds to any gravity the contract already has.
+
+    ``g`` [m/s^2], any sign (negative reverses ``direction``); 0 is off. ``direction``:
+    unit vector, default ``(0, 0, -1)``."""
+
+    g: float = 0.0
+    direction: Vec3 = (0.0, 0.0, -1.0)
+    name: ClassVar[str] = "gravity"
+    parameter: ClassVar[str] = "g"
+    unit: ClassVar[str] = "m/s^2"
+
+    def __post_init__(self):
+        _finite("Gravity", "g", self.g)
+        _unit("Gravity", self.direction)
+
+    def apply_particles(self, solver, state, t):
+        if self.g == 0.0:
+            return
+        m = solver.model
+        ones = _cached(solver, "all_particles", lambda: wp.ones(m.particle_count, dtype=wp.int32, device=m.device))
+        dv = _unit("Gravity", self.direction) * (self.g * m.params.dt)
+        wp.launch(particle_add_velocity, dim=m.particle_count, inputs=[ones, wp.vec3(*dv)], outputs=[state.particle_v], device=m.device)
+
+
+@dataclass(frozen=True)
+class VonMisesPlasticity(Effect):
+    """Von Mises plasticity (permanent set): the deviatoric Kirchhoff stress norm is capped at
+    ``yield_stress`` [Pa] by a return mapping on the elastic deformation gradient after each
+    grid-to-particle transfer (PhysGaussian's von Mises model on top of fixed-corotated).
+    ``inf`` is off. In the discrepancy analysis the strength is the *yield strain*
+    parameter of :class:`~knockgs_core.discrepancy` (``yield_stress / (2 mu)``)."""
+
+    yield_stress: float = math.inf
+    name: ClassVar[str] = "plasticity"
+    parameter: ClassVar[str] = "yield_stress"
+    unit: ClassVar[str] = "Pa"
+    off: ClassVar[float] = math.inf
+
+    def __post_init__(self):
+        if not (self.yield_stress > 0):
+            raise InputError("VonMisesPlasticity", "yield_stress", f"must be > 0 (inf = off), got {self.yield_stress!r}")
+
+    def apply_particles(self, solver, state, t):
+        if math.isinf(self.yield_stress):
+            return
+        m = solver.model
+        plastic = _cached(solver, "plastic_strain", lambda: wp.zeros(m.particle_count, dtype=float, device=m.device))
+        wp.launch(von_mises_return, dim=m.particle_count, inputs=[m.particle_mu, float(self.yield_stress)], outputs=[state.particle_F, plastic], device=m.device)
+
+
+@dataclass(frozen=True)
+class PoissonShift(Effect):
+    """A shifted Poisson ratio: ``nu <- nu + delta_nu`` on every particle [-] (changes the
+    bulk-to-shear stiffness ratio, hence lateral bulging and the mode shapes). 0 is off;
+    the result must stay in (-1, 0.5)."""
+
+    delta_nu: float = 0.0
+    name: ClassVar[str] = "poisson"
+    parameter: ClassVar[str] = "delta_nu"
+    unit: ClassVar[str] = ""
+
+    def __post_init__(self):
+        _finite("PoissonShift", "delta_nu", self.delta_nu)
+
+    def materials(self, positions, E, nu, rho):
+        nu = np.asarray(nu, dtype=np.float64) + self.delta_nu
+        if np.any(nu <= -1.0) or np.any(nu >= 0.5):
+            raise InputError("PoissonShift", "delta_nu", f"nu + {self.delta_nu:g} leaves (-1, 0.5): range {nu.min():.4g}..{nu.max():.4g}")
+        return E, nu, rho
+
+
+@dataclass(frozen=True)
+class StiffnessGradient(Effect):
+    """Young's modulus varying along an axis: ``E <- E * exp(slope * s)`` with
+    ``s = (x_axis - mid) / extent`` in [-1/2, 1/2] over the particles' extent along
+    ``axis`` (0, 1, 2 = x, y, z), so the modulus ratio top/bottom is ``exp(slope)`` and
+    the mid-plane keeps its modulus. ``slope`` [-], 0 is off; positive = stiffer towards
+    larger coordinates."""
+
+    slope: float = 0.0
+    axis: int = 2
+    name: ClassVar[str] = "stiffness_gradient"
+    parameter: ClassVar[str] = "slope"
+    unit: ClassVar[str] = ""
+
+    def __post_init__(self):
+        _finite("StiffnessGradient", "slope", self.slope)
+        if self.axis not in (0, 1, 2):
+            raise InputError("StiffnessGradient", "axis", f"must be 0, 1 or 2, got {self.axis!r}")
+
+    def materials(self, positions, E, nu, rho):
+        c = np.asarray(positions, dtype=np.float64)[:, self.axis]
+        lo, hi = c.min(), c.max()
+        s = (c - 0.5 * (lo + hi)) / max(hi - lo, 1e-12)
+        return np.asarray(E, dtype=np.float64) * np.exp(self.slope * s), nu, rho
+
+
+@dataclass(frozen=True)
+class SupportFriction(Effect):
+    """The contract's sticky supports become Coulomb contacts with friction coefficient
+    ``mu`` [-] (the object can slide on its support; see :class:`FixedCuboid`). ``inf`` is
+    off (sticky). Static configuration: switch it on with :func:`with_effects`, which sets
+    ``friction = mu`` on every :class:`FixedCuboid` that is sticky in the contract."""
+
+    mu: float = math.inf
+    name: ClassVar[str] = "support_friction"
+    parameter: ClassVar[str] = "mu"
+    unit: ClassVar[str] = ""
+    off: ClassVar[float] = math.inf
+
+    def __post_init__(self):
+        if not (self.mu >= 0):
+            raise InputError("SupportFriction", "mu", f"must be >= 0 (inf = sticky), got {self.mu!r}")
+
+    def configure(self, params: SimParams) -> SimParams:
+        if math.isinf(self.mu):
+            return params
+        bcs = []
+        found = False
+        for bc in params.boundaries:
+            if isinstance(bc, FixedCuboid) and bc.friction is None:
+                bc = dataclasses.replace(bc, friction=float(self.mu))
+                found = True
+            bcs.append(bc)
+        if not found:
+            raise InputError("SupportFriction", "mu", "the simulation has no sticky FixedCuboid support to make frictional")
+        return dataclasses.replace(params, boundaries=tuple(bcs), effects=tuple(params.effects) + (self,))
+
+
+def _still_sticky(bc) -> bool:
+    return isinstance(bc, FixedCuboid) and bc.friction is None and not any(bc.velocity) and bc.start_time <= 0.0 and math.isinf(bc.end_time)
+
+
+@dataclass(frozen=True)
+class SupportSlip(Effect):
+    """Viscous slip at the support: the contract's still, sticky supports hold the object in
+    the normal direction only (no penetration, no separation), and the tangential velocity of
+    the nodes they hold relaxes towards zero with time constant ``slip_time`` [s] (each
+    substep it is multiplied by ``exp(-dt / slip_time)``; a Navier-type slip law with a drag
+    rate ``1 / slip_time``). 0 is off (sticky); large values approach frictionless sliding.
+    Unlike Coulomb friction (:class:`SupportFriction`) it needs no normal load, so it also
+    applies to contracts without gravity. Static configuration: switch it on with
+    :func:`with_effects`, which takes over every still sticky :class:`FixedCuboid`
+    (recorded in ``boxes``)."""
+
+    slip_time: float = 0.0
+    boxes: tuple[Box, ...] = ()
+    name: ClassVar[str] = "support_slip"
+    parameter: ClassVar[str] = "slip_time"
+    unit: ClassVar[str] = "s"
+
+    def __post_init__(self):
+        if _finite("SupportSlip", "slip_time", self.slip_time) < 0:
+            raise InputError("SupportSlip", "slip_time", f"must be >= 0, got {self.slip_time!r}")
+
+    def configure(self, params: SimParams) -> SimParams:
+        if self.slip_time == 0.0:
+            return params
+        held = tuple(bc.box for bc in params.boundaries if _still_sticky(bc))
+        if not held:
+            raise InputError("SupportSlip", "slip_time", "the simulation has no still sticky FixedCuboid support")
+        bcs = tuple(bc for bc in params.boundaries if not _still_sticky(bc))
+        me = dataclasses.replace(self, boxes=held)
+        return dataclasses.replace(params, boundaries=bcs, effects=tuple(params.effects) + (me,))
+
+    def apply_grid(self, solver, state, lo, dims, t):
+        if self.slip_time == 0.0:
+            return
+        if not self.boxes:
+            raise InputError("SupportSlip", "boxes", "switch the effect on with with_effects(params, effect)")
+        p = solver.model.params
+        factor = math.exp(-p.dt / self.slip_time)
+        for box in self.boxes:
+            wp.launch(
+                grid_support_slip, dim=dims,
+                inputs=[lo, p.dx, wp.vec3(*box.center), wp.vec3(*box.half_size), factor, state.grid_m],
+                outputs=[state.grid_mv], device=solver.model.device,
+            )
+
+
+# --------------------------------------------------------------------------------------
+# outside the catalogue (disturbances used to test that they are not mis-attributed)
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class BodyForcePulse(Effect):
+    """A time-varying external push: particles inside ``box`` at t = 0 (all when ``box`` is
+    None) get the acceleration ``accel * sin(pi (t - start) / (end - start)) * direction``
+    [m/s^2] while ``start <= t < end`` [s] (a half-sine gust). 0 is off."""
+
+    accel: float = 0.0
+    direction: Vec3 = (0.0, 1.0, 0.0)
+    box: Box | None = None
+    start: float = 0.1
+    end: float = 0.3
+    name: ClassVar[str] = "force_pulse"
+    parameter: ClassVar[str] = "accel"
+    unit: ClassVar[str] = "m/s^2"
+
+    def __post_init__(self):
+        _finite("BodyForcePulse", "accel", self.accel)
+        _unit("BodyForcePulse", self.direction)
+        if not (0 <= self.start < self.end):
+            raise InputError("BodyForcePulse", "start/end", f"need 0 <= start < end, got {self.start!r}, {self.end!r}")
+
+    def apply_particles(self, solver, state, t):
+        if self.accel == 0.0:
+            return
+        m = solver.model
+
+        def make_mask():  # selected on the first substep (the positions are then the initial ones)
+            if state.step != 0:
+                raise InputError("BodyForcePulse", "box", "the solver must run from step 0 to select the particles at t = 0")
+            if self.box is None:
+                return wp.ones(m.particle_count, dtype=wp.int32, device=m.device)
+            return wp.array(self.box.contains(state.particle_x.numpy()).astype(np.int32), dtype=wp.int32, device=m.device)
+
+        mask = _cached(solver, ("pulse_mask", self.box), make_mask)
+        if not (self.start <= t < self.end):
+            return
+        a = self.accel * math.sin(math.pi * (t - self.start) / (self.end - self.start))
+        dv = _unit("BodyForcePulse", self.direction) * (a * m.params.dt)
+        wp.launch(particle_add_velocity, dim=m.particle_count, inputs=[mask, wp.vec3(*dv)], outputs=[state.particle_v], device=m.device)
+
+
+@dataclass(frozen=True)
+class HiddenMass(Effect):
+    """Extra mass in a region: density inside ``box`` multiplied by ``1 + fraction`` [-]
+    (a hidden insert). 0 is off."""
+
+    fraction: float = 0.0
+    box: Box = Box((1.0, 1.0, 1.0), (0.1, 0.1, 0.1))
+    name: ClassVar[str] = "hidden_mass"
+    parameter: ClassVar[str] = "fraction"
+    unit: ClassVar[str] = ""
+
+    def __post_init__(self):
+        if not (_finite("HiddenMass", "fraction", self.fraction) > -1.0):
+            raise InputError("HiddenMass", "fraction", f"must be > -1, got {self.fraction!r}")
+
+    def materials(self, positions, E, nu, rho):
+        inside = self.box.contains(positions)
+        rho = np.asarray(rho, dtype=np.float64) * np.where(inside, 1.0 + self.fraction, 1.0)
+        return E, nu, rho
+
+
+def with_effects(params: SimParams, *effects) -> SimParams:
+    """``params`` with ``effects`` switched on, in order: an effect with a ``configure``
+    method rewrites the static configuration (and records itself in ``params.effects``);
+    any other effect is appended to ``params.effects``."""
+    for effect in effects:
+        if hasattr(effect, "configure"):
+            params = effect.configure(params)
+        else:
+            params = dataclasses.replace(params, effects=tuple(params.effects) + (effect,))
+    return params
