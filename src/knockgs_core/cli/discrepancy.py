@@ -1,0 +1,177 @@
+"""``knockgs discrepancy``: find the effect a calibrated model lacks, add it, report before/after.
+
+Subcommands: ``run`` (the loop on a measured file, writes a report), ``make-case`` (a
+synthetic measured case with a planted effect; the truth goes to a separate folder),
+``evaluate`` (score a run against a case's truth) and ``table`` (collect evaluated cases).
+Heavy imports happen inside the handlers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from ..errors import InputError
+
+__all__ = ["register"]
+
+
+def _pair(text: str) -> tuple[float, float]:
+    try:
+        a, b = (float(t) for t in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'SE,SRHO' (two numbers), got '{text}'") from None
+    return a, b
+
+
+def _common(p) -> None:
+    p.add_argument("--object", required=True, help="object name (config/objects/NAME.yaml) or a contract path")
+    p.add_argument("--profile", default="default", help="resolution profile: ci, default or paper")
+    p.add_argument("--particles", help="particles .npz from `knockgs asset` (default: build the asset)")
+    p.add_argument("--device", help="Warp device (cpu, cuda:0); default $KNOCKGS_DEVICE or cpu")
+    p.add_argument("--config-dir", help="folder holding objects/ (default: the project's config/)")
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add ``discrepancy`` and its subcommands to the dispatcher's subparsers."""
+    parser = subparsers.add_parser("discrepancy", help="find, add and report a missing physical effect", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="discrepancy_command", required=True)
+
+    p = sub.add_parser("run", help="run the discrepancy loop on measured trajectories and write a report")
+    _common(p)
+    p.add_argument("--measured", required=True, metavar="FILE", help="calibration-probe trajectories (.parquet, .csv, .npz)")
+    p.add_argument("--probe", help="probe of the measurement (default: its metadata, then the contract's calibration probe)")
+    p.add_argument("--heldout-probe", action="append", default=[], metavar="NAME", help="held-out probe to predict (repeatable; never used in the loop)")
+    p.add_argument("--heldout-measured", action="append", default=[], metavar="PROBE=FILE",
+                   help="measurement of a held-out probe, only to score the predictions (repeatable)")
+    p.add_argument("--library-rollout", action="append", default=[], metavar="FILE",
+                   help="candidate-library rollout (.parquet, theta in its metadata; repeatable): base calibration by local ridge "
+                        "instead of Gauss-Newton from (1, 1)")
+    p.add_argument("--catalogue", help="comma-separated catalogue keys to consider (default: all that apply)")
+    p.add_argument("--max-effects", type=int, default=2, help="most effects to add (default 2)")
+    p.add_argument("-o", "--output", required=True, metavar="DIR", help="report folder (report.md, result.json, predictions.npz, figures)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.set_defaults(func=_run)
+
+    p = sub.add_parser("make-case", help="write a synthetic measured case with a planted effect (truth kept apart)")
+    _common(p)
+    p.add_argument("--case", required=True, help="case name; a standard case (see docs/discrepancy.md) unless --planted is given")
+    p.add_argument("--planted", help="planted effect: none, damping, gravity, plasticity, poisson, stiffness_gradient_z, support_slip, force_pulse, hidden_mass")
+    p.add_argument("--level", default="low", help="low (12%% held-out change), high (25%%) or a fraction")
+    p.add_argument("--theta", type=_pair, default=(0.8, 1.2), help="true 'SE,SRHO' (default 0.8,1.2)")
+    p.add_argument("--noise", type=float, default=0.02, help="noise std as a fraction of the RMS displacement (default 0.02)")
+    p.add_argument("--observation", default="gs_identity", help="gs_identity, gs_tracks (no identity) or all_identity")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--measured-dir", required=True, metavar="DIR", help="where the measured files go")
+    p.add_argument("--truth-dir", required=True, metavar="DIR", help="where the truth goes (only `evaluate` reads it)")
+    p.set_defaults(func=_make_case)
+
+    p = sub.add_parser("evaluate", help="score a run against its case's truth (one table row as JSON)")
+    p.add_argument("--run-dir", required=True, metavar="DIR", help="output folder of `discrepancy run`")
+    p.add_argument("--truth-dir", required=True, metavar="DIR")
+    p.add_argument("-o", "--output", required=True, metavar="ROW.json")
+    p.set_defaults(func=_evaluate)
+
+    p = sub.add_parser("table", help="collect evaluated rows into CSV and Markdown tables")
+    p.add_argument("rows", nargs="+", metavar="ROW.json")
+    p.add_argument("--csv", required=True)
+    p.add_argument("--md", required=True)
+    p.set_defaults(func=_table)
+    return parser
+
+
+def _load(args):
+    from ..contract import load_contract
+
+    contract = load_contract(args.object, args.profile, config_dir=args.config_dir)
+    if args.particles:
+        from ..assets import load_particles
+
+        particles = load_particles(args.particles)
+    else:
+        from ..assets import build_asset
+
+        particles = build_asset(contract).particles
+    return contract, particles
+
+
+def _run(args) -> int:
+    import numpy as np
+
+    from ..discrepancy import LibrarySource, LoopSettings, read_measured, run_discrepancy, write_report
+
+    contract, particles = _load(args)
+    measured = read_measured(args.measured)
+    inputs = [args.measured] + ([args.particles] if args.particles else [])
+    held = {}
+    for item in args.heldout_measured:
+        if "=" not in item:
+            raise InputError("command line", "--heldout-measured", f"expected PROBE=FILE, got '{item}'")
+        name, path = item.split("=", 1)
+        held[name] = read_measured(path)
+        inputs.append(path)
+    library = None
+    if args.library_rollout:
+        from ..rollout import read_rollout_meta
+
+        thetas, names = [], []
+        for path in args.library_rollout:
+            thetas.append(read_rollout_meta(path)["theta"])
+            names.append(str(path))
+        library = LibrarySource(theta=np.array(thetas, dtype=float), names=tuple(names), rollouts=tuple(args.library_rollout))
+        inputs += list(args.library_rollout)
+    settings = LoopSettings(max_effects=args.max_effects, catalogue=tuple(args.catalogue.split(",")) if args.catalogue else None)
+    say = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    result = run_discrepancy(measured, contract, particles, probe=args.probe, heldout_probes=args.heldout_probe,
+                             heldout_measured=held, library=library, settings=settings, device=args.device, progress=say)
+    result.inputs = [str(p) for p in inputs]
+    path = write_report(result, args.output)
+    print(f"{result.verdict} -> {path}", file=sys.stderr)
+    return 0
+
+
+def _make_case(args) -> int:
+    from ..discrepancy import CaseSpec, default_cases, make_case
+
+    contract, particles = _load(args)
+    if args.planted is None:
+        std = {c.name: c for c in default_cases()}
+        if args.case not in std:
+            raise InputError("command line", "--case", f"'{args.case}' is not a standard case ({', '.join(std)}); give --planted")
+        spec = std[args.case]
+    else:
+        level = args.level if args.level in ("low", "high") else float(args.level)
+        spec = CaseSpec(name=args.case, planted=args.planted, level=level, theta=args.theta, noise_rel=args.noise,
+                        observation=args.observation, seed=args.seed)
+    truth = make_case(spec, contract, particles, measured_dir=args.measured_dir, truth_dir=args.truth_dir, device=args.device)
+    print(f"case {spec.name}: planted {truth['planted_effect']} -> {args.measured_dir} (truth in {args.truth_dir})", file=sys.stderr)
+    return 0
+
+
+def _evaluate(args) -> int:
+    from pathlib import Path
+
+    import numpy as np
+
+    from ..discrepancy import evaluate_case
+
+    run_dir = Path(args.run_dir)
+    result = json.loads((run_dir / "result.json").read_text())
+    with np.load(run_dir / "predictions.npz") as z:
+        preds = {k: z[k] for k in z.files}
+    row = evaluate_case(result, preds, args.truth_dir)
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(row, indent=2, default=float) + "\n")
+    return 0
+
+
+def _table(args) -> int:
+    from ..discrepancy import case_table, write_table
+
+    rows = [json.loads(open(p).read()) for p in args.rows]
+    df = case_table(rows)
+    write_table(df, args.csv, args.md)
+    print(f"{int(df['accepted'].sum())}/{len(df)} cases accepted -> {args.csv}", file=sys.stderr)
+    return 0

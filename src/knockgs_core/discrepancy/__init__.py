@@ -1,0 +1,49 @@
+"""The discrepancy loop (SPEC §9): calibrate (s_E, s_rho) on measured trajectories, find the
+residual, trace it to an effect the model lacks, add it, recalibrate, and report the error
+before and after -- or say that no effect is missing, or that the residual stays
+unexplained. See docs/discrepancy.md.
+
+* :func:`read_measured` / :func:`write_measured`: measured point trajectories (Parquet,
+  CSV, NPZ; with or without particle identity);
+* :func:`run_discrepancy` -> :class:`DiscrepancyResult`; :class:`LoopSettings`,
+  :class:`LibrarySource`;
+* :func:`default_catalogue`: the candidate effects (:mod:`knockgs_core.sim` effects);
+* :func:`write_report`: Markdown report with figures;
+* :func:`make_case` / :func:`evaluate_case` / :func:`case_table`: synthetic cases with a
+  planted effect (the truth side, never used by the loop) and their table.
+"""
+
+from ._cases import PLANTED_EFFECTS, CaseSpec, acceptance, case_table, default_cases, evaluate_case, make_case, write_table
+from ._catalogue import CATALOGUE_KEYS, Candidate, CatalogueContext, default_catalogue
+from ._loop import DiscrepancyResult, LibrarySource, LoopSettings, run_discrepancy
+from ._measured import Correspondence, Measurement, match_points, read_measured, write_measured
+from ._report import write_report, write_result
+from ._views import residual_views, view_summary
+
+__all__ = [
+    "Measurement",
+    "read_measured",
+    "write_measured",
+    "Correspondence",
+    "match_points",
+    "CATALOGUE_KEYS",
+    "Candidate",
+    "CatalogueContext",
+    "default_catalogue",
+    "LoopSettings",
+    "LibrarySource",
+    "DiscrepancyResult",
+    "run_discrepancy",
+    "residual_views",
+    "view_summary",
+    "write_report",
+    "write_result",
+    "PLANTED_EFFECTS",
+    "CaseSpec",
+    "default_cases",
+    "make_case",
+    "evaluate_case",
+    "case_table",
+    "acceptance",
+    "write_table",
+]
