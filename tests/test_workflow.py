@@ -26,10 +26,7 @@ def _snakemake(workdir: Path, *targets: str, extra=()):
 @pytest.fixture(scope="module")
 def ci_run(tmp_path_factory):
     """One ci-profile run of the Pillow main table, render table and audits in a scratch copy."""
-    work = tmp_path_factory.mktemp("wf")
-    shutil.copy(ROOT / "Snakefile", work)
-    shutil.copytree(ROOT / "workflow", work / "workflow")
-    shutil.copytree(ROOT / "config", work / "config")
+    work = _scratch_copy(tmp_path_factory.mktemp("wf"))
     targets = ["results/tables/main_pillow.csv", "results/tables/render_pillow.csv", "results/figures/qualitative_pillow.png",
                "results/figures/compare_pillow.gif", "results/figures/main_pillow.png", "results/audits/leakage.json",
                "results/audits/duplicates.json", "results/audits/nonfinite.json", "results/audits/missing_frames.json"]
@@ -118,14 +115,25 @@ def test_duplicates_and_completion_audits(tmp_path):
     assert not audit_completion([tmp_path / "nope.csv"])["passed"]
 
 
-def test_workflow_lints_and_dry_runs_for_all_profiles():
+def _scratch_copy(dest: Path) -> Path:
+    shutil.copy(ROOT / "Snakefile", dest)
+    shutil.copytree(ROOT / "workflow", dest / "workflow")
+    shutil.copytree(ROOT / "config", dest / "config")
+    return dest
+
+
+def test_workflow_lints_and_dry_runs_for_all_profiles(tmp_path):
+    work = _scratch_copy(tmp_path)
+    lint = subprocess.run([sys.executable, "-m", "snakemake", "--lint", "--configfile=config/ci.yaml"], cwd=work, capture_output=True, text=True)
+    assert lint.returncode == 0 and "good condition" in lint.stdout + lint.stderr, lint.stdout[-3000:]
     for cfg in ["config/config.yaml", "config/ci.yaml", "config/paper.yaml"]:
-        out = subprocess.run([sys.executable, "-m", "snakemake", "-n", "--quiet", "all", f"--configfile={cfg}"], cwd=ROOT, capture_output=True, text=True)
+        out = subprocess.run([sys.executable, "-m", "snakemake", "-n", "--quiet", "all", f"--configfile={cfg}"], cwd=work, capture_output=True, text=True)
         assert out.returncode == 0, out.stderr[-3000:]
 
 
 def test_bad_config_is_a_clear_error(tmp_path):
+    (tmp_path / "w").mkdir()
     bad = tmp_path / "bad.yaml"
     bad.write_text((ROOT / "config/ci.yaml").read_text() + "\nunknown_key: 1\n")
-    out = subprocess.run([sys.executable, "-m", "snakemake", "-n", f"--configfile={bad}", "all"], cwd=ROOT, capture_output=True, text=True)
+    out = subprocess.run([sys.executable, "-m", "snakemake", "-n", f"--configfile={bad}", "all"], cwd=_scratch_copy(tmp_path / "w"), capture_output=True, text=True)
     assert out.returncode != 0 and "unknown_key" in out.stdout + out.stderr

@@ -2,6 +2,8 @@
 
 
 rule asset:
+    conda:
+        "../envs/knockgs.yaml"
     output:
         ply=f"{P}/assets/{{object}}.ply",
         particles=f"{P}/assets/{{object}}.particles.npz",

@@ -1,21 +1,9 @@
 # Audits: separate rules, each writing a machine-readable verdict; a failed audit fails the run
 # (its verdict is kept in logs/{profile}/audits/NAME.failed.json).
 
-AUDITS = ["leakage", "nonfinite", "missing_frames", "duplicates", "completion"]
-
-
-def _all_estimates():
-    return [f"{P}/estimates/{o}/{SPLIT}/{m}.json" for o in OBJECTS for m in METHODS]
-
-
-def _reported_tables():
-    t = [f"results/tables/main_{o}.csv" for o in OBJECTS] + [f"results/tables/targetwise_{o}.csv" for o in OBJECTS] + ["results/tables/objects.csv"]
-    if RENDER["enabled"]:
-        t += [f"results/tables/render_{o}.csv" for o in OBJECTS]
-    return t
-
-
 rule audit_leakage:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         estimates=_all_estimates(),
         library=lambda wc: [lib_rollout(o, c) for o in OBJECTS for c in CANDIDATES.case_name],
@@ -31,6 +19,8 @@ rule audit_leakage:
 
 
 rule audit_nonfinite:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         tables=_reported_tables(),
     output:
@@ -44,6 +34,8 @@ rule audit_nonfinite:
 
 
 rule audit_missing_frames:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         tables=_reported_tables(),
     output:
@@ -57,6 +49,8 @@ rule audit_missing_frames:
 
 
 rule audit_duplicates:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         libraries=[f"{P}/descriptors/{o}/library.csv" for o in OBJECTS],
     output:
@@ -70,6 +64,8 @@ rule audit_duplicates:
 
 
 rule audit_completion:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         tables=_reported_tables(),
     output:

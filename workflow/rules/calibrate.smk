@@ -3,6 +3,8 @@
 
 
 checkpoint estimate:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         library=f"{P}/descriptors/{{object}}/library.csv",
         queries=f"{P}/descriptors/{{object}}/queries_{{split}}.csv",
@@ -21,6 +23,8 @@ checkpoint estimate:
 
 
 checkpoint oracle_estimate:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         library=f"{P}/descriptors/{{object}}/library.csv",
         targets="config/targets.csv",

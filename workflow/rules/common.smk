@@ -97,3 +97,59 @@ def all_outputs():
     out += [f"results/audits/{a}.json" for a in AUDITS]
     out += globals().get("DISCREPANCY_OUTPUTS", [])
     return out
+
+
+# used by simulate.smk
+def _rollout_resources(wildcards, attempt):
+    return 16000 if PROFILE == "paper" else 2000
+
+
+# used by evaluate.smk
+def evaluation_inputs(wc):
+    ests = estimated_thetas(wc)
+    truths = target_thetas(wc.split)
+    rollouts = set()
+    for probe in eval_probes(wc.object):
+        for th in list(ests.values()) + list(truths.values()):
+            rollouts.add(eval_rollout(wc.object, probe, th))
+    return {"estimate": estimate_json(wc), "targets": "config/targets.csv", "rollouts": sorted(rollouts)}
+
+
+# used by render.smk
+def render_metric_inputs(wc):
+    ests = estimated_thetas(wc)
+    truths = target_thetas(wc.split)
+    frames = set()
+    for probe in eval_probes(wc.object):
+        for th in list(ests.values()) + list(truths.values()):
+            frames.add(f"{P}/renders/{wc.object}/{probe}/{theta_tag(th)}.npz")
+    return {"estimate": estimate_json(wc), "targets": "config/targets.csv", "frames": sorted(frames)}
+
+
+# used by render.smk
+def qualitative_inputs(wc):
+    target = RENDER["gif_target"]
+    probe = heldout_probes(wc.object)[0]
+    out = {"estimates": [], "frames": [f"{P}/renders/{wc.object}/{probe}/{theta_tag(target_thetas()[target])}.npz"]}
+    for m in METHODS:
+        w = type("W", (), {"object": wc.object, "split": SPLIT, "method": m})
+        out["estimates"].append(estimate_json(w))
+        out["frames"].append(f"{P}/renders/{wc.object}/{probe}/{theta_tag(estimated_thetas(w)[target])}.npz")
+    return out
+
+
+# used by audit.smk
+AUDITS = ["leakage", "nonfinite", "missing_frames", "duplicates", "completion"]
+
+
+# used by audit.smk
+def _all_estimates():
+    return [f"{P}/estimates/{o}/{SPLIT}/{m}.json" for o in OBJECTS for m in METHODS]
+
+
+# used by audit.smk
+def _reported_tables():
+    t = [f"results/tables/main_{o}.csv" for o in OBJECTS] + [f"results/tables/targetwise_{o}.csv" for o in OBJECTS] + ["results/tables/objects.csv"]
+    if RENDER["enabled"]:
+        t += [f"results/tables/render_{o}.csv" for o in OBJECTS]
+    return t

@@ -2,6 +2,8 @@
 
 
 rule library_descriptors:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         rollouts=lambda wc: [lib_rollout(wc.object, c) for c in CANDIDATES.case_name],
     output:
@@ -15,6 +17,8 @@ rule library_descriptors:
 
 
 rule query_descriptors:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         rollouts=lambda wc: [eval_rollout(wc.object, calibration_probe(wc.object), th) for th in target_thetas(wc.split).values()],
     output:

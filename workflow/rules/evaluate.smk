@@ -2,17 +2,9 @@
 # with the hidden target's rollouts (truth revealed only here).
 
 
-def evaluation_inputs(wc):
-    ests = estimated_thetas(wc)
-    truths = target_thetas(wc.split)
-    rollouts = set()
-    for probe in eval_probes(wc.object):
-        for th in list(ests.values()) + list(truths.values()):
-            rollouts.add(eval_rollout(wc.object, probe, th))
-    return {"estimate": estimate_json(wc), "targets": "config/targets.csv", "rollouts": sorted(rollouts)}
-
-
 rule evaluate:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         unpack(evaluation_inputs),
     output:

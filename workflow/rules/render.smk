@@ -3,6 +3,8 @@
 
 
 rule render:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         ply=f"{P}/assets/{{object}}.ply",
         scene=f"{P}/assets/{{object}}.scene.npz",
@@ -27,17 +29,9 @@ rule render:
         "../scripts/render.py"
 
 
-def render_metric_inputs(wc):
-    ests = estimated_thetas(wc)
-    truths = target_thetas(wc.split)
-    frames = set()
-    for probe in eval_probes(wc.object):
-        for th in list(ests.values()) + list(truths.values()):
-            frames.add(f"{P}/renders/{wc.object}/{probe}/{theta_tag(th)}.npz")
-    return {"estimate": estimate_json(wc), "targets": "config/targets.csv", "frames": sorted(frames)}
-
-
 rule render_metrics:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         unpack(render_metric_inputs),
     output:
@@ -52,6 +46,8 @@ rule render_metrics:
 
 
 rule render_table:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         metrics=lambda wc: [f"{P}/render/{wc.object}/{SPLIT}/{m}.csv" for m in METHODS],
     output:
@@ -67,18 +63,9 @@ rule render_table:
         "../scripts/render_table.py"
 
 
-def qualitative_inputs(wc):
-    target = RENDER["gif_target"]
-    probe = heldout_probes(wc.object)[0]
-    out = {"estimates": [], "frames": [f"{P}/renders/{wc.object}/{probe}/{theta_tag(target_thetas()[target])}.npz"]}
-    for m in METHODS:
-        w = type("W", (), {"object": wc.object, "split": SPLIT, "method": m})
-        out["estimates"].append(estimate_json(w))
-        out["frames"].append(f"{P}/renders/{wc.object}/{probe}/{theta_tag(estimated_thetas(w)[target])}.npz")
-    return out
-
-
 rule qualitative:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         unpack(qualitative_inputs),
     output:

@@ -2,6 +2,8 @@
 
 
 rule main_table:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         metrics=lambda wc: [f"{P}/metrics/{wc.object}/{SPLIT}/{m}.csv" for m in METHODS],
     output:
@@ -20,6 +22,8 @@ rule main_table:
 
 
 rule main_figure:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         csv="results/tables/main_{object}.csv",
     output:
@@ -34,6 +38,8 @@ rule main_figure:
 
 
 rule objects_table:
+    conda:
+        "../envs/knockgs.yaml"
     input:
         mains=expand("results/tables/main_{object}.csv", object=OBJECTS),
     output:

@@ -1,12 +1,10 @@
 # MPM rollouts, cached as Parquet, one job per (object, theta, probe).
 
 
-def _rollout_resources(wildcards, attempt):
-    return 16000 if PROFILE == "paper" else 2000
-
-
 rule rollout_library:
     """A candidate's Probe-A rollout (library member)."""
+    conda:
+        "../envs/knockgs.yaml"
     input:
         particles=f"{P}/assets/{{object}}.particles.npz",
     output:
@@ -33,6 +31,8 @@ rule rollout_library:
 rule rollout_eval:
     """Evaluation rollout at any theta (targets and frozen estimates) under any probe, with the
     deformation gradients of the Gaussian-associated particles for rendering."""
+    conda:
+        "../envs/knockgs.yaml"
     input:
         particles=f"{P}/assets/{{object}}.particles.npz",
     output:

@@ -1,0 +1,134 @@
+# Discrepancy loop (SPEC §9): synthetic "measured" cases with a planted effect, one job per
+# case and step, so runs parallelize and resume.
+#
+# Path grammar (P = results/{profile}, D = P/discrepancy):
+#   D/cases/{case}/measured_{calib,heldout}.parquet   measured trajectories (positions only)
+#   D/truth/{case}/truth.json, clean.npz              the truth: read by make-case and evaluate only
+#   results/discrepancy/{case}/report.md              the loop's report (+ result.json,
+#                                                     predictions.npz, residuals_*.png)
+#   D/eval/{case}.json                                one table row (run scored against the truth)
+#   results/tables/discrepancy.csv|md                 the table of cases
+#   results/audits/discrepancy_truth.json             verdict: no run read the truth
+
+from knockgs_core.discrepancy import default_cases as _discrepancy_default_cases
+
+DISCREPANCY_OBJECT = "pillow"
+DISCREPANCY_CASES = [c.name for c in _discrepancy_default_cases()]
+_D = f"{P}/discrepancy"
+
+
+wildcard_constraints:
+    case="[A-Za-z0-9_]+",
+
+
+def _discrepancy_run_inputs(case):
+    """The run job's inputs: measured files, particles, the object's candidate library."""
+    obj = DISCREPANCY_OBJECT
+    return {
+        "measured": f"{_D}/cases/{case}/measured_calib.parquet",
+        "heldout": f"{_D}/cases/{case}/measured_heldout.parquet",
+        "particles": f"{P}/assets/{obj}.particles.npz",
+        "library": [lib_rollout(obj, c) for c in CANDIDATES.case_name],
+    }
+
+
+DISCREPANCY_OUTPUTS = [
+    "results/tables/discrepancy.csv",
+    "results/tables/discrepancy.md",
+    "results/audits/discrepancy_truth.json",
+] + [f"results/discrepancy/{c}/report.md" for c in DISCREPANCY_CASES]
+
+
+rule discrepancy_case:
+    """Truth side: plant the case's effect at its magnitude, write measured files and truth apart."""
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        particles=f"{P}/assets/{DISCREPANCY_OBJECT}.particles.npz",
+    output:
+        calib=f"{_D}/cases/{{case}}/measured_calib.parquet",
+        heldout=f"{_D}/cases/{{case}}/measured_heldout.parquet",
+        truth=f"{_D}/truth/{{case}}/truth.json",
+        clean=f"{_D}/truth/{{case}}/clean.npz",
+    log:
+        f"logs/{PROFILE}/discrepancy/case_{{case}}.log",
+    params:
+        object=DISCREPANCY_OBJECT,
+        profile=PROFILE,
+        device=DEVICE,
+    threads: 1
+    script:
+        "../scripts/discrepancy_case.py"
+
+
+rule discrepancy_run:
+    """The loop on one case's measured files (never its truth); the held-out measurement only
+    scores the predictions in the report."""
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        unpack(lambda wc: _discrepancy_run_inputs(wc.case)),
+    output:
+        report=report(f"results/discrepancy/{{case}}/report.md", category="Discrepancy", subcategory="{case}"),
+        result=f"results/discrepancy/{{case}}/result.json",
+        predictions=f"results/discrepancy/{{case}}/predictions.npz",
+    log:
+        f"logs/{PROFILE}/discrepancy/run_{{case}}.log",
+    benchmark:
+        f"results/{PROFILE}/benchmarks/discrepancy/run_{{case}}.tsv"
+    params:
+        object=DISCREPANCY_OBJECT,
+        profile=PROFILE,
+        device=DEVICE,
+        probe=calibration_probe(DISCREPANCY_OBJECT),
+        heldout_probe=heldout_probes(DISCREPANCY_OBJECT)[0],
+    threads: 1
+    script:
+        "../scripts/discrepancy_run.py"
+
+
+rule discrepancy_evaluate:
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        result=f"results/discrepancy/{{case}}/result.json",
+        predictions=f"results/discrepancy/{{case}}/predictions.npz",
+        truth=f"{_D}/truth/{{case}}/truth.json",
+        clean=f"{_D}/truth/{{case}}/clean.npz",
+    output:
+        row=f"{_D}/eval/{{case}}.json",
+    log:
+        f"logs/{PROFILE}/discrepancy/evaluate_{{case}}.log",
+    script:
+        "../scripts/discrepancy_evaluate.py"
+
+
+rule discrepancy_table:
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        rows=[f"{_D}/eval/{c}.json" for c in DISCREPANCY_CASES],
+    output:
+        csv=report("results/tables/discrepancy.csv", category="Discrepancy"),
+        md="results/tables/discrepancy.md",
+    log:
+        f"logs/{PROFILE}/discrepancy/table.log",
+    script:
+        "../scripts/discrepancy_table.py"
+
+
+rule audit_discrepancy_truth:
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        results=[f"results/discrepancy/{c}/result.json" for c in DISCREPANCY_CASES],
+        measured=[f"{_D}/cases/{c}/measured_{r}.parquet" for c in DISCREPANCY_CASES for r in ("calib", "heldout")],
+    output:
+        "results/audits/discrepancy_truth.json",
+    log:
+        f"logs/{PROFILE}/audits/discrepancy_truth.log",
+    params:
+        truth_dirs=[f"{_D}/truth"],
+        declared={c: [v for vs in _discrepancy_run_inputs(c).values() for v in ([vs] if isinstance(vs, str) else vs)] for c in DISCREPANCY_CASES},
+    script:
+        "../scripts/discrepancy_audit.py"
