@@ -169,8 +169,11 @@ class SimParams:
     """Solver settings shared by every rollout of one contract and profile.
 
     ``n_grid`` cells per axis over ``[0, grid_lim]^3``; substep ``dt`` [s]; ``gravity``
-    [m/s^2]; ``grid_v_damping_scale`` multiplies grid velocities each substep when < 1
-    (PhysGaussian semantics); ``boundaries`` are applied in order after the grid update.
+    [m/s^2]; ``grid_v_damping_scale`` multiplies grid velocities each substep of length
+    ``damping_dt_ref`` when < 1 (PhysGaussian semantics at the paper's 1e-4 s substep); at
+    another dt the per-substep factor is ``scale ** (dt / damping_dt_ref)``, so the damping
+    per unit time, a property of the contract, does not change with the resolution profile;
+    ``boundaries`` are applied in order after the grid update.
     ``cfl_limit`` bounds ``max|v| dt / dx`` (the guard stops the run above it).
     """
 
@@ -179,6 +182,7 @@ class SimParams:
     dt: float = 1e-4
     gravity: Vec3 = (0.0, 0.0, 0.0)
     grid_v_damping_scale: float = 1.0
+    damping_dt_ref: float = 1e-4
     boundaries: tuple[BoundaryCondition, ...] = (DomainWalls(),)
     cfl_limit: float = 1.0
     guard_every: int = 50

@@ -317,7 +317,7 @@ class MPMSolver:
             outputs=[state.particle_v, state.particle_rot, state.grid_mv, state.grid_m, self._overrun],
             device=dev,
         )
-        damping = p.grid_v_damping_scale if p.grid_v_damping_scale < 1.0 else 1.0
+        damping = p.grid_v_damping_scale ** (dt / p.damping_dt_ref) if p.grid_v_damping_scale < 1.0 else 1.0
         wp.launch(K.grid_update, dim=dims, inputs=[lo, dt, wp.vec3(*p.gravity), damping, state.grid_m], outputs=[state.grid_mv], device=dev)
         for bc in p.boundaries:
             if isinstance(bc, DomainWalls):
