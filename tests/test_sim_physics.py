@@ -199,11 +199,25 @@ def test_cpu_rollouts_are_bitwise_deterministic():
 # 8. the guard
 # -------------------------------------------------------------------------------------
 def test_guard_stops_an_unstable_run_with_a_message():
-    params = SimParams(n_grid=32, dt=2e-2, boundaries=(DomainWalls(),), guard_every=5)
+    """A velocity CFL violation (a probe far too strong for dt) stops the run mid-way."""
+    params = SimParams(n_grid=32, dt=2e-3, boundaries=(DomainWalls(),), guard_every=5)
     X = block((0.85, 0.85, 0.85), (1.15, 1.15, 1.15), 1 / 32)
-    probe = Probe("p", (-0.5, 0.0, 0.0), dt_ref=2e-2)
-    model = build_model(X, E=1e6, nu=0.3, rho=100.0, params=params, probe=probe)
-    with pytest.raises(SimulationError, match=r"(CFL violation|blew up).*step \d+ \(t = .* s\).*dt"):
+    probe = Probe("p", (-90.0, 0.0, 0.0), dt_ref=2e-3, start_time=0.01)
+    model = build_model(X, E=1e4, nu=0.3, rho=100.0, params=params, probe=probe)
+    with pytest.raises(SimulationError, match=r"CFL violation at step \d+ \(t = .* s\).*dt"):
+        simulate(model, make_state(model, X), frame_dt=0.02, n_frames=3)
+
+
+def test_guard_refuses_an_elastically_unstable_dt():
+    params = SimParams(n_grid=32, dt=2e-2, boundaries=(DomainWalls(),))
+    X = block((0.85, 0.85, 0.85), (1.15, 1.15, 1.15), 1 / 32)
+    model = build_model(X, E=1e6, nu=0.3, rho=100.0, params=params)
+    with pytest.raises(SimulationError, match=r"elastic CFL violation at step 0 .*use dt <="):
+        simulate(model, make_state(model, X), frame_dt=0.2, n_frames=3)
+    # the same run without the up-front check really does blow up, and the guard says so
+    params = SimParams(n_grid=32, dt=2e-2, boundaries=(DomainWalls(),), elastic_cfl_limit=1e9, guard_every=5)
+    model = build_model(X, E=1e6, nu=0.3, rho=100.0, params=params, probe=Probe("p", (-0.5, 0.0, 0.0), dt_ref=2e-2))
+    with pytest.raises(SimulationError, match=r"(CFL violation|blew up|outran).*step \d+"):
         simulate(model, make_state(model, X), frame_dt=0.2, n_frames=3)
 
 

@@ -174,7 +174,10 @@ class SimParams:
     another dt the per-substep factor is ``scale ** (dt / damping_dt_ref)``, so the damping
     per unit time, a property of the contract, does not change with the resolution profile;
     ``boundaries`` are applied in order after the grid update.
-    ``cfl_limit`` bounds ``max|v| dt / dx`` (the guard stops the run above it).
+    ``cfl_limit`` bounds ``max|v| dt / dx`` (the guard stops the run above it);
+    ``elastic_cfl_limit`` bounds ``c_p dt / dx`` with the fastest dilatational wave speed
+    ``c_p`` of the materials (checked before the first substep: above it explicit MPM is
+    unstable whatever the velocities).
     """
 
     n_grid: int = 100
@@ -185,6 +188,7 @@ class SimParams:
     damping_dt_ref: float = 1e-4
     boundaries: tuple[BoundaryCondition, ...] = (DomainWalls(),)
     cfl_limit: float = 1.0
+    elastic_cfl_limit: float = 1.0
     guard_every: int = 50
     effects: tuple = ()
     """Optional extra physics (see :mod:`knockgs_core.sim` docs): frozen dataclasses with any of

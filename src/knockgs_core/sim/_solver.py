@@ -266,6 +266,13 @@ class MPMSolver:
         overrun = int(self._overrun.numpy()[0])
         t = state.step * p.dt
         where = f"at step {state.step} (t = {t:.6g} s)"
+        elastic = m.max_wave_speed * p.dt / p.dx
+        if elastic > p.elastic_cfl_limit:
+            raise SimulationError(
+                f"elastic CFL violation {where}: c_p dt / dx = {elastic:.3g} > {p.elastic_cfl_limit:g} "
+                f"(fastest p-wave speed {m.max_wave_speed:.4g} m/s, dt = {p.dt:g} s, dx = {p.dx:.4g} m). "
+                f"Likely cause: dt too large for the stiffest, lightest material; use dt <= {p.elastic_cfl_limit * p.dx / m.max_wave_speed:.3g} s."
+            )
         if si[0] > 0:
             raise SimulationError(
                 f"simulation blew up {where}: {int(si[0])} particles have non-finite state. "
@@ -378,7 +385,9 @@ def simulate(
     for frame in range(1, n_frames):
         for s in range(steps_per_frame):
             solver.step(state)
-            if state.step % p.guard_every == 0:
+            # the guard runs every guard_every substeps and right after the probe's first
+            # substep (velocities jump there, and the active box must follow)
+            if state.step % p.guard_every == 0 or (model.probe_steps and state.step == model.probe_first + 1):
                 stats = solver.check(state)
         stats = solver.check(state)
         positions[frame] = state.particle_x.numpy()
