@@ -201,9 +201,14 @@ def _reshape(table: pa.Table, path, value_cols: list[str]) -> np.ndarray:
     N = int(particle.max()) + 1 if len(particle) else 0
     if T * N != len(frame):
         raise InputError(path, "frame", f"{len(frame)} rows do not form {T} frames x {N} particles (missing rows)")
-    order = np.lexsort((particle, frame))
-    if not (np.array_equal(frame[order], np.repeat(np.arange(T), N)) and np.array_equal(particle[order], np.tile(np.arange(N), T))):
-        raise InputError(path, "particle", "duplicate or missing (frame, particle) rows")
+    want_f = np.repeat(np.arange(T, dtype=frame.dtype), N)
+    want_p = np.tile(np.arange(N, dtype=particle.dtype), T)
+    if np.array_equal(frame, want_f) and np.array_equal(particle, want_p):
+        order = slice(None)  # the canonical order this module writes: no sort needed
+    else:
+        order = np.lexsort((particle, frame))
+        if not (np.array_equal(frame[order], want_f) and np.array_equal(particle[order], want_p)):
+            raise InputError(path, "particle", "duplicate or missing (frame, particle) rows")
     vals = np.stack([table.column(c).to_numpy()[order].astype(np.float32) for c in value_cols], axis=-1)
     if not np.all(np.isfinite(vals)):
         raise InputError(path, value_cols[0], "non-finite values")
