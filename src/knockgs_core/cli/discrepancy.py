@@ -97,37 +97,20 @@ def _load(args):
 
 
 def _run(args) -> int:
-    import numpy as np
+    from ..discrepancy import LoopSettings, run_files
 
-    from ..discrepancy import LibrarySource, LoopSettings, read_measured, run_discrepancy, write_report
-
-    contract, particles = _load(args)
-    measured = read_measured(args.measured)
-    inputs = [args.measured] + ([args.particles] if args.particles else [])
     held = {}
     for item in args.heldout_measured:
         if "=" not in item:
             raise InputError("command line", "--heldout-measured", f"expected PROBE=FILE, got '{item}'")
         name, path = item.split("=", 1)
-        held[name] = read_measured(path)
-        inputs.append(path)
-    library = None
-    if args.library_rollout:
-        from ..rollout import read_rollout_meta
-
-        thetas, names = [], []
-        for path in args.library_rollout:
-            thetas.append(read_rollout_meta(path)["theta"])
-            names.append(str(path))
-        library = LibrarySource(theta=np.array(thetas, dtype=float), names=tuple(names), rollouts=tuple(args.library_rollout))
-        inputs += list(args.library_rollout)
+        held[name] = path
     settings = LoopSettings(max_effects=args.max_effects, catalogue=tuple(args.catalogue.split(",")) if args.catalogue else None)
     say = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
-    result = run_discrepancy(measured, contract, particles, probe=args.probe, heldout_probes=args.heldout_probe,
-                             heldout_measured=held, library=library, settings=settings, device=args.device, progress=say)
-    result.inputs = [str(p) for p in inputs]
-    path = write_report(result, args.output)
-    print(f"{result.verdict} -> {path}", file=sys.stderr)
+    result = run_files(args.object, args.profile, args.measured, args.output, particles=args.particles, probe=args.probe,
+                       heldout_probes=args.heldout_probe, heldout_measured=held, library_rollouts=args.library_rollout,
+                       settings=settings, device=args.device, config_dir=args.config_dir, progress=say)
+    print(f"{result.verdict} -> {args.output}/report.md", file=sys.stderr)
     return 0
 
 
@@ -150,20 +133,9 @@ def _make_case(args) -> int:
 
 
 def _evaluate(args) -> int:
-    from pathlib import Path
+    from ..discrepancy import evaluate_files
 
-    import numpy as np
-
-    from ..discrepancy import evaluate_case
-
-    run_dir = Path(args.run_dir)
-    result = json.loads((run_dir / "result.json").read_text())
-    with np.load(run_dir / "predictions.npz") as z:
-        preds = {k: z[k] for k in z.files}
-    row = evaluate_case(result, preds, args.truth_dir)
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(row, indent=2, default=float) + "\n")
+    evaluate_files(args.run_dir, args.truth_dir, args.output)
     return 0
 
 

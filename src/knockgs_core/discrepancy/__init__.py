@@ -8,13 +8,16 @@ unexplained. See docs/discrepancy.md.
 * :func:`run_discrepancy` -> :class:`DiscrepancyResult`; :class:`LoopSettings`,
   :class:`LibrarySource`;
 * :func:`default_catalogue`: the candidate effects (:mod:`knockgs_core.sim` effects);
-* :func:`write_report`: Markdown report with figures;
+* :func:`write_report`: Markdown report with figures; :func:`run_files`: the loop from
+  files to a report folder (the command line's and the workflow's entry point);
 * :func:`make_case` / :func:`evaluate_case` / :func:`case_table`: synthetic cases with a
-  planted effect (the truth side, never used by the loop) and their table.
+  planted effect (the truth side, never used by the loop) and their table;
+  :func:`audit_truth_separation`: verdict that no run read the truth.
 """
 
 from ._cases import PLANTED_EFFECTS, CaseSpec, acceptance, case_table, default_cases, evaluate_case, make_case, write_table
 from ._catalogue import CATALOGUE_KEYS, Candidate, CatalogueContext, default_catalogue
+from ._files import audit_truth_separation, evaluate_files, run_files
 from ._loop import DiscrepancyResult, LibrarySource, LoopSettings, run_discrepancy
 from ._measured import Correspondence, Measurement, match_points, read_measured, write_measured
 from ._report import write_report, write_result
@@ -46,4 +49,7 @@ __all__ = [
     "case_table",
     "acceptance",
     "write_table",
+    "run_files",
+    "evaluate_files",
+    "audit_truth_separation",
 ]

@@ -58,7 +58,9 @@ class Candidate:
     ``make(u)`` builds the effect at strength ``u`` (``u = 0``: off); ``value(u)`` is the
     effect's own parameter at that strength (``unit``); ``trials``: strengths whose
     signatures are computed; ``scale``: the strength's natural size (the optimizer works in
-    ``u / scale``); ``one_sided``: ``u >= 0`` only; ``bounds``: allowed strengths."""
+    ``u / scale``); ``one_sided``: ``u >= 0`` only; ``bounds``: allowed strengths;
+    ``threshold``: the response sets in only beyond some strength (a yield or a slip onset),
+    so a linear screen can miss it and it is always refined nonlinearly."""
 
     key: str
     label: str
@@ -70,6 +72,7 @@ class Candidate:
     scale: float
     one_sided: bool
     bounds: tuple[float, float]
+    threshold: bool = False
 
     def effect(self, u: float):
         return self.make(float(u))
@@ -98,7 +101,8 @@ def default_catalogue(ctx: CatalogueContext, *, keys=None) -> list[Candidate]:
         "plasticity", "von Mises plasticity (permanent set)",
         lambda u: VonMisesPlasticity(yield_stress=(2.0 * mu0 / u) if u > 0 else math.inf),
         lambda u: (2.0 * mu0 / u) if u > 0 else math.inf, "yield_stress", "Pa",
-        trials=tuple(f / eps for f in (1.2, 1.6, 2.2, 3.0, 4.5, 7.0)), scale=1.0 / eps, one_sided=True, bounds=(0.0, 100.0 / eps)))
+        trials=tuple(f / eps for f in (1.2, 1.6, 2.2, 3.0, 4.5, 7.0, 12.0, 20.0, 35.0)), scale=1.0 / eps, one_sided=True,
+        bounds=(0.0, 200.0 / eps), threshold=True))
     out.append(Candidate(
         "poisson", "Poisson-ratio shift", lambda u: PoissonShift(delta_nu=u), lambda u: u, "delta_nu", "",
         trials=tuple(d for d in (-0.4, -0.1, 0.1) if -0.95 < nu_lo + d and nu_hi + d < 0.495), scale=0.1, one_sided=False,
@@ -111,13 +115,14 @@ def default_catalogue(ctx: CatalogueContext, *, keys=None) -> list[Candidate]:
     if ctx.has_support:
         out.append(Candidate(
             "support_slip", "viscous slip at the support", lambda u: SupportSlip(slip_time=u), lambda u: u, "slip_time", "s",
-            trials=tuple(f * H for f in (0.004, 0.01, 0.025, 0.06, 0.15)), scale=0.01 * H, one_sided=True, bounds=(0.0, 10.0 * H)))
+            trials=tuple(f * H for f in (0.004, 0.01, 0.025, 0.06, 0.15)), scale=0.01 * H, one_sided=True, bounds=(0.0, 10.0 * H),
+            threshold=True))
         if ctx.has_gravity:
             # strength = 1 / mu (0 = sticky)
             out.append(Candidate(
                 "support_friction", "Coulomb friction at the support",
                 lambda u: SupportFriction(mu=(1.0 / u) if u > 0 else math.inf), lambda u: (1.0 / u) if u > 0 else math.inf,
-                "mu", "", trials=(1.0, 4.0), scale=1.0, one_sided=True, bounds=(0.0, 1e3)))
+                "mu", "", trials=(1.0, 4.0), scale=1.0, one_sided=True, bounds=(0.0, 1e3), threshold=True))
     if keys is not None:
         keys = list(keys)
         unknown = set(keys) - set(CATALOGUE_KEYS)

@@ -55,7 +55,9 @@ class LoopSettings:
     min_confirm: the joint nonlinear recalibration must remove this share of the residual
         energy above the noise floor to keep the effect.
     max_effects: most effects added; max_tries: candidates tried per round.
-    base_iterations, refit_iterations, joint_iterations: LM iteration budgets.
+    base_iterations, refit_iterations, joint_iterations, refine_iterations: LM iteration
+        budgets (base calibration, theta refit, final joint fit, attribution refinement).
+    refine_top: screened candidates refined nonlinearly (besides the threshold-type ones).
     theta_bounds: allowed range of each scale.
     catalogue: catalogue keys to consider (None: all that apply).
     """
@@ -71,6 +73,8 @@ class LoopSettings:
     base_iterations: int = 8
     refit_iterations: int = 4
     joint_iterations: int = 8
+    refine_iterations: int = 3
+    refine_top: int = 3
     theta_bounds: tuple[float, float] = (0.2, 5.0)
     catalogue: tuple[str, ...] | None = None
 
@@ -304,9 +308,26 @@ def _rss(A, coef, r, rows):
     return float(e @ e)
 
 
-def _attribute(problem: _Problem, spec: ModelSpec, candidates: list, floor: float, settings: LoopSettings) -> dict:
-    """Rank the candidates at ``spec`` (module docs, step 3)."""
-    fw = problem.forward
+def _lm_fit(problem: _Problem, spec: ModelSpec, keys, rows, settings: LoopSettings, iterations: int, log: list) -> tuple[ModelSpec, np.ndarray]:
+    """LM over theta and the strengths of ``keys`` on the residual rows ``rows``, from ``spec``;
+    returns the fitted spec and its full residual (all rows)."""
+    par = _Parametrization(keys, problem.forward.catalogue, settings)
+    x, _, _ = _levenberg_marquardt(lambda x: problem.residual(par.to_spec(x, spec))[rows], par.to_x(spec), par.lower, par.upper,
+                                   par.steps, iterations, log)
+    fitted = par.to_spec(x, spec)
+    return fitted, problem.residual(fitted)
+
+
+def _attribute(problem: _Problem, spec: ModelSpec, candidates: list, floor: float, settings: LoopSettings, log: list) -> dict:
+    """Rank the candidates at ``spec`` (module docs, step 3).
+
+    Screen: every candidate's trial signatures, fitted jointly with the theta sensitivities
+    (linear least squares on the fit window). Refinement: the ``refine_top`` best screened
+    candidates and every threshold-type candidate are fitted nonlinearly (LM through the
+    simulator over theta, the strengths already in the model and the candidate's, on the
+    fit window), as is theta alone; scores compare their residuals on the validation window.
+    The refinement is skipped when the theta-only residual is not significant.
+    """
     base = problem.observe(spec)
     r = (problem.Y - base)[1:].reshape(-1)  # measured minus simulated: what a change must add
     h = settings.theta_step
@@ -319,11 +340,10 @@ def _attribute(problem: _Problem, spec: ModelSpec, candidates: list, floor: floa
     nF, nV = F.size, V.size
     a = _fit_rows(J, r, F)
     rss_theta_F, rss_theta_V = _rss(J, a, r, F), _rss(J, a, r, V)
-    rss0_V = float(r[V] @ r[V])
-    excess = rss_theta_V / (nV * floor) - 1.0 if floor > 0 else math.inf
     rows = []
     present = set(spec.effect_keys)
     blocked = set().union(*(g for g in _EXCLUSIVE if g & present)) if present else set()
+    by_key = {c.key: c for c in candidates}
     for cand in candidates:
         if cand.key in present or cand.key in blocked:
             continue
@@ -332,8 +352,7 @@ def _attribute(problem: _Problem, spec: ModelSpec, candidates: list, floor: floa
             try:
                 S = (problem.observe(spec.with_effect(cand.key, u)) - base)[1:].reshape(-1)
             except (SimulationError, InputError) as exc:
-                row = {"trial": u, "error": str(exc)[:200]}
-                best = best or row
+                best = best or {"trial": u, "error": str(exc)[:200]}
                 continue
             A = np.column_stack([J, S])
             coef = _fit_rows(A, r, F)
@@ -341,14 +360,11 @@ def _attribute(problem: _Problem, spec: ModelSpec, candidates: list, floor: floa
                 coef = np.array([a[0], a[1], 0.0])
             rF = _rss(A, coef, r, F)
             if best is None or "error" in best or rF < best["rss_fit"]:
-                best = {"trial": u, "coef": float(coef[2]), "rss_fit": rF, "rss_val": _rss(A, coef, r, V), "theta_coef": coef[:2].tolist()}
+                best = {"trial": u, "coef": float(coef[2]), "rss_fit": rF, "rss_val": _rss(A, coef, r, V)}
         if best is None or "error" in best:
-            rows.append({"key": cand.key, "label": cand.label, "error": (best or {}).get("error", "no trial"), "explained_val": -math.inf})
+            rows.append({"key": cand.key, "label": cand.label, "error": (best or {}).get("error", "no trial"), "explained_val": -math.inf, "refined": False})
             continue
         u_est = float(np.clip(best["coef"] * best["trial"], *cand.bounds))
-        expl_fit = 1.0 - best["rss_fit"] / max(rss_theta_F, 1e-300)
-        expl_val = 1.0 - best["rss_val"] / max(rss_theta_V, 1e-300)
-        dbic = nF * math.log(max(best["rss_fit"], 1e-300) / max(rss_theta_F, 1e-300)) + math.log(nF)
         rows.append({
             "key": cand.key,
             "label": cand.label,
@@ -358,11 +374,62 @@ def _attribute(problem: _Problem, spec: ModelSpec, candidates: list, floor: floa
             "parameter": cand.parameter,
             "value_estimate": cand.value(u_est),
             "unit": cand.unit,
-            "explained_fit": expl_fit,
-            "explained_val": expl_val,
-            "delta_bic": dbic,
+            "screen_explained_fit": 1.0 - best["rss_fit"] / max(rss_theta_F, 1e-300),
+            "screen_explained_val": 1.0 - best["rss_val"] / max(rss_theta_V, 1e-300),
+            "refined": False,
         })
-    rows.sort(key=lambda row: (-row["explained_val"], row.get("delta_bic", math.inf)))
+    rows.sort(key=lambda row: -row.get("screen_explained_val", -math.inf))
+
+    # nonlinear refinement ---------------------------------------------------------------
+    keys0 = list(spec.effect_keys)
+    theta_fit, r_theta = _lm_fit(problem, spec, keys0, F, settings, settings.refine_iterations, log)
+    rss_nl_theta_F, rss_nl_theta_V = float(r_theta[F] @ r_theta[F]), float(r_theta[V] @ r_theta[V])
+    excess = rss_nl_theta_V / (nV * floor) - 1.0 if floor > 0 else math.inf
+    significant = bool(excess > settings.min_excess)
+    chosen = [row["key"] for row in rows if "error" not in row][: settings.refine_top]
+    chosen += [row["key"] for row in rows if "error" not in row and by_key[row["key"]].threshold and row["key"] not in chosen]
+    if not significant:  # nothing to explain: the screen is reported, no refinement is needed
+        chosen = []
+    for row in rows:
+        if row["key"] not in chosen:
+            row["explained_val"] = row.get("screen_explained_val", -math.inf)
+            continue
+        cand = by_key[row["key"]]
+        # start from the better (on the fit window) of the screen's estimate and its trials
+        start, start_cost = None, math.inf
+        for u0 in dict.fromkeys((row["strength_estimate"],) + tuple(cand.trials)):
+            if u0 == 0.0:
+                continue
+            trial = spec.with_effect(cand.key, u0)
+            try:
+                rr = problem.residual(trial)[F]
+            except (SimulationError, InputError):
+                continue
+            c0 = float(rr @ rr)
+            if c0 < start_cost:
+                start, start_cost = trial, c0
+        if start is None:
+            row["explained_val"] = row.get("screen_explained_val", -math.inf)
+            continue
+        try:
+            fitted, rr = _lm_fit(problem, start, keys0 + [cand.key], F, settings, settings.refine_iterations, log)
+        except SimulationError as exc:
+            row["refine_error"] = str(exc)[:200]
+            row["explained_val"] = row.get("screen_explained_val", -math.inf)
+            continue
+        rF, rV = float(rr[F] @ rr[F]), float(rr[V] @ rr[V])
+        u = dict(fitted.effects)[cand.key]
+        row.update({
+            "refined": True,
+            "strength_estimate": u,
+            "value_estimate": cand.value(u),
+            "theta_estimate": list(fitted.theta),
+            "explained_fit": 1.0 - rF / max(rss_nl_theta_F, 1e-300),
+            "explained_val": 1.0 - rV / max(rss_nl_theta_V, 1e-300),
+            "delta_bic": nF * math.log(max(rF, 1e-300) / max(rss_nl_theta_F, 1e-300)) + math.log(nF),
+            "refined_spec": fitted,
+        })
+    rows.sort(key=lambda row: (not row["refined"], -row["explained_val"]))
     for rank, row in enumerate(rows, 1):
         row["rank"] = rank
     return {
@@ -370,13 +437,13 @@ def _attribute(problem: _Problem, spec: ModelSpec, candidates: list, floor: floa
         "effects": [list(e) for e in spec.effects],
         "n_fit": nF,
         "n_val": nV,
-        "rss_val": rss0_V,
-        "rss_theta_fit": rss_theta_F,
-        "rss_theta_val": rss_theta_V,
-        "theta_only_log_step": a.tolist(),
+        "rss_theta_fit": rss_nl_theta_F,
+        "rss_theta_val": rss_nl_theta_V,
+        "theta_fit_window": list(theta_fit.theta),
+        "screen_rss_theta_val": rss_theta_V,
         "noise_floor_val": nV * floor,
         "excess_val": excess,
-        "significant": bool(excess > settings.min_excess),
+        "significant": significant,
         "table": rows,
     }
 
@@ -496,7 +563,7 @@ def run_discrepancy(
     unexplained = False
     stop_reason = ""
     while True:
-        att = _attribute(pb, spec, cands, floor, settings)
+        att = _attribute(pb, spec, cands, floor, settings, log)
         att["decision"] = None
         rounds.append(att)
         top = att["table"][0] if att["table"] else None
@@ -512,41 +579,28 @@ def run_discrepancy(
             break
         tried = []
         accepted = None
+        rss_cur = float(np.sum(pb.residual(spec) ** 2))
         for row in att["table"][: settings.max_tries]:
-            if "error" in row or row["explained_val"] < settings.min_explained or row["delta_bic"] >= 0 or row["strength_estimate"] == 0.0:
+            if not row["refined"] or row["explained_val"] < settings.min_explained or row["delta_bic"] >= 0:
                 continue
             key = row["key"]
-            rss_cur = float(np.sum(pb.residual(spec) ** 2))
-            # start from the better of the linearized estimate and the best trial strength
-            trial, best_cost = None, math.inf
-            for u0 in dict.fromkeys((row["strength_estimate"], row["trial_strength"])):
-                cand_spec = spec.with_effect(key, u0)
-                try:
-                    c0 = float(np.sum(pb.residual(cand_spec) ** 2))
-                except (SimulationError, InputError):
-                    continue
-                if c0 < best_cost:
-                    trial, best_cost = cand_spec, c0
-            if trial is None:
-                tried.append({"key": key, "error": "no starting strength simulates"})
-                continue
-            keys = list(trial.effect_keys)
-            par = _Parametrization(keys, fw.catalogue, settings)
+            start_spec = row["refined_spec"]
             try:
-                x, rr, cost = _levenberg_marquardt(lambda x: pb.residual(par.to_spec(x, trial)), par.to_x(trial), par.lower, par.upper, par.steps, settings.joint_iterations, log)
+                new, rr = _lm_fit(pb, start_spec, list(start_spec.effect_keys), slice(None), settings, settings.joint_iterations, log)
             except SimulationError as exc:
                 tried.append({"key": key, "error": str(exc)[:200]})
                 continue
-            n_all = rr.size
-            excess_all = max(rss_cur - n_all * floor, 1e-12 * rss_cur)
+            cost = float(rr @ rr)
+            excess_all = max(rss_cur - rr.size * floor, 1e-12 * rss_cur)
             gain = (rss_cur - cost) / excess_all
-            new = par.to_spec(x, trial)
             new = ModelSpec(new.theta, tuple((k, u) for k, u in new.effects if u != 0.0 or k == key))
             tried.append({"key": key, "rss_before": rss_cur, "rss_after": cost, "gain_over_excess": gain, "theta": list(new.theta), "effects": [list(e) for e in new.effects]})
-            if gain >= settings.min_confirm:
+            if gain >= settings.min_confirm and dict(new.effects)[key] != 0.0:
                 accepted = (key, new)
                 break
         att["tried"] = tried
+        for row in att["table"]:
+            row.pop("refined_spec", None)
         if accepted is None:
             att["decision"] = "residual unexplained by the catalogue"
             stop_reason = "unexplained"
@@ -555,6 +609,9 @@ def run_discrepancy(
         key, spec = accepted
         att["decision"] = f"added {key}"
         say(f"added {key}: theta = ({spec.theta[0]:.4f}, {spec.theta[1]:.4f}), strengths {dict(spec.effects)}")
+    for att in rounds:
+        for row in att["table"]:
+            row.pop("refined_spec", None)
     final = spec
 
     # predictions and views ------------------------------------------------------------

@@ -156,20 +156,22 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
             f"### Round {i}: model theta = ({rd['theta'][0]:.4f}, {rd['theta'][1]:.4f})"
             + (f", effects {', '.join(f'{k} = {u:.4g}' for k, u in rd['effects'])}" if rd["effects"] else ""),
             "",
-            f"Residual energy on the validation window after re-tuning theta (linearized): {rd['rss_theta_val']:.4g} m^2, "
+            f"Residual energy on the validation window after re-tuning theta on the fit window: {rd['rss_theta_val']:.4g} m^2, "
             f"{rd['excess_val']:.3g} x the noise floor above it ({'significant' if rd['significant'] else 'not significant'}). "
             f"Decision: **{rd['decision']}**.",
             "",
-            "| rank | effect | explained (validation) | explained (fit) | delta BIC (fit) | estimated parameter |",
-            "|---|---|---|---|---|---|",
+            "| rank | effect | explained (validation) | explained (fit) | delta BIC (fit) | screen: explained (validation) | estimated parameter |",
+            "|---|---|---|---|---|---|---|",
         ]
         for row in rd["table"]:
             if "error" in row:
-                L.append(f"| {row['rank']} | {row['key']} | failed: {row['error']} | | | |")
+                L.append(f"| {row['rank']} | {row['key']} | failed: {row['error']} | | | | |")
                 continue
+            refined = row["refined"]
             L.append(
-                f"| {row['rank']} | {row['label']} (`{row['key']}`) | {row['explained_val']:.3f} | {row['explained_fit']:.3f} | "
-                f"{row['delta_bic']:.4g} | {row['parameter']} = {_fmt(row['value_estimate'])} {row['unit']} |"
+                f"| {row['rank']} | {row['label']} (`{row['key']}`) | "
+                + (f"{row['explained_val']:.3f} | {row['explained_fit']:.3f} | {row['delta_bic']:.4g}" if refined else "not refined | | ")
+                + f" | {row['screen_explained_val']:.3f} | {row['parameter']} = {_fmt(row['value_estimate'])} {row['unit']} |"
             )
         for t in rd.get("tried") or []:
             if "error" in t:

@@ -1,0 +1,135 @@
+"""File-level entry points shared by the command line and the workflow (private)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..errors import InputError
+from ._loop import DiscrepancyResult, LibrarySource, LoopSettings, run_discrepancy
+from ._measured import MEASUREMENT_META_FIELDS, MEASUREMENT_META_KEY, read_measured
+from ._report import write_report
+
+__all__ = ["run_files", "evaluate_files", "audit_truth_separation"]
+
+
+def _inside(path, folder) -> bool:
+    try:
+        Path(path).resolve().relative_to(Path(folder).resolve())
+        return True
+    except ValueError:
+        return False
+
+
+def run_files(
+    object_name: str,
+    profile: str,
+    measured,
+    out_dir,
+    *,
+    particles=None,
+    probe: str | None = None,
+    heldout_probes: Sequence[str] = (),
+    heldout_measured: dict | None = None,
+    library_rollouts: Sequence = (),
+    settings: LoopSettings = LoopSettings(),
+    device: str | None = None,
+    config_dir=None,
+    progress: Callable[[str], None] | None = None,
+) -> DiscrepancyResult:
+    """Load the contract and particles (``particles``: a ``.npz`` from ``knockgs asset``,
+    else the asset is built), read ``measured`` (and ``heldout_measured``: probe -> file),
+    run :func:`run_discrepancy` (library base calibration when ``library_rollouts`` are
+    given) and write the report into ``out_dir``. Every file read is listed in
+    ``result.inputs``."""
+    from ..contract import load_contract
+
+    contract = load_contract(object_name, profile, config_dir=config_dir)
+    if particles:
+        from ..assets import load_particles
+
+        ps = load_particles(particles)
+    else:
+        from ..assets import build_asset
+
+        ps = build_asset(contract).particles
+    inputs = [str(measured)] + ([str(particles)] if particles else [])
+    m = read_measured(measured)
+    held = {}
+    for name, path in (heldout_measured or {}).items():
+        held[name] = read_measured(path)
+        inputs.append(str(path))
+    library = None
+    if library_rollouts:
+        from ..rollout import read_rollout_meta
+
+        thetas = [read_rollout_meta(p)["theta"] for p in library_rollouts]
+        library = LibrarySource(theta=np.array(thetas, dtype=float), names=tuple(str(p) for p in library_rollouts), rollouts=tuple(str(p) for p in library_rollouts))
+        inputs += [str(p) for p in library_rollouts]
+    result = run_discrepancy(m, contract, ps, probe=probe, heldout_probes=heldout_probes, heldout_measured=held,
+                             library=library, settings=settings, device=device, progress=progress)
+    result.inputs = inputs
+    write_report(result, out_dir)
+    return result
+
+
+def evaluate_files(run_dir, truth_dir, output) -> dict:
+    """Score a run folder against a case's truth folder; write the row as JSON."""
+    from ._cases import evaluate_case
+
+    run_dir = Path(run_dir)
+    result = json.loads((run_dir / "result.json").read_text())
+    with np.load(run_dir / "predictions.npz") as z:
+        preds = {k: z[k] for k in z.files}
+    row = evaluate_case(result, preds, truth_dir)
+    out = Path(output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
+    tmp.write_text(json.dumps(row, indent=2, default=float) + "\n")
+    os.replace(tmp, out)
+    return row
+
+
+def audit_truth_separation(results: Sequence, measured_files: Sequence, truth_dirs: Sequence, declared_inputs: dict | None = None) -> dict:
+    """Verdict that the loop never saw the truth: no run read a file under a truth folder
+    (``inputs`` recorded in each ``result.json``, and the workflow's declared inputs of the
+    run jobs, ``declared_inputs``: case -> files), and no measured file carries metadata
+    beyond :data:`MEASUREMENT_META_FIELDS` (no planted effect, no theta)."""
+    import pyarrow.parquet as pq
+
+    problems = []
+    for res in results:
+        doc = json.loads(Path(res).read_text())
+        for p in doc.get("inputs", []):
+            for t in truth_dirs:
+                if _inside(p, t):
+                    problems.append(f"{res}: the run read {p} under the truth folder {t}")
+        if not doc.get("inputs"):
+            problems.append(f"{res}: records no inputs")
+    for case, files in (declared_inputs or {}).items():
+        for p in files:
+            for t in truth_dirs:
+                if _inside(p, t):
+                    problems.append(f"run job of {case} declares the truth file {p} as input")
+    for f in measured_files:
+        for t in truth_dirs:
+            if _inside(f, t):
+                problems.append(f"measured file {f} lies under the truth folder {t}")
+        if str(f).endswith(".parquet"):
+            md = pq.read_schema(f).metadata or {}
+            extra = set(md) - {MEASUREMENT_META_KEY, b"pandas"}
+            if extra:
+                problems.append(f"{f}: unexpected metadata keys {sorted(k.decode() for k in extra)}")
+            if MEASUREMENT_META_KEY in md:
+                bad = set(json.loads(md[MEASUREMENT_META_KEY])) - set(MEASUREMENT_META_FIELDS)
+                if bad:
+                    problems.append(f"{f}: metadata fields {sorted(bad)} beyond {list(MEASUREMENT_META_FIELDS)}")
+        try:
+            read_measured(f)
+        except InputError as exc:
+            problems.append(f"{f}: {exc}")
+    return {"passed": not problems, "problems": problems, "checked": {"results": len(results), "measured_files": len(measured_files), "truth_dirs": [str(t) for t in truth_dirs]}}

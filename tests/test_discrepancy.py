@@ -1,0 +1,233 @@
+"""The discrepancy loop: measured-data I/O, correspondence, residual views, and the loop on
+planted-effect cases of the ci pillow (a reduced catalogue keeps the run short; the full
+catalogue and every effect run in the workflow, results/tables/discrepancy.md)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from knockgs_core.discrepancy import (
+    CaseSpec,
+    LoopSettings,
+    Measurement,
+    acceptance,
+    audit_truth_separation,
+    evaluate_files,
+    make_case,
+    match_points,
+    read_measured,
+    residual_views,
+    run_files,
+    view_summary,
+    write_measured,
+)
+from knockgs_core.errors import InputError
+
+
+# -------------------------------------------------------------------------------------
+# measured files
+# -------------------------------------------------------------------------------------
+def _measurement(rng, identity=True, T=5, M=7):
+    X = rng.normal(size=(T, M, 3))
+    ids = np.arange(10, 10 + M)
+    return Measurement(points=X, frames=np.arange(T), times=None, particle=ids if identity else None, track=ids,
+                       meta={"object": "pillow", "probe": "standard_x"}, source="test")
+
+
+@pytest.mark.parametrize("suffix", [".parquet", ".csv", ".npz"])
+@pytest.mark.parametrize("identity", [True, False])
+def test_measured_round_trip(tmp_path, rng, suffix, identity):
+    m = _measurement(rng, identity)
+    path = tmp_path / f"m{suffix}"
+    write_measured(path, m)
+    back = read_measured(path)
+    np.testing.assert_allclose(back.points, m.points, rtol=1e-7, atol=1e-12)
+    assert back.has_identity == identity
+    np.testing.assert_array_equal(back.frames, m.frames)
+    if identity:
+        np.testing.assert_array_equal(back.particle, m.particle)
+    if suffix != ".csv":
+        assert back.meta == m.meta
+
+
+def test_measured_long_table_rows_in_any_order_and_times(tmp_path, rng):
+    T, M = 4, 3
+    X = rng.normal(size=(T, M, 3))
+    rows = [{"time": 0.02 * t, "track": 5 + i, "x": X[t, i, 0], "y": X[t, i, 1], "z": X[t, i, 2]} for t in range(T) for i in range(M)]
+    df = pd.DataFrame(rows).sample(frac=1.0, random_state=1)
+    df.to_csv(tmp_path / "m.csv", index=False)
+    m = read_measured(tmp_path / "m.csv")
+    np.testing.assert_allclose(m.points, X)
+    assert not m.has_identity
+    np.testing.assert_array_equal(m.frame_indices(0.02, 31), np.arange(T))
+    with pytest.raises(InputError, match="not on the probe's export schedule"):
+        m.frame_indices(0.03, 31)
+    with pytest.raises(InputError, match="past the probe"):
+        m.frame_indices(0.02, 3)
+
+
+def test_measured_file_errors(tmp_path, rng):
+    m = _measurement(rng)
+    write_measured(tmp_path / "m.csv", m)
+    df = pd.read_csv(tmp_path / "m.csv")
+    df.iloc[:-1].to_csv(tmp_path / "missing.csv", index=False)
+    with pytest.raises(InputError, match="every point must be in every frame"):
+        read_measured(tmp_path / "missing.csv")
+    df.assign(track=df.particle).to_csv(tmp_path / "both.csv", index=False)
+    with pytest.raises(InputError, match="exactly one of the columns 'particle'"):
+        read_measured(tmp_path / "both.csv")
+    df[df.frame > 0].to_csv(tmp_path / "noframe0.csv", index=False)
+    with pytest.raises(InputError, match="start at 0"):
+        read_measured(tmp_path / "noframe0.csv")
+    with pytest.raises(InputError, match="unknown fields"):
+        Measurement(points=m.points, frames=m.frames, times=None, particle=None, track=m.track, meta={"theta": [1, 1]})
+    with pytest.raises(InputError, match="unknown format"):
+        read_measured(tmp_path / "m.txt") if (tmp_path / "m.txt").write_text("x") else None
+
+
+def test_match_points_identity_and_nearest_gaussian(rng):
+    rest = rng.uniform(0.5, 1.5, size=(50, 3))
+    n_gs = 30
+    X = np.repeat(rest[None, [3, 40, 7]], 4, axis=0) + 1e-4
+    m = Measurement(points=X, frames=np.arange(4), times=None, particle=np.array([3, 40, 7]), track=np.arange(3))
+    c = match_points(m, rest, n_gs)
+    np.testing.assert_array_equal(c.index, [3, 40, 7])
+    # without identity, point 2 (at fill particle 40) may only match a Gaussian particle
+    m2 = Measurement(points=X, frames=np.arange(4), times=None, particle=None, track=np.arange(3))
+    c2 = match_points(m2, rest, n_gs)
+    assert c2.index[0] == 3 and c2.index[2] == 7 and c2.index[1] < n_gs
+    assert c2.index[1] == np.argmin(np.linalg.norm(rest[:n_gs] - rest[40], axis=1))
+    # observation without identity: the simulated displacement starts from the measured frame 0
+    sim = np.zeros((4, 50, 3))
+    sim[:, :, 0] = np.arange(4)[:, None]
+    obs = c2.observe(sim, np.arange(4), X[0])
+    np.testing.assert_allclose(obs[:, :, 0] - X[0][None, :, 0], np.arange(4)[:, None] * np.ones(3))
+
+
+def test_residual_views_closed_form():
+    T, M = 64, 5
+    t = np.arange(T) * 0.01
+    rest = np.zeros((M, 3))
+    f0, tau = 12.5, 0.2
+    disp = 0.01 * np.exp(-t / tau) * np.sin(2 * np.pi * f0 * t)
+    S = np.repeat(rest[None], T, axis=0)
+    S[:, :, 0] += disp[:, None]
+    Y = S.copy()
+    v = residual_views(Y, S, t)
+    s = view_summary(v)
+    assert all(val == pytest.approx(0.0, abs=1e-15) for val in s.values())
+    assert v["freq"][np.argmax(v["spectrum_measured"][:, 0])] == pytest.approx(f0, abs=1.0 / (T * 0.01))
+    assert v["axis"] == 0
+    # Hilbert envelope follows the exponential decay away from the ends
+    mid = slice(10, 40)
+    np.testing.assert_allclose(v["envelope_measured"][mid], 0.01 * np.exp(-t[mid] / tau), rtol=0.15)
+    # a constant offset d on every point after frame 0: trajectory RMSE d * sqrt((T-1)/T)
+    Y2 = S.copy()
+    Y2[1:, :, 1] += 0.003
+    s2 = view_summary(residual_views(Y2, S, t))
+    assert s2["traj_rmse"] == pytest.approx(0.003 * np.sqrt((T - 1) / T), rel=1e-12)
+    assert s2["centroid_rmse"] == pytest.approx(0.003 * np.sqrt((T - 1) / T), rel=1e-12)
+
+
+# -------------------------------------------------------------------------------------
+# the loop on the ci pillow
+# -------------------------------------------------------------------------------------
+SETTINGS = LoopSettings(catalogue=("damping", "gravity", "stiffness_gradient_z", "support_slip"), joint_iterations=5)
+
+
+@pytest.fixture(scope="module")
+def pillow():
+    from knockgs_core.assets import build_asset, save_particles
+    from knockgs_core.contract import load_contract
+
+    contract = load_contract("pillow", "ci")
+    return contract, build_asset(contract).particles, save_particles
+
+
+@pytest.fixture(scope="module")
+def cases(pillow, tmp_path_factory):
+    """Three cases (a planted catalogue effect, none, one outside the catalogue), each run
+    through the loop from files as the command line and the workflow do."""
+    contract, particles, save_particles = pillow
+    root = tmp_path_factory.mktemp("discrepancy")
+    save_particles(particles, root / "particles.npz")
+    specs = [
+        CaseSpec("damping", "damping", "high", theta=(0.7, 1.2), seed=1),
+        CaseSpec("null", "none", theta=(0.95, 1.35), observation="gs_tracks", seed=2),
+        CaseSpec("pulse", "force_pulse", "high", theta=(0.8, 1.6), seed=3),
+    ]
+    out = {}
+    for spec in specs:
+        mdir, tdir, rdir = root / "cases" / spec.name, root / "truth" / spec.name, root / "runs" / spec.name
+        make_case(spec, contract, particles, measured_dir=mdir, truth_dir=tdir)
+        result = run_files("pillow", "ci", mdir / "measured_calib.parquet", rdir, particles=root / "particles.npz",
+                           heldout_probes=["standard_y"], heldout_measured={"standard_y": mdir / "measured_heldout.parquet"}, settings=SETTINGS)
+        row = evaluate_files(rdir, tdir, root / "eval" / f"{spec.name}.json")
+        out[spec.name] = {"result": result, "row": row, "dirs": (mdir, tdir, rdir)}
+    return out
+
+
+def test_planted_damping_is_found_and_improves_the_heldout_prediction(cases):
+    c = cases["damping"]
+    row, res = c["row"], c["result"]
+    assert row["first_ranked"] == "damping" and row["identified_effect"] == "damping"
+    assert row["heldout_traj_rmse_before"] >= 2.0 * row["heldout_traj_rmse_after"]
+    assert row["calib_traj_rmse_before"] >= 2.0 * row["calib_traj_rmse_after"]
+    assert row["theta_error_after_pct"] < row["theta_error_before_pct"]
+    truth = json.loads((c["dirs"][1] / "truth.json").read_text())
+    assert res.effects[0]["value"] == pytest.approx(truth["planted_parameter"]["value"], rel=0.1)
+    assert acceptance(row)[0]
+    # the report says what was found, with figures
+    report = (c["dirs"][2] / "report.md").read_text()
+    assert "damping" in report and "Verdict" in report and (c["dirs"][2] / "residuals_standard_y.png").exists()
+
+
+def test_null_case_reports_no_missing_effect(cases):
+    row, res = cases["null"]["row"], cases["null"]["result"]
+    assert row["identified_effect"] == "none" and not res.unexplained
+    assert res.verdict == "no missing effect found"
+    assert not res.observation["identity"]  # tracks without identity, matched at frame 0
+    assert res.rounds[0]["excess_val"] < SETTINGS.min_excess
+
+
+def test_effect_outside_the_catalogue_stays_unexplained(cases):
+    row, res = cases["pulse"]["row"], cases["pulse"]["result"]
+    assert row["identified_effect"] == "none" and res.unexplained
+    assert "no catalogue effect explains" in res.verdict
+    assert res.residual["excess_fraction_of_response"] > 0.05
+
+
+def test_truth_audit(cases, tmp_path):
+    results = [c["dirs"][2] / "result.json" for c in cases.values()]
+    measured = [c["dirs"][0] / f"measured_{r}.parquet" for c in cases.values() for r in ("calib", "heldout")]
+    truth_root = cases["null"]["dirs"][1].parent
+    ok = audit_truth_separation(results, measured, [truth_root])
+    assert ok["passed"], ok["problems"]
+    # a run that read a truth file, and a measured file that carries a label, both fail it
+    doc = json.loads(results[0].read_text())
+    doc["inputs"].append(str(truth_root / "damping" / "truth.json"))
+    leaked = tmp_path / "result.json"
+    leaked.write_text(json.dumps(doc))
+    table = pq.read_table(measured[0])
+    labelled = tmp_path / "labelled.parquet"
+    pq.write_table(table.replace_schema_metadata({b"knockgs_measurement": json.dumps({"probe": "standard_x", "theta_true": [1, 1]}).encode()}), labelled)
+    bad = audit_truth_separation([leaked], [labelled], [truth_root])
+    assert not bad["passed"] and len(bad["problems"]) >= 2
+
+
+def test_cli_run_writes_a_report(cases, tmp_path):
+    from knockgs_core.cli import main
+
+    mdir = cases["damping"]["dirs"][0]
+    rc = main(["discrepancy", "run", "--object", "pillow", "--profile", "ci", "--measured", str(mdir / "measured_calib.parquet"),
+               "--catalogue", "damping,gravity", "--max-effects", "1", "-o", str(tmp_path / "r"), "--quiet"])
+    assert rc == 0
+    doc = json.loads((tmp_path / "r" / "result.json").read_text())
+    assert doc["identified"] == ["damping"] and doc["inputs"] == [str(mdir / "measured_calib.parquet")]
+    assert main(["discrepancy", "run", "--object", "pillow", "--profile", "ci", "--measured", str(tmp_path / "nope.csv"), "-o", str(tmp_path / "x")]) == 2

@@ -1,0 +1,12 @@
+"""Write one planted-effect case: measured files and, apart, its truth."""
+import sys
+
+from knockgs_core.assets import load_particles
+from knockgs_core.contract import load_contract
+from knockgs_core.discrepancy import default_cases, make_case
+
+sys.stderr = open(snakemake.log[0], "w")
+p = snakemake.params
+spec = {c.name: c for c in default_cases()}[snakemake.wildcards.case]
+make_case(spec, load_contract(p.object, p.profile), load_particles(snakemake.input.particles),
+          measured_dir=snakemake.output.calib.rsplit("/", 1)[0], truth_dir=snakemake.output.truth.rsplit("/", 1)[0], device=p.device)

@@ -1,0 +1,7 @@
+"""Score one case's run against its truth -> one table row (JSON)."""
+import sys
+
+from knockgs_core.discrepancy import evaluate_files
+
+sys.stderr = open(snakemake.log[0], "w")
+evaluate_files(snakemake.input.result.rsplit("/", 1)[0], snakemake.input.truth.rsplit("/", 1)[0], snakemake.output.row)
