@@ -70,10 +70,10 @@ def _figures(result: DiscrepancyResult, out: Path) -> list[tuple[str, str]]:
         ax.set_xlabel("t [s]")
         ax.legend(fontsize=7)
         ax = axes[1, 0]
-        f = stages["before"]["freq"]
-        ax.semilogy(f, np.linalg.norm(stages["before"]["spectrum_measured"], axis=1) + 1e-30, "k.-", label="measured")
+        f = stages["before"]["freq"][1:]
+        ax.semilogy(f, np.linalg.norm(stages["before"]["spectrum_measured"][1:], axis=1) + 1e-30, "k.-", label="measured")
         for s, st in stages.items():
-            ax.semilogy(f, np.linalg.norm(st["spectrum_simulated"], axis=1) + 1e-30, label=_STAGE_LABEL[s])
+            ax.semilogy(f, np.linalg.norm(st["spectrum_simulated"][1:], axis=1) + 1e-30, label=_STAGE_LABEL[s])
         ax.set_title("centroid spectrum (norm over axes) [m]")
         ax.set_xlabel("f [Hz]")
         ax.legend(fontsize=7)
@@ -157,7 +157,7 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
             + (f", effects {', '.join(f'{k} = {u:.4g}' for k, u in rd['effects'])}" if rd["effects"] else ""),
             "",
             f"Residual energy on the validation window after re-tuning theta on the fit window: {rd['rss_theta_val']:.4g} m^2, "
-            f"{rd['excess_val']:.3g} x the noise floor above it ({'significant' if rd['significant'] else 'not significant'}). "
+            f"{1.0 + rd['excess_val']:.3g} x the noise floor ({'significant' if rd['significant'] else 'not significant'}). "
             f"Decision: **{rd['decision']}**.",
             "",
             "| rank | effect | explained (validation) | explained (fit) | delta BIC (fit) | screen: explained (validation) | estimated parameter |",
@@ -185,7 +185,7 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
         L += [f"![residual views, {probe}]({name})", ""]
     L += [
         "Panels: residual RMS per frame; RMS-displacement curves; per-axis centroid curves; centroid spectrum; "
-        "decay envelope of the dominant centroid axis; per-point residual RMS (before vs after).",
+        "decay envelope (largest amplitude still to come) of the dominant centroid axis; per-point residual RMS (before vs after).",
         "",
     ]
     path = out / "report.md"

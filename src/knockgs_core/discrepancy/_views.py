@@ -15,13 +15,9 @@ VIEW_METRICS = ("traj_rmse", "rms_curve_rmse", "centroid_rmse", "spectrum_rel_di
 
 
 def _envelope(signal: np.ndarray) -> np.ndarray:
-    """Amplitude envelope |analytic signal| of a detrended 1-D signal (Hilbert transform)."""
-    from scipy.signal import hilbert
-
-    s = signal - signal.mean()
-    if s.size < 4 or not np.any(s):
-        return np.abs(s)
-    return np.abs(hilbert(s))
+    """Decay envelope: the largest amplitude still to come, ``max_{t' >= t} |signal(t')|``
+    (through the peaks of a decaying oscillation; flat at the end value for a drift)."""
+    return np.maximum.accumulate(np.abs(signal)[::-1])[::-1]
 
 
 def residual_views(measured, simulated, times) -> dict:
@@ -37,8 +33,8 @@ def residual_views(measured, simulated, times) -> dict:
       spectra of the mean-removed centroid displacements (uniform times assumed; otherwise
       the frequencies are those of the mean frame interval);
     * ``axis``: the axis with the largest measured centroid motion, and
-      ``envelope_measured`` / ``envelope_simulated`` [T]: Hilbert envelopes of the centroid
-      displacement along it (decay envelope).
+      ``envelope_measured`` / ``envelope_simulated`` [T]: decay envelopes of the centroid
+      displacement along it (the largest amplitude from t on).
     """
     Y = np.asarray(measured, dtype=np.float64)
     S = np.asarray(simulated, dtype=np.float64)
