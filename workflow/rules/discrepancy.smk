@@ -6,8 +6,10 @@
 #   D/truth/{case}/truth.json, clean.npz              the truth: read by make-case and evaluate only
 #   results/discrepancy/{case}/report.md              the loop's report (+ result.json,
 #                                                     predictions.npz, residuals_*.png)
+#   results/discrepancy/{case}/evaluation.md          the run against the truth (evaluate step)
 #   D/eval/{case}.json                                one table row (run scored against the truth)
 #   results/tables/discrepancy.csv|md                 the table of cases
+#   results/figures/discrepancy.png                   RMSE before/after per case
 #   results/audits/discrepancy_truth.json             verdict: no run read the truth
 
 from knockgs_core.discrepancy import default_cases as _discrepancy_default_cases
@@ -35,6 +37,7 @@ def _discrepancy_run_inputs(case):
 DISCREPANCY_OUTPUTS = [
     "results/tables/discrepancy.csv",
     "results/tables/discrepancy.md",
+    "results/figures/discrepancy.png",
     "results/audits/discrepancy_truth.json",
 ] + [f"results/discrepancy/{c}/report.md" for c in DISCREPANCY_CASES]
 
@@ -97,6 +100,7 @@ rule discrepancy_evaluate:
         clean=f"{_D}/truth/{{case}}/clean.npz",
     output:
         row=f"{_D}/eval/{{case}}.json",
+        page=report(f"results/discrepancy/{{case}}/evaluation.md", category="Discrepancy", subcategory="{case}"),
     log:
         f"logs/{PROFILE}/discrepancy/evaluate_{{case}}.log",
     script:
@@ -111,6 +115,7 @@ rule discrepancy_table:
     output:
         csv=report("results/tables/discrepancy.csv", category="Discrepancy"),
         md="results/tables/discrepancy.md",
+        figure=report("results/figures/discrepancy.png", category="Discrepancy"),
     log:
         f"logs/{PROFILE}/discrepancy/table.log",
     script:

@@ -1,9 +1,10 @@
-"""Collect the evaluated cases into results/tables/discrepancy.csv|md."""
+"""Collect the evaluated cases into results/tables/discrepancy.csv|md and a figure."""
 import json
 import sys
 
-from knockgs_core.discrepancy import case_table, write_table
+from knockgs_core.discrepancy import case_table, table_figure, write_table
 
 sys.stderr = open(snakemake.log[0], "w")
-rows = [json.loads(open(path).read()) for path in snakemake.input.rows]
-write_table(case_table(rows), snakemake.output.csv, snakemake.output.md)
+df = case_table([json.loads(open(path).read()) for path in snakemake.input.rows])
+write_table(df, snakemake.output.csv, snakemake.output.md)
+table_figure(df, snakemake.output.figure)

@@ -71,12 +71,14 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--run-dir", required=True, metavar="DIR", help="output folder of `discrepancy run`")
     p.add_argument("--truth-dir", required=True, metavar="DIR")
     p.add_argument("-o", "--output", required=True, metavar="ROW.json")
+    p.add_argument("--markdown", metavar="EVAL.md", help="also write a short evaluation page")
     p.set_defaults(func=_evaluate)
 
     p = sub.add_parser("table", help="collect evaluated rows into CSV and Markdown tables")
     p.add_argument("rows", nargs="+", metavar="ROW.json")
     p.add_argument("--csv", required=True)
     p.add_argument("--md", required=True)
+    p.add_argument("--figure", help="also write a bar chart of the RMSE before/after (.png)")
     p.set_defaults(func=_table)
     return parser
 
@@ -135,15 +137,17 @@ def _make_case(args) -> int:
 def _evaluate(args) -> int:
     from ..discrepancy import evaluate_files
 
-    evaluate_files(args.run_dir, args.truth_dir, args.output)
+    evaluate_files(args.run_dir, args.truth_dir, args.output, markdown=args.markdown)
     return 0
 
 
 def _table(args) -> int:
-    from ..discrepancy import case_table, write_table
+    from ..discrepancy import case_table, table_figure, write_table
 
     rows = [json.loads(open(p).read()) for p in args.rows]
     df = case_table(rows)
     write_table(df, args.csv, args.md)
+    if args.figure:
+        table_figure(df, args.figure)
     print(f"{int(df['accepted'].sum())}/{len(df)} cases accepted -> {args.csv}", file=sys.stderr)
     return 0

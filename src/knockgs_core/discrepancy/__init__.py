@@ -15,7 +15,7 @@ unexplained. See docs/discrepancy.md.
   :func:`audit_truth_separation`: verdict that no run read the truth.
 """
 
-from ._cases import PLANTED_EFFECTS, CaseSpec, acceptance, case_table, default_cases, evaluate_case, make_case, write_table
+from ._cases import PLANTED_EFFECTS, CaseSpec, acceptance, case_table, default_cases, evaluate_case, make_case, table_figure, write_table
 from ._catalogue import CATALOGUE_KEYS, Candidate, CatalogueContext, default_catalogue
 from ._files import audit_truth_separation, evaluate_files, run_files
 from ._loop import DiscrepancyResult, LibrarySource, LoopSettings, run_discrepancy
@@ -49,6 +49,7 @@ __all__ = [
     "case_table",
     "acceptance",
     "write_table",
+    "table_figure",
     "run_files",
     "evaluate_files",
     "audit_truth_separation",

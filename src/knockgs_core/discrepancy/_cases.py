@@ -21,7 +21,7 @@ from ..errors import InputError
 from ..sim import BodyForcePulse, Box, Gravity, HiddenMass, PoissonShift, StiffnessGradient, SupportSlip, VelocityDamping, VonMisesPlasticity, with_effects
 from ._measured import Measurement, write_measured
 
-__all__ = ["PLANTED_EFFECTS", "CaseSpec", "default_cases", "make_case", "evaluate_case", "case_table", "acceptance", "write_table"]
+__all__ = ["PLANTED_EFFECTS", "CaseSpec", "default_cases", "make_case", "evaluate_case", "case_table", "acceptance", "write_table", "table_figure"]
 
 
 def _top_box(particles, frac=0.5):
@@ -374,3 +374,26 @@ def write_table(df, csv_path, md_path, *, title="Discrepancy loop: planted effec
     tmp = md_path.with_name(f".{md_path.name}.tmp{os.getpid()}")
     tmp.write_text("\n".join(lines))
     os.replace(tmp, md_path)
+
+
+def table_figure(df, path) -> None:
+    """Bar chart of the held-out and calibration trajectory RMSE before/after per case."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = np.arange(len(df))
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.5), sharey=True)
+    for ax, role, title in ((axes[0], "heldout", "held-out probe (never used in the loop)"), (axes[1], "calib", "calibration probe")):
+        ax.bar(x - 0.2, df[f"{role}_traj_rmse_before"], 0.4, label="before (base calibration)")
+        ax.bar(x + 0.2, df[f"{role}_traj_rmse_after"], 0.4, label="after (loop)")
+        ax.set_yscale("log")
+        ax.set_xticks(x)
+        ax.set_xticklabels([f"{c}\n-> {i}" for c, i in zip(df["case"], df["identified_effect"])], rotation=70, fontsize=7)
+        ax.set_title(f"trajectory RMSE [m], {title}", fontsize=9)
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

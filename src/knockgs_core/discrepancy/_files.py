@@ -77,9 +77,10 @@ def run_files(
     return result
 
 
-def evaluate_files(run_dir, truth_dir, output) -> dict:
-    """Score a run folder against a case's truth folder; write the row as JSON."""
-    from ._cases import evaluate_case
+def evaluate_files(run_dir, truth_dir, output, markdown=None) -> dict:
+    """Score a run folder against a case's truth folder; write the row as JSON (and, with
+    ``markdown``, a short evaluation page: planted vs found, errors against the truth)."""
+    from ._cases import acceptance, evaluate_case
 
     run_dir = Path(run_dir)
     result = json.loads((run_dir / "result.json").read_text())
@@ -91,6 +92,32 @@ def evaluate_files(run_dir, truth_dir, output) -> dict:
     tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
     tmp.write_text(json.dumps(row, indent=2, default=float) + "\n")
     os.replace(tmp, out)
+    if markdown is not None:
+        ok, why = acceptance(row)
+        g = lambda v: f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
+        lines = [
+            f"# Evaluation of case {row['case']} against its truth",
+            "",
+            f"- planted: {row['planted_effect']}" + (f" ({row['parameter']} = {g(row['planted_value'])})" if row["parameter"] else ""),
+            f"- found: {row['identified_effect']}" + (f" ({row['parameter']} = {g(row['estimated_value'])})" if row["estimated_value"] != "" else "")
+            + f"; ranked first in round 1: {row['first_ranked']}; residual left unexplained: {row['unexplained']}",
+            f"- theta: true {row['theta_true']}, before {row['theta_before']} ({row['theta_error_before_pct']:.2f} % error), "
+            f"after {row['theta_after']} ({row['theta_error_after_pct']:.2f} % error)",
+            f"- acceptance: {'pass' if ok else 'FAIL'} ({why})",
+            "",
+            "Trajectory RMSE [m] against the clean truth (Gaussian particles, all frames):",
+            "",
+            "| probe | before | theta refit | after | before / after |",
+            "|---|---|---|---|---|",
+        ]
+        for role, name in (("calib", "calibration"), ("heldout", "held-out (never used in the loop)")):
+            b, r, a = row[f"{role}_traj_rmse_before"], row[f"{role}_traj_rmse_refit"], row[f"{role}_traj_rmse_after"]
+            lines.append(f"| {name} | {b:.4g} | {r:.4g} | {a:.4g} | {b / max(a, 1e-30):.3g} |")
+        md = Path(markdown)
+        md.parent.mkdir(parents=True, exist_ok=True)
+        tmp = md.with_name(f".{md.name}.tmp{os.getpid()}")
+        tmp.write_text("\n".join(lines) + "\n")
+        os.replace(tmp, md)
     return row
 
 

@@ -43,7 +43,7 @@ class ModelSpec:
 @dataclass
 class ForwardModel:
     """Simulates ``contract`` on ``particles`` at a :class:`ModelSpec`; rollouts are cached
-    by (probe, spec). ``catalogue`` maps effect keys to :class:`Candidate` entries.
+    by (probe, spec), oldest dropped first beyond ``max_cache`` entries or ``max_cache_bytes``. ``catalogue`` maps effect keys to :class:`Candidate` entries.
     ``n_simulations`` and ``seconds`` count the simulator calls actually made."""
 
     contract: object
@@ -51,6 +51,7 @@ class ForwardModel:
     catalogue: dict[str, Candidate] = field(default_factory=dict)
     device: str | None = None
     max_cache: int = 64
+    max_cache_bytes: float = 2e9
     n_simulations: int = 0
     seconds: float = 0.0
     _cache: dict = field(default_factory=dict, repr=False)
@@ -80,7 +81,8 @@ class ForwardModel:
         )
         self.seconds += time.perf_counter() - t0
         self.n_simulations += 1
-        if len(self._cache) >= self.max_cache:
+        while self._cache and (len(self._cache) >= self.max_cache or
+                               sum(a.nbytes for a in self._cache.values()) + r.positions.nbytes > self.max_cache_bytes):
             self._cache.pop(next(iter(self._cache)))
         self._cache[key] = r.positions
         return r.positions

@@ -286,8 +286,8 @@ class VonMisesPlasticity(Effect):
     """Von Mises plasticity (permanent set): the deviatoric Kirchhoff stress norm is capped at
     ``yield_stress`` [Pa] by a return mapping on the elastic deformation gradient after each
     grid-to-particle transfer (PhysGaussian's von Mises model on top of fixed-corotated).
-    ``inf`` is off. In the discrepancy analysis the strength is the *yield strain*
-    parameter of :class:`~knockgs_core.discrepancy` (``yield_stress / (2 mu)``)."""
+    ``inf`` is off. (The discrepancy catalogue varies ``2 mu_0 / yield_stress``, the inverse
+    yield strain of the base shear modulus ``mu_0``, which is 0 when the effect is off.)"""
 
     yield_stress: float = math.inf
     name: ClassVar[str] = "plasticity"
