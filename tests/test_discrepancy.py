@@ -235,3 +235,25 @@ def test_cli_run_writes_a_report(cases, tmp_path):
     doc = json.loads((tmp_path / "r" / "result.json").read_text())
     assert doc["identified"] == ["damping"] and doc["inputs"] == [str(mdir / "measured_calib.parquet")]
     assert main(["discrepancy", "run", "--object", "pillow", "--profile", "ci", "--measured", str(tmp_path / "nope.csv"), "-o", str(tmp_path / "x")]) == 2
+
+
+def test_library_base_calibration_on_a_null_measurement(pillow, rng):
+    """Library route: local ridge on descriptors of the observed points, then the theta
+    refit through the simulator; a clean response without extra effect finds none."""
+    from knockgs_core.discrepancy import LibrarySource, run_discrepancy
+    from knockgs_core.rollout import run_rollout
+
+    contract, particles, _ = pillow
+    grid = [(se, sr) for se in (0.6, 0.8, 1.0) for sr in (1.0, 1.3, 1.6)]
+    rollouts = tuple(run_rollout(contract, th, "standard_x", particles=particles).positions for th in grid)
+    library = LibrarySource(theta=np.array(grid), names=tuple(f"c{i}" for i in range(len(grid))), rollouts=rollouts)
+    truth = (0.75, 1.4)
+    X = run_rollout(contract, truth, "standard_x", particles=particles).positions[:, : particles.n_gs].astype(np.float64)
+    m = Measurement(points=X + rng.normal(0, 5e-5, X.shape), frames=np.arange(len(X)), times=None,
+                    particle=np.arange(particles.n_gs), track=np.arange(particles.n_gs), meta={"probe": "standard_x"})
+    res = run_discrepancy(m, contract, particles, library=library, settings=LoopSettings(catalogue=("damping",)))
+    assert res.base_method == "library_local_ridge"
+    err = lambda th: 50 * (abs(th[0] - truth[0]) / truth[0] + abs(th[1] - truth[1]) / truth[1])  # noqa: E731
+    assert err(res.theta_base) < 15.0 and err(res.theta_refit) < 1.0
+    assert res.verdict == "no missing effect found" and res.identified_label == "none"
+    assert res.noise["std"] == pytest.approx(5e-5, rel=0.05)
