@@ -471,7 +471,7 @@ class BodyForcePulse(Effect):
                 raise InputError("BodyForcePulse", "box", "the solver must run from step 0 to select the particles at t = 0")
             if self.box is None:
                 return wp.ones(m.particle_count, dtype=wp.int32, device=m.device)
-            return wp.array(self.box.contains(state.particle_x.numpy()).astype(np.int32), dtype=wp.int32, device=m.device)
+            return wp.array(self.box.contains(state.positions()).astype(np.int32), dtype=wp.int32, device=m.device)
 
         mask = _cached(solver, ("pulse_mask", self.box), make_mask)
         if not (self.start <= t < self.end):

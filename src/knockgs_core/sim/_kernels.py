@@ -191,7 +191,8 @@ def grid_bc_cuboid(
 # --------------------------------------------------------------------------------------
 @wp.kernel
 def p2g(
-    x: wp.array(dtype=wp.vec3),
+    x0: wp.array(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
     C: wp.array(dtype=wp.mat33),
     F: wp.array(dtype=wp.mat33),
     mass: wp.array(dtype=float),
@@ -227,7 +228,7 @@ def p2g(
     dx = 1.0 / inv_dx
     affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * C[p]
 
-    gx = x[p] * inv_dx
+    gx = (x0[p] + u[p]) * inv_dx
     base = wp.vec3i(int(gx[0] - 0.5), int(gx[1] - 0.5), int(gx[2] - 0.5))
     if base[0] < lo[0] or base[1] < lo[1] or base[2] < lo[2] or base[0] + 2 >= hi[0] or base[1] + 2 >= hi[1] or base[2] + 2 >= hi[2]:
         wp.atomic_add(overrun, 0, 1)
@@ -257,15 +258,20 @@ def g2p(
     trans_on: int,
     lo: wp.vec3i,
     hi: wp.vec3i,
-    x: wp.array(dtype=wp.vec3),
+    x0: wp.array(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     C: wp.array(dtype=wp.mat33),
     F: wp.array(dtype=wp.mat33),
     overrun: wp.array(dtype=wp.int32),
 ):
-    """APIC gather: new velocity and affine matrix, F <- (I + dt C) F, advect."""
+    """APIC gather: new velocity and affine matrix, F <- (I + dt C) F, advect.
+
+    Positions are rest position ``x0`` plus displacement ``u``; advecting the (small)
+    displacement keeps sub-ulp motion that ``x += dt v`` in float32 near x = 1 would round
+    away (a creep or a freeze of one ulp per substep)."""
     p = wp.tid()
-    gx = x[p] * inv_dx
+    gx = (x0[p] + u[p]) * inv_dx
     base = wp.vec3i(int(gx[0] - 0.5), int(gx[1] - 0.5), int(gx[2] - 0.5))
     if base[0] < lo[0] or base[1] < lo[1] or base[2] < lo[2] or base[0] + 2 >= hi[0] or base[1] + 2 >= hi[1] or base[2] + 2 >= hi[2]:
         wp.atomic_add(overrun, 0, 1)
@@ -288,12 +294,13 @@ def g2p(
     F[p] = (wp.identity(n=3, dtype=float) + dt * new_C) * F[p]
     C[p] = new_C
     v[p] = new_v
-    x[p] = x[p] + dt * new_v
+    u[p] = u[p] + dt * new_v
 
 
 @wp.kernel
 def particle_stats(
-    x: wp.array(dtype=wp.vec3),
+    x0: wp.array(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     F: wp.array(dtype=wp.mat33),
     inv_dx: float,
@@ -303,7 +310,7 @@ def particle_stats(
     """Guard statistics: out_f[0] = max |v|^2, out_f[1] = min det F;
     out_i[0] = non-finite count, out_i[1:4] = min cell, out_i[4:7] = max cell."""
     p = wp.tid()
-    xp = x[p]
+    xp = x0[p] + u[p]
     vp = v[p]
     Fp = F[p]
     s = xp[0] + xp[1] + xp[2] + vp[0] + vp[1] + vp[2]

@@ -86,13 +86,15 @@ class Model:
 class State:
     """Time-varying simulation state.
 
-    particle_x [m] (particle_count, 3); particle_v [m/s]; particle_F deformation gradient
+    particle_x0 rest positions [m] (particle_count, 3) and particle_u displacements [m]
+    (positions are x0 + u: small displacements keep their float32 precision); particle_v [m/s]; particle_F deformation gradient
     (particle_count, 3, 3); particle_C APIC affine velocity [1/s]; particle_rot warm-start
     rotation of F's polar decomposition (quaternion xyzw); grid_mv grid momentum, then
     velocity (n_grid^3, 3); grid_m grid mass [kg]. ``step`` counts substeps taken.
     """
 
-    particle_x: wp.array
+    particle_x0: wp.array
+    particle_u: wp.array
     particle_v: wp.array
     particle_F: wp.array
     particle_C: wp.array
@@ -100,6 +102,10 @@ class State:
     grid_mv: wp.array
     grid_m: wp.array
     step: int = 0
+
+    def positions(self) -> np.ndarray:
+        """Current particle positions x0 + u [m], (particle_count, 3) float64."""
+        return self.particle_x0.numpy().astype(np.float64) + self.particle_u.numpy().astype(np.float64)
 
 
 @dataclass
@@ -218,7 +224,8 @@ def make_state(model: Model, positions: np.ndarray, velocities: np.ndarray | Non
     eye = np.tile(np.eye(3, dtype=np.float32), (n, 1, 1))
     rot = np.tile(np.array([0, 0, 0, 1], dtype=np.float32), (n, 1))
     return State(
-        particle_x=wp.array(x, dtype=wp.vec3, device=dev),
+        particle_x0=wp.array(x, dtype=wp.vec3, device=dev),
+        particle_u=wp.zeros(n, dtype=wp.vec3, device=dev),
         particle_v=wp.array(v, dtype=wp.vec3, device=dev),
         particle_F=wp.array(eye, dtype=wp.mat33, device=dev),
         particle_C=wp.zeros(n, dtype=wp.mat33, device=dev),
@@ -260,7 +267,7 @@ class MPMSolver:
         self._stats_f.assign(np.array([0.0, np.inf], dtype=np.float32))
         big = np.iinfo(np.int32).max
         self._stats_i.assign(np.array([0, big, big, big, -big, -big, -big], dtype=np.int32))
-        wp.launch(K.particle_stats, dim=m.particle_count, inputs=[state.particle_x, state.particle_v, state.particle_F, self._inv_dx], outputs=[self._stats_f, self._stats_i], device=m.device)
+        wp.launch(K.particle_stats, dim=m.particle_count, inputs=[state.particle_x0, state.particle_u, state.particle_v, state.particle_F, self._inv_dx], outputs=[self._stats_f, self._stats_i], device=m.device)
         sf = self._stats_f.numpy()
         si = self._stats_i.numpy()
         overrun = int(self._overrun.numpy()[0])
@@ -319,7 +326,7 @@ class MPMSolver:
         wp.launch(
             K.p2g,
             dim=m.particle_count,
-            inputs=[state.particle_x, state.particle_C, state.particle_F, m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
+            inputs=[state.particle_x0, state.particle_u, state.particle_C, state.particle_F, m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
                     m.probe_mask, wp.vec3(*m.probe_force), probe_on, self._inv_dx, dt, self.polar_iters, lo, hi],
             outputs=[state.particle_v, state.particle_rot, state.grid_mv, state.grid_m, self._overrun],
             device=dev,
@@ -341,8 +348,8 @@ class MPMSolver:
         wp.launch(
             K.g2p,
             dim=m.particle_count,
-            inputs=[state.grid_mv, self._inv_dx, dt, trans_mask, trans_v, trans_on, lo, hi],
-            outputs=[state.particle_x, state.particle_v, state.particle_C, state.particle_F, self._overrun],
+            inputs=[state.grid_mv, self._inv_dx, dt, trans_mask, trans_v, trans_on, lo, hi, state.particle_x0],
+            outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, self._overrun],
             device=dev,
         )
         for effect in p.effects:
@@ -379,7 +386,7 @@ def simulate(
     positions = np.empty((n_frames, n, 3), dtype=np.float32)
     Fs = np.empty((n_frames, export_F, 3, 3), dtype=np.float32) if export_F else None
     stats = solver.check(state)
-    positions[0] = state.particle_x.numpy()
+    positions[0] = state.positions()
     if Fs is not None:
         Fs[0] = state.particle_F.numpy()[:export_F]
     for frame in range(1, n_frames):
@@ -390,7 +397,7 @@ def simulate(
             if state.step % p.guard_every == 0 or (model.probe_steps and state.step == model.probe_first + 1):
                 stats = solver.check(state)
         stats = solver.check(state)
-        positions[frame] = state.particle_x.numpy()
+        positions[frame] = state.positions()
         if Fs is not None:
             Fs[frame] = state.particle_F.numpy()[:export_F]
         if progress is not None:
