@@ -153,3 +153,15 @@ def _reported_tables():
     if RENDER["enabled"]:
         t += [f"results/tables/render_{o}.csv" for o in OBJECTS]
     return t
+
+
+# used by discrepancy.smk (DISCREPANCY_OBJECT and _D are defined there)
+def _discrepancy_run_inputs(case):
+    """The run job's inputs: measured files, particles, the object's candidate library."""
+    obj = DISCREPANCY_OBJECT
+    return {
+        "measured": f"{_D}/cases/{case}/measured_calib.parquet",
+        "heldout": f"{_D}/cases/{case}/measured_heldout.parquet",
+        "particles": f"{P}/assets/{obj}.particles.npz",
+        "library": [lib_rollout(obj, c) for c in CANDIDATES.case_name],
+    }

@@ -23,17 +23,6 @@ wildcard_constraints:
     case="[A-Za-z0-9_]+",
 
 
-def _discrepancy_run_inputs(case):
-    """The run job's inputs: measured files, particles, the object's candidate library."""
-    obj = DISCREPANCY_OBJECT
-    return {
-        "measured": f"{_D}/cases/{case}/measured_calib.parquet",
-        "heldout": f"{_D}/cases/{case}/measured_heldout.parquet",
-        "particles": f"{P}/assets/{obj}.particles.npz",
-        "library": [lib_rollout(obj, c) for c in CANDIDATES.case_name],
-    }
-
-
 DISCREPANCY_OUTPUTS = [
     "results/tables/discrepancy.csv",
     "results/tables/discrepancy.md",
