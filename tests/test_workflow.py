@@ -19,7 +19,8 @@ METHODS = ["fixed_default", "response_nearest", "response_knn", "global_ridge", 
 
 
 def _snakemake(workdir: Path, *targets: str, extra=()):
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--configfile=config/ci.yaml", "--config", "objects=[pillow]", *extra, *targets]
+    # targets first: --config takes a list of values and would swallow them
+    cmd = [sys.executable, "-m", "snakemake", *targets, "--cores", "2", "--configfile=config/ci.yaml", *extra, "--config", "objects=[pillow]"]
     return subprocess.run(cmd, cwd=workdir, capture_output=True, text=True)
 
 
