@@ -39,6 +39,21 @@ def bspline_weights(fx: wp.vec3) -> wp.mat33:
 
 
 @wp.func
+def stencil_base(gx: wp.vec3) -> wp.vec3i:
+    """First node of the 3x3x3 stencil of a particle at ``gx`` (position in cells)."""
+    return wp.vec3i(int(gx[0] - 0.5), int(gx[1] - 0.5), int(gx[2] - 0.5))
+
+
+@wp.func
+def stencil_inside(base: wp.vec3i, lo: wp.vec3i, hi: wp.vec3i) -> bool:
+    """Whether the stencil starting at ``base`` lies in the active box [lo, hi)."""
+    for a in range(3):
+        if base[a] < lo[a] or base[a] + 2 >= hi[a]:
+            return False
+    return True
+
+
+@wp.func
 def polar_rotation(A: wp.mat33, q0: wp.quat, max_iter: int) -> wp.quat:
     """Rotation of the polar decomposition of ``A`` (det A > 0), warm-started from ``q0``.
 
@@ -229,8 +244,8 @@ def p2g(
     affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * C[p]
 
     gx = (x0[p] + u[p]) * inv_dx
-    base = wp.vec3i(int(gx[0] - 0.5), int(gx[1] - 0.5), int(gx[2] - 0.5))
-    if base[0] < lo[0] or base[1] < lo[1] or base[2] < lo[2] or base[0] + 2 >= hi[0] or base[1] + 2 >= hi[1] or base[2] + 2 >= hi[2]:
+    base = stencil_base(gx)
+    if not stencil_inside(base, lo, hi):
         wp.atomic_add(overrun, 0, 1)
         return
     fx = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
@@ -272,8 +287,8 @@ def g2p(
     away (a creep or a freeze of one ulp per substep)."""
     p = wp.tid()
     gx = (x0[p] + u[p]) * inv_dx
-    base = wp.vec3i(int(gx[0] - 0.5), int(gx[1] - 0.5), int(gx[2] - 0.5))
-    if base[0] < lo[0] or base[1] < lo[1] or base[2] < lo[2] or base[0] + 2 >= hi[0] or base[1] + 2 >= hi[1] or base[2] + 2 >= hi[2]:
+    base = stencil_base(gx)
+    if not stencil_inside(base, lo, hi):
         wp.atomic_add(overrun, 0, 1)
         return
     fx = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
