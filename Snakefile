@@ -14,6 +14,9 @@
 #   P/render/{object}/{split}/{method}.csv             rendered-frame metrics
 #   results/tables/*.csv|md, results/figures/*.png     reported tables and figures
 #   results/audits/{name}.json                         audit verdicts ({"passed": bool, ...})
+#   P/discrepancy/...                                  discrepancy cases (workflow/rules/discrepancy.smk);
+#                                                      at config discrepancy.resolution when it differs
+#                                                      from the profile: P/discrepancy/{res}/assets|library
 
 from snakemake.utils import min_version, validate
 
@@ -35,11 +38,7 @@ include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/render.smk"
 include: "workflow/rules/report.smk"
 include: "workflow/rules/audit.smk"
-
-
-if os.path.exists(os.path.join(workflow.basedir, "workflow/rules/discrepancy.smk")):
-
-    include: "workflow/rules/discrepancy.smk"
+include: "workflow/rules/discrepancy.smk"
 
 
 rule all:

@@ -12,6 +12,7 @@ SPLIT = config.get("split", "main")
 METHODS = list(config["methods"])
 RENDER = {"enabled": True, "width": 160, "height": 120, "gif_target": "target_001", **config.get("render", {})}
 ON_GPU = DEVICE.startswith("cuda")
+DISCREPANCY = {"enabled": True, "object": "pillow", "resolution": PROFILE, **config.get("discrepancy", {})}
 
 CANDIDATES = load_candidates()
 CONTRACTS = {o: load_contract(o, PROFILE) for o in OBJECTS}
@@ -155,13 +156,29 @@ def _reported_tables():
     return t
 
 
-# used by discrepancy.smk (DISCREPANCY_OBJECT and _D are defined there)
+# used by discrepancy.smk (DISCREPANCY_OBJECT, DISCREPANCY_RES and _D are defined there)
+def _discrepancy_particles():
+    """The cases' particles: the main asset when the cases run at the profile's resolution,
+    else the discrepancy study's own build at its resolution."""
+    obj = DISCREPANCY_OBJECT
+    if DISCREPANCY_RES == PROFILE:
+        return f"{P}/assets/{obj}.particles.npz"
+    return f"{_D}/{DISCREPANCY_RES}/assets/{obj}.particles.npz"
+
+
+def _discrepancy_library(case_name):
+    obj = DISCREPANCY_OBJECT
+    if DISCREPANCY_RES == PROFILE:
+        return lib_rollout(obj, case_name)
+    row = CANDIDATES.set_index("case_name").loc[case_name]
+    return f"{_D}/{DISCREPANCY_RES}/library/{obj}/{theta_tag((row.E_scale, row.density_scale))}.parquet"
+
+
 def _discrepancy_run_inputs(case):
     """The run job's inputs: measured files, particles, the object's candidate library."""
-    obj = DISCREPANCY_OBJECT
     return {
         "measured": f"{_D}/cases/{case}/measured_calib.parquet",
         "heldout": f"{_D}/cases/{case}/measured_heldout.parquet",
-        "particles": f"{P}/assets/{obj}.particles.npz",
-        "library": [lib_rollout(obj, c) for c in CANDIDATES.case_name],
+        "particles": _discrepancy_particles(),
+        "library": [_discrepancy_library(c) for c in CANDIDATES.case_name],
     }

@@ -14,16 +14,19 @@
 
 from knockgs_core.discrepancy import default_cases as _discrepancy_default_cases
 
-DISCREPANCY_OBJECT = "pillow"
+DISCREPANCY_OBJECT = DISCREPANCY["object"]
+DISCREPANCY_RES = DISCREPANCY["resolution"]  # contract resolution of the cases (config: discrepancy)
 DISCREPANCY_CASES = [c.name for c in _discrepancy_default_cases()]
 _D = f"{P}/discrepancy"
+_DISCREPANCY_CONTRACT = load_contract(DISCREPANCY_OBJECT, DISCREPANCY_RES)
 
 
 wildcard_constraints:
     case="[A-Za-z0-9_]+",
+    res="ci|default|paper",
 
 
-DISCREPANCY_OUTPUTS = [
+DISCREPANCY_OUTPUTS = [] if not DISCREPANCY["enabled"] else [
     "results/tables/discrepancy.csv",
     "results/tables/discrepancy.md",
     "results/figures/discrepancy.png",
@@ -31,12 +34,61 @@ DISCREPANCY_OUTPUTS = [
 ] + [f"results/discrepancy/{c}/report.md" for c in DISCREPANCY_CASES]
 
 
+rule discrepancy_asset:
+    """The case object built at the cases' resolution, when it differs from the profile's."""
+    conda:
+        "../envs/knockgs.yaml"
+    output:
+        ply=f"{_D}/{{res}}/assets/{{object}}.ply",
+        particles=f"{_D}/{{res}}/assets/{{object}}.particles.npz",
+        scene=f"{_D}/{{res}}/assets/{{object}}.scene.npz",
+        summary=f"{_D}/{{res}}/assets/{{object}}.summary.json",
+        figure=f"{_D}/{{res}}/assets/{{object}}.fill.png",
+    log:
+        f"logs/{PROFILE}/discrepancy/{{res}}/asset_{{object}}.log",
+    params:
+        profile=lambda wc: wc.res,
+    resources:
+        mem_mb=2000,
+        runtime=30,
+    threads: 1
+    script:
+        "../scripts/asset.py"
+
+
+rule discrepancy_library:
+    """A candidate's Probe-A rollout at the cases' resolution (the loop's library base)."""
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        particles=f"{_D}/{{res}}/assets/{{object}}.particles.npz",
+    output:
+        rollout=f"{_D}/{{res}}/library/{{object}}/{{theta}}.parquet",
+    log:
+        f"logs/{PROFILE}/discrepancy/{{res}}/library/{{object}}/{{theta}}.log",
+    benchmark:
+        f"results/{PROFILE}/benchmarks/discrepancy/{{res}}/library/{{object}}/{{theta}}.tsv"
+    params:
+        profile=lambda wc: wc.res,
+        probe=lambda wc: load_contract(wc.object, wc.res).roles["calibration"],
+        theta=lambda wc: parse_theta(wc.theta),
+        export_F=False,
+        device=DEVICE,
+    resources:
+        mem_mb=2000,
+        runtime=20,
+        gpu=1 if ON_GPU else 0,
+    threads: 1
+    script:
+        "../scripts/rollout.py"
+
+
 rule discrepancy_case:
     """Truth side: plant the case's effect at its magnitude, write measured files and truth apart."""
     conda:
         "../envs/knockgs.yaml"
     input:
-        particles=f"{P}/assets/{DISCREPANCY_OBJECT}.particles.npz",
+        particles=_discrepancy_particles(),
     output:
         calib=f"{_D}/cases/{{case}}/measured_calib.parquet",
         heldout=f"{_D}/cases/{{case}}/measured_heldout.parquet",
@@ -46,7 +98,7 @@ rule discrepancy_case:
         f"logs/{PROFILE}/discrepancy/case_{{case}}.log",
     params:
         object=DISCREPANCY_OBJECT,
-        profile=PROFILE,
+        profile=DISCREPANCY_RES,
         device=DEVICE,
     threads: 1
     script:
@@ -70,10 +122,10 @@ rule discrepancy_run:
         f"results/{PROFILE}/benchmarks/discrepancy/run_{{case}}.tsv"
     params:
         object=DISCREPANCY_OBJECT,
-        profile=PROFILE,
+        profile=DISCREPANCY_RES,
         device=DEVICE,
-        probe=calibration_probe(DISCREPANCY_OBJECT),
-        heldout_probe=heldout_probes(DISCREPANCY_OBJECT)[0],
+        probe=_DISCREPANCY_CONTRACT.roles["calibration"],
+        heldout_probe=_DISCREPANCY_CONTRACT.roles["heldout"][0],
     threads: 1
     script:
         "../scripts/discrepancy_run.py"

@@ -19,7 +19,17 @@ FOV_CLAMP = 1.3
 """The Jacobian is evaluated at view directions clamped to 1.3x the half field of view."""
 
 TILE_SIZE = 16
-"""Tile edge [px]."""
+"""Tile edge [px] on CUDA (one thread block per tile's pixels, as in 3DGS)."""
+
+TILE_SIZE_CPU = 4
+"""Tile edge [px] on the CPU, where a pixel's cost is the length of its tile's list and no
+shared memory rewards big tiles: 4 px renders the Pillow 2.6x faster than 16 px, with
+identical pixels (``benchmarks/README_render.md``)."""
+
+
+def tile_size_for(device) -> int:
+    """The tile edge used on a Warp ``device``."""
+    return TILE_SIZE_CPU if device.is_cpu else TILE_SIZE
 
 
 def jacobian_limits(camera):

@@ -307,5 +307,5 @@ def render(
         raise InputError(src, "camera", f"expected a Camera, got {type(camera).__name__}")
     check_background(background, src)
     proj = project(means, covariances, opacities, camera, device=device)
-    bins = bin_tiles(proj, camera.width, camera.height)
+    bins = bin_tiles(proj, camera.width, camera.height, tile_size=C.tile_size_for(_device(device)))
     return rasterize(proj, colors, opacities, bins, background=background, device=device)
