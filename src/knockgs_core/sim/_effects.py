@@ -107,19 +107,8 @@ def grid_support_slip(
     if grid_m[gi, gj, gk] <= 1.0e-15:
         return
     p = wp.vec3(float(gi), float(gj), float(gk)) * dx - center
-    if wp.abs(p[0]) <= half_size[0] and wp.abs(p[1]) <= half_size[1] and wp.abs(p[2]) <= half_size[2]:
-        axis = int(0)
-        depth = half_size[0] - wp.abs(p[0])
-        for a in range(1, 3):
-            d = half_size[a] - wp.abs(p[a])
-            if d < depth:
-                depth = d
-                axis = a
-        n = wp.vec3(0.0)
-        if p[axis] >= 0.0:
-            n[axis] = 1.0
-        else:
-            n[axis] = -1.0
+    if K.inside_box(p, half_size):
+        n = K.nearest_face_normal(p, half_size)
         v = grid_v[gi, gj, gk]
         grid_v[gi, gj, gk] = (v - wp.dot(v, n) * n) * factor
 
@@ -172,6 +161,16 @@ def _cached(solver, key, make):
     return cache[key]
 
 
+def _launch(solver, kernel, dim, inputs, outputs) -> None:
+    """Launch an effect's kernel on the solver's device."""
+    wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=solver.model.device)
+
+
+def _add_velocity(solver, state, mask, dv) -> None:
+    """``v += dv`` on the particles selected by ``mask`` (int32, one per particle)."""
+    _launch(solver, particle_add_velocity, solver.model.particle_count, [mask, wp.vec3(*dv)], [state.particle_v])
+
+
 def _finite(name: str, field: str, value: float) -> float:
     value = float(value)
     if not math.isfinite(value):
@@ -191,11 +190,8 @@ def _reapply_moving_supports(solver, state, lo, dims, t) -> None:
     p = solver.model.params
     for bc in p.boundaries:
         if isinstance(bc, FixedCuboid) and bc.friction is None and any(bc.velocity) and bc.start_time <= t < bc.end_time:
-            wp.launch(
-                K.grid_bc_cuboid, dim=dims,
-                inputs=[lo, p.dx, wp.vec3(*bc.box.center), wp.vec3(*bc.box.half_size), wp.vec3(*bc.velocity), -1.0],
-                outputs=[state.grid_mv], device=solver.model.device,
-            )
+            _launch(solver, K.grid_bc_cuboid, dims,
+                    [lo, p.dx, wp.vec3(*bc.box.center), wp.vec3(*bc.box.half_size), wp.vec3(*bc.velocity), -1.0], [state.grid_mv])
 
 
 class Effect:
@@ -248,7 +244,7 @@ class VelocityDamping(Effect):
         if self.rate == 0.0:
             return
         factor = math.exp(-self.rate * solver.model.params.dt)
-        wp.launch(grid_scale_velocity, dim=dims, inputs=[lo, factor, state.grid_m], outputs=[state.grid_mv], device=solver.model.device)
+        _launch(solver, grid_scale_velocity, dims, [lo, factor, state.grid_m], [state.grid_mv])
         _reapply_moving_supports(solver, state, lo, dims, t)
 
 
@@ -277,8 +273,7 @@ class Gravity(Effect):
             return
         m = solver.model
         ones = _cached(solver, "all_particles", lambda: wp.ones(m.particle_count, dtype=wp.int32, device=m.device))
-        dv = _unit("Gravity", self.direction) * (self.g * m.params.dt)
-        wp.launch(particle_add_velocity, dim=m.particle_count, inputs=[ones, wp.vec3(*dv)], outputs=[state.particle_v], device=m.device)
+        _add_velocity(solver, state, ones, _unit("Gravity", self.direction) * (self.g * m.params.dt))
 
 
 @dataclass(frozen=True)
@@ -304,7 +299,7 @@ class VonMisesPlasticity(Effect):
             return
         m = solver.model
         plastic = _cached(solver, "plastic_strain", lambda: wp.zeros(m.particle_count, dtype=float, device=m.device))
-        wp.launch(von_mises_return, dim=m.particle_count, inputs=[m.particle_mu, float(self.yield_stress)], outputs=[state.particle_F, plastic], device=m.device)
+        _launch(solver, von_mises_return, m.particle_count, [m.particle_mu, float(self.yield_stress)], [state.particle_F, plastic])
 
 
 @dataclass(frozen=True)
@@ -430,11 +425,7 @@ class SupportSlip(Effect):
         p = solver.model.params
         factor = math.exp(-p.dt / self.slip_time)
         for box in self.boxes:
-            wp.launch(
-                grid_support_slip, dim=dims,
-                inputs=[lo, p.dx, wp.vec3(*box.center), wp.vec3(*box.half_size), factor, state.grid_m],
-                outputs=[state.grid_mv], device=solver.model.device,
-            )
+            _launch(solver, grid_support_slip, dims, [lo, p.dx, wp.vec3(*box.center), wp.vec3(*box.half_size), factor, state.grid_m], [state.grid_mv])
 
 
 # --------------------------------------------------------------------------------------
@@ -477,8 +468,7 @@ class BodyForcePulse(Effect):
         if not (self.start <= t < self.end):
             return
         a = self.accel * math.sin(math.pi * (t - self.start) / (self.end - self.start))
-        dv = _unit("BodyForcePulse", self.direction) * (a * m.params.dt)
-        wp.launch(particle_add_velocity, dim=m.particle_count, inputs=[mask, wp.vec3(*dv)], outputs=[state.particle_v], device=m.device)
+        _add_velocity(solver, state, mask, _unit("BodyForcePulse", self.direction) * (a * m.params.dt))
 
 
 @dataclass(frozen=True)

@@ -148,6 +148,30 @@ def grid_bc_walls(
     grid_v[g[0], g[1], g[2]] = v
 
 
+@wp.func
+def inside_box(p: wp.vec3, half_size: wp.vec3) -> bool:
+    """Whether ``p`` (relative to a box's centre) lies in the closed box."""
+    return wp.abs(p[0]) <= half_size[0] and wp.abs(p[1]) <= half_size[1] and wp.abs(p[2]) <= half_size[2]
+
+
+@wp.func
+def nearest_face_normal(p: wp.vec3, half_size: wp.vec3) -> wp.vec3:
+    """Outward unit normal of the box face nearest to ``p`` (inside, relative to the centre)."""
+    axis = int(0)
+    depth = half_size[0] - wp.abs(p[0])
+    for a in range(1, 3):
+        d = half_size[a] - wp.abs(p[a])
+        if d < depth:
+            depth = d
+            axis = a
+    n = wp.vec3(0.0)
+    if p[axis] >= 0.0:
+        n[axis] = 1.0
+    else:
+        n[axis] = -1.0
+    return n
+
+
 @wp.kernel
 def grid_bc_cuboid(
     lo: wp.vec3i,
@@ -171,23 +195,11 @@ def grid_bc_cuboid(
     gj = j + lo[1]
     gk = k + lo[2]
     p = wp.vec3(float(gi), float(gj), float(gk)) * dx - center
-    if wp.abs(p[0]) <= half_size[0] and wp.abs(p[1]) <= half_size[1] and wp.abs(p[2]) <= half_size[2]:
+    if inside_box(p, half_size):
         if friction < 0.0:
             grid_v[gi, gj, gk] = velocity
         else:
-            # outward normal of the nearest face
-            axis = int(0)
-            depth = half_size[0] - wp.abs(p[0])
-            for a in range(1, 3):
-                d = half_size[a] - wp.abs(p[a])
-                if d < depth:
-                    depth = d
-                    axis = a
-            n = wp.vec3(0.0)
-            if p[axis] >= 0.0:
-                n[axis] = 1.0
-            else:
-                n[axis] = -1.0
+            n = nearest_face_normal(p, half_size)
             u = grid_v[gi, gj, gk] - velocity
             un = wp.dot(u, n)
             if un < 0.0:
