@@ -82,3 +82,55 @@ def deformed_scene(gaussians_means0, cov0, colors, opacities, positions_t, F_t, 
     means[dyn] = pos
     covs[dyn] = deform_covariances(cov0[dyn], F)
     return Scene(means, covs, colors, opacities)
+
+
+def covariance_to_scale_rotation(cov) -> tuple[np.ndarray, np.ndarray]:
+    """Standard deviations and unit quaternions ``(w, x, y, z)`` with ``R diag(s)^2 R^T = cov``.
+
+    ``cov: [N, 3, 3]`` symmetric positive semi-definite; returns ``scales [N, 3]`` (eigenvalues
+    clipped at 1e-24 before the square root, so a degenerate covariance gives a tiny, valid
+    scale) and ``quats [N, 4]``, float64 (3DGS's PLY parametrization).
+    """
+    from scipy.spatial.transform import Rotation
+
+    src = "render.covariance_to_scale_rotation"
+    cov = as_float_array(cov, src, "cov", (-1, 3, 3))
+    evals, evecs = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, 1, 2)))
+    flip = np.linalg.det(evecs) < 0  # a proper rotation: flip one axis of reflections
+    evecs[flip, :, 2] *= -1.0
+    scales = np.sqrt(np.clip(evals, 1e-24, None))
+    if cov.shape[0] == 0:
+        return scales, np.zeros((0, 4))
+    xyzw = Rotation.from_matrix(evecs).as_quat()
+    return scales, np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
+
+
+def deformed_gaussians(gaussians, gaussian_index, positions_t, F_t):
+    """The asset's Gaussians at one time, as a :class:`~knockgs_core.assets.GaussianSet` for a
+    standard 3DGS PLY (``knockgs_core.assets.write_ply``), so any frame opens in a splat viewer.
+
+    ``gaussian_index [M]``: the Gaussian row of each simulated (Gaussian-associated) particle;
+    ``positions_t [>= M, 3]``: particle positions at time t (the first ``M`` rows are used, the
+    fill particles after them are not Gaussians); ``F_t [M, 3, 3]``: their deformation
+    gradients. Moved Gaussians get ``Sigma_t = F Sigma_0 F^T`` re-expressed as scales and a
+    rotation; the other (static) Gaussians and every colour and opacity are unchanged.
+    Higher SH coefficients are kept as they are (not rotated with ``F``).
+    """
+    from knockgs_core.assets import GaussianSet
+
+    src = "render.deformed_gaussians"
+    idx = np.asarray(gaussian_index)
+    n = len(gaussians)
+    if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer) or (idx.size and (idx.min() < 0 or idx.max() >= n)):
+        raise InputError(src, "gaussian_index", f"must be integer rows of the {n} Gaussians")
+    pos = as_float_array(positions_t, src, "positions_t", (-1, 3))
+    if pos.shape[0] < idx.size:
+        raise InputError(src, "positions_t", f"has {pos.shape[0]} rows for {idx.size} Gaussian-associated particles")
+    F = as_float_array(F_t, src, "F_t", (idx.size, 3, 3))
+    means = np.asarray(gaussians.means, dtype=np.float64).copy()
+    scales = np.asarray(gaussians.scales, dtype=np.float64).copy()
+    quats = np.asarray(gaussians.quats, dtype=np.float64).copy()
+    means[idx] = pos[: idx.size]
+    cov0 = np.asarray(gaussians.covariances(), dtype=np.float64)[idx]
+    scales[idx], quats[idx] = covariance_to_scale_rotation(deform_covariances(cov0, F))
+    return GaussianSet(means, scales, quats, gaussians.opacities, gaussians.sh_dc, gaussians.sh_rest)

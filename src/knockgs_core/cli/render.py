@@ -1,0 +1,114 @@
+"""``knockgs render``: a rollout's frames as images, or as deformed 3DGS PLY files.
+
+Both subcommands take the asset's PLY (``results/<profile>/assets/<object>.ply``), its scene
+file (``<object>.scene.npz``, found next to the PLY by default) and an evaluation rollout
+with its deformation gradients (``<theta>.parquet`` and ``<theta>.F.parquet``).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from ..errors import InputError
+
+
+def _common(p) -> None:
+    p.add_argument("--asset", required=True, help="the asset's 3DGS PLY (results/<profile>/assets/<object>.ply)")
+    p.add_argument("--rollout", required=True, help="an evaluation rollout .parquet")
+    p.add_argument("--deformation", help="its deformation gradients (default: the rollout's .F.parquet)")
+    p.add_argument("--scene", help="the asset's scene file (default: <asset>.scene.npz next to the PLY)")
+    p.add_argument("--frames", default="all", help="frame indices, e.g. '0,15,30' or 'all' (default)")
+    p.add_argument("-o", "--output", required=True, help="output folder")
+
+
+def register(sub) -> None:
+    p = sub.add_parser("render", help="render a rollout's frames (PNG) or export them as deformed 3DGS PLY", description=__doc__.splitlines()[0])
+    s = p.add_subparsers(dest="render_command", required=True)
+    fr = s.add_parser("frames", help="PNG per frame with the object's camera")
+    _common(fr)
+    fr.add_argument("--object", required=True, help="object whose contract camera is used (config/objects/NAME.yaml)")
+    fr.add_argument("--profile", default="default", help="resolution profile of the contract (ci, default, paper)")
+    fr.add_argument("--width", type=int, help="image width (default: the contract camera's)")
+    fr.add_argument("--height", type=int, help="image height (default: the contract camera's)")
+    fr.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
+    fr.add_argument("--config-dir", help="folder holding objects/ (default: the project's config/)")
+    fr.set_defaults(func=run_frames)
+    ply = s.add_parser("ply", help="a standard 3DGS PLY per frame (F Sigma_0 F^T as scales and rotations)")
+    _common(ply)
+    ply.set_defaults(func=run_ply)
+
+
+def _frames(text: str, n: int) -> list[int]:
+    if text == "all":
+        return list(range(n))
+    try:
+        out = [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise InputError("--frames", "frames", f"expected 'all' or comma-separated integers, got '{text}'") from None
+    bad = [f for f in out if not 0 <= f < n]
+    if not out or bad:
+        raise InputError("--frames", "frames", f"frame indices must lie in 0..{n - 1}; got {text}")
+    return out
+
+
+def _load(args):
+    import numpy as np
+
+    from ..assets import read_ply
+    from ..rollout import read_deformation, read_rollout
+
+    asset = Path(args.asset)
+    scene_path = Path(args.scene) if args.scene else asset.with_name(asset.name[: -len(".ply")] + ".scene.npz" if asset.name.endswith(".ply") else asset.name + ".scene.npz")
+    rollout = Path(args.rollout)
+    f_path = Path(args.deformation) if args.deformation else rollout.with_name(rollout.name.replace(".parquet", ".F.parquet"))
+    for path, field in ((asset, "--asset"), (scene_path, "--scene"), (rollout, "--rollout"), (f_path, "--deformation")):
+        if not path.is_file():
+            raise InputError(str(path), field, "no such file")
+    gaussians = read_ply(asset)
+    try:
+        scene = np.load(scene_path)
+        gaussian_index = np.asarray(scene["gaussian_index"])
+        static_mask = np.asarray(scene["static_mask"])
+    except (OSError, ValueError, KeyError) as exc:
+        raise InputError(str(scene_path), "gaussian_index/static_mask", f"not a KnockGS scene file ({exc})") from None
+    ro = read_rollout(rollout)
+    F = read_deformation(f_path)
+    if F.shape[0] != ro.positions.shape[0] or F.shape[1] != gaussian_index.size:
+        raise InputError(str(f_path), "F", f"{F.shape[0]} frames x {F.shape[1]} particles; the rollout has "
+                         f"{ro.positions.shape[0]} frames and the scene {gaussian_index.size} Gaussian-associated particles")
+    return gaussians, gaussian_index, static_mask, ro, F
+
+
+def run_ply(args) -> int:
+    from ..assets import write_ply
+    from ..render import deformed_gaussians
+
+    gaussians, gaussian_index, _, ro, F = _load(args)
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    frames = _frames(args.frames, ro.positions.shape[0])
+    for t in frames:
+        write_ply(deformed_gaussians(gaussians, gaussian_index, ro.positions[t], F[t]), out / f"frame_{t:04d}.ply")
+    print(f"{len(frames)} PLY frame(s) of {len(gaussians)} Gaussians -> {out}", file=sys.stderr)
+    return 0
+
+
+def run_frames(args) -> int:
+    import numpy as np
+    from PIL import Image
+
+    from ..contract import load_contract
+    from ..experiments import camera_from_contract, render_rollout
+
+    gaussians, gaussian_index, static_mask, ro, F = _load(args)
+    contract = load_contract(args.object, args.profile, config_dir=args.config_dir)
+    camera = camera_from_contract(contract.camera, width=args.width, height=args.height)
+    frames = _frames(args.frames, ro.positions.shape[0])
+    rgb, _ = render_rollout(gaussians, static_mask, gaussian_index, ro.positions[frames], F[frames], camera, device=args.device)
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    for t, img in zip(frames, rgb):
+        Image.fromarray((np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)).save(out / f"frame_{t:04d}.png")
+    print(f"{len(frames)} frame(s) at {camera.width}x{camera.height} -> {out}", file=sys.stderr)
+    return 0
