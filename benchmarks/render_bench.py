@@ -7,6 +7,10 @@ degree vertical field of view, so the object fills most of the frame. Each case 
 one warm-up render, then ``--repeats`` timed renders, and reports medians of the full
 render and of its stages (project, bin_tiles on the host, rasterize).
 
+A second table times ``bin_tiles + rasterize`` at each ``--tiles`` edge on the same
+projection (the image is identical at every edge; only the work changes), as ratios to
+the device's default edge (``TILE_SIZE_CPU`` = 4 on the CPU, ``TILE_SIZE`` = 16 on CUDA).
+
     python3 benchmarks/render_bench.py                      # CPU, 5k/50k x 256/512
     python3 benchmarks/render_bench.py --device cuda:0 --counts 50000 600000
 """
@@ -23,6 +27,7 @@ import warp as wp
 from scipy.spatial.transform import Rotation
 
 from knockgs_core.render import Camera, bin_tiles, project, rasterize, render
+from knockgs_core.render._constants import tile_size_for
 
 
 def scene(n: int, seed: int = 0):
@@ -50,7 +55,10 @@ def main() -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512], help="square image side [px]")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--tiles", type=int, nargs="+", default=[2, 4, 8, 16], help="tile edges [px] compared in the second table")
     args = ap.parse_args()
+    default_tile = tile_size_for(wp.get_device(args.device))
+    bin_device = None if wp.get_device(args.device).is_cpu else args.device  # as render() does
 
     wp.init()
     print(f"device: {args.device} ({wp.get_device(args.device).name}); {platform.processor() or platform.machine()}; "
@@ -65,10 +73,28 @@ def main() -> None:
                                  fov_deg=40.0, width=size, height=size)
             t_render, _ = timed(lambda: render(means, cov, colors, opac, cam, device=args.device), args.repeats)
             t_proj, proj = timed(lambda: project(means, cov, opac, cam, device=args.device), args.repeats)
-            t_bin, bins = timed(lambda: bin_tiles(proj, size, size), args.repeats)
+            t_bin, bins = timed(lambda: bin_tiles(proj, size, size, tile_size=default_tile, device=bin_device), args.repeats)
             t_rast, _ = timed(lambda: rasterize(proj, colors, opac, bins, device=args.device), args.repeats)
             print(f"| {n:,} | {size}x{size} | {t_render:.4f} | {t_proj:.4f} | {t_bin:.4f} | {t_rast:.4f} "
                   f"| {bins.gaussian_ids.size:,} |", flush=True)
+
+    print()
+    print(f"bin_tiles + rasterize by tile edge (ratio to the default edge {default_tile} px; lower is faster)")
+    print()
+    print("| Gaussians | image | " + " | ".join(f"{t} px [s]" for t in args.tiles) + " | " + " | ".join(f"{t}/{default_tile}" for t in args.tiles) + " |")
+    print("|---:|---:|" + "---:|" * (2 * len(args.tiles)))
+    for n in args.counts:
+        means, cov, colors, opac = scene(n)
+        for size in args.sizes:
+            cam = Camera.look_at([1.0, -1.6, 1.9], [1.0, 1.0, 1.0], [0.0, 0.0, 1.0],
+                                 fov_deg=40.0, width=size, height=size)
+            proj = project(means, cov, opac, cam, device=args.device)
+            t = {}
+            for tile in args.tiles + [default_tile]:
+                if tile not in t:
+                    t[tile], _ = timed(lambda: rasterize(proj, colors, opac, bin_tiles(proj, size, size, tile_size=tile, device=bin_device), device=args.device), args.repeats)
+            print(f"| {n:,} | {size}x{size} | " + " | ".join(f"{t[x]:.4f}" for x in args.tiles) + " | "
+                  + " | ".join(f"{t[x] / t[default_tile]:.2f}" for x in args.tiles) + " |", flush=True)
 
 
 if __name__ == "__main__":

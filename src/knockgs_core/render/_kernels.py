@@ -115,3 +115,96 @@ def rasterize_kernel(
     out_rgb[row, col] = rgb + T * background
     out_depth[row, col] = d
     out_alpha[row, col] = 1.0 - T
+
+
+# -- tile binning on the device (same lists as the host sort in ``bin_tiles``) ----------
+@wp.func
+def tile_box(m: wp.vec2f, r: wp.vec2f, tile_size: int, tiles_x: int, tiles_y: int) -> wp.vec4i:
+    """``(lo_x, lo_y, span_x, span_y)`` of the tiles holding a pixel centre inside
+    ``m +- (r + 0.5)``; computed in float64 exactly as the host path."""
+    ts = wp.float64(tile_size)
+    half = wp.float64(0.5)
+    lo = wp.vec2i(0, 0)
+    span = wp.vec2i(0, 0)
+    for a in range(2):
+        ra = wp.float64(r[a]) + half
+        ma = wp.float64(m[a])
+        lim = tiles_x - 1
+        if a == 1:
+            lim = tiles_y - 1
+        l = wp.floor((ma - ra - half) / ts)
+        h = wp.floor((ma + ra - half) / ts)
+        l = wp.min(wp.max(l, wp.float64(0.0)), wp.float64(lim + 1))
+        h = wp.min(wp.max(h, wp.float64(-1.0)), wp.float64(lim))
+        lo[a] = int(l)
+        span[a] = wp.max(int(h) - int(l) + 1, 0)
+    return wp.vec4i(lo[0], lo[1], span[0], span[1])
+
+
+@wp.kernel
+def tile_count_kernel(
+    order: wp.array(dtype=wp.int32),
+    means2d: wp.array(dtype=wp.vec2f),
+    radii: wp.array(dtype=wp.vec2f),
+    tile_size: int,
+    tiles_x: int,
+    tiles_y: int,
+    counts: wp.array(dtype=wp.int32),
+):
+    """Number of tiles each Gaussian (in depth order) overlaps."""
+    i = wp.tid()
+    g = order[i]
+    b = tile_box(means2d[g], radii[g], tile_size, tiles_x, tiles_y)
+    counts[i] = b[2] * b[3]
+
+
+@wp.kernel
+def tile_emit_kernel(
+    order: wp.array(dtype=wp.int32),
+    means2d: wp.array(dtype=wp.vec2f),
+    radii: wp.array(dtype=wp.vec2f),
+    offsets: wp.array(dtype=wp.int32),
+    tile_size: int,
+    tiles_x: int,
+    tiles_y: int,
+    tile_keys: wp.array(dtype=wp.int32),
+    gaussian_ids: wp.array(dtype=wp.int32),
+):
+    """One (tile, Gaussian) pair per overlapped tile, written in depth order."""
+    i = wp.tid()
+    g = order[i]
+    b = tile_box(means2d[g], radii[g], tile_size, tiles_x, tiles_y)
+    k = offsets[i]
+    for ty in range(b[1], b[1] + b[3]):
+        for tx in range(b[0], b[0] + b[2]):
+            tile_keys[k] = ty * tiles_x + tx
+            gaussian_ids[k] = g
+            k += 1
+
+
+@wp.kernel
+def tile_ranges_kernel(
+    tile_keys: wp.array(dtype=wp.int32),
+    total: int,
+    starts: wp.array(dtype=wp.int32),
+    ends: wp.array(dtype=wp.int32),
+):
+    """``[start, end)`` of each tile in the sorted keys (binary search, as searchsorted)."""
+    t = wp.tid()
+    lo = int(0)
+    hi = total
+    while lo < hi:  # first key >= t
+        mid = (lo + hi) // 2
+        if tile_keys[mid] < t:
+            lo = mid + 1
+        else:
+            hi = mid
+    starts[t] = lo
+    hi = total
+    while lo < hi:  # first key > t
+        mid = (lo + hi) // 2
+        if tile_keys[mid] <= t:
+            lo = mid + 1
+        else:
+            hi = mid
+    ends[t] = lo

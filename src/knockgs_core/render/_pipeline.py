@@ -12,7 +12,7 @@ from knockgs_core.errors import InputError
 from . import _constants as C
 from ._camera import Camera, RenderOutput
 from ._checks import as_float_array, check_background, check_count, check_range, check_scene
-from ._kernels import project_kernel, rasterize_kernel
+from ._kernels import project_kernel, rasterize_kernel, tile_count_kernel, tile_emit_kernel, tile_ranges_kernel
 
 
 @dataclass(frozen=True, eq=False)
@@ -142,12 +142,14 @@ def project(means, covariances, opacities, camera: Camera, *, device: str = "cpu
     )
 
 
-def bin_tiles(projection: Projection, width: int, height: int, *, tile_size: int = C.TILE_SIZE) -> TileBins:
+def bin_tiles(projection: Projection, width: int, height: int, *, tile_size: int = C.TILE_SIZE, device: str | None = None) -> TileBins:
     """Assign visible Gaussians to the ``tile_size`` x ``tile_size`` tiles they overlap.
 
     A Gaussian goes to every tile that holds a pixel centre inside its box
     ``means2d +- radii`` (widened by half a pixel against rounding). Each tile's list
-    is sorted by depth, ties by Gaussian index (a stable host sort on (tile, depth)).
+    is sorted by depth, ties by Gaussian index: a stable host sort on (tile, depth)
+    when ``device`` is None, else on that Warp device (a stable radix sort by depth,
+    then by tile: the same lists, without the host sort that dominates GPU frames).
     """
     src = "render.bin_tiles"
     for name, v in (("width", width), ("height", height), ("tile_size", tile_size)):
@@ -159,6 +161,8 @@ def bin_tiles(projection: Projection, width: int, height: int, *, tile_size: int
     n_tiles = tiles_x * tiles_y
 
     ids = np.flatnonzero(projection.visible)
+    if device is not None:
+        return _bin_tiles_device(projection, ids, width, height, tile_size, _device(device))
     m = projection.means2d[ids].astype(np.float64)
     r = projection.radii[ids].astype(np.float64) + 0.5
     # Pixel centres c = i + 0.5 inside [m - r, m + r] have i in [m - r - 0.5, m + r - 0.5].
@@ -184,6 +188,38 @@ def bin_tiles(projection: Projection, width: int, height: int, *, tile_size: int
     tile_ranges = np.stack([starts, ends], axis=1).astype(np.int32)
     return TileBins(gaussian_ids=gaussian_ids, tile_ranges=tile_ranges,
                     width=width, height=height, tile_size=tile_size)
+
+
+def _bin_tiles_device(projection: Projection, ids: np.ndarray, width: int, height: int, tile_size: int, dev) -> TileBins:
+    tiles_x = -(-width // tile_size)
+    tiles_y = -(-height // tile_size)
+    n_tiles = tiles_x * tiles_y
+    n = int(ids.size)
+    if n == 0:
+        return TileBins(np.zeros(0, np.int32), np.zeros((n_tiles, 2), np.int32), width, height, tile_size)
+    # 1. visible Gaussians by depth (stable: ties keep increasing index)
+    depth = wp.array(np.concatenate([projection.depths[ids], np.zeros(n)]).astype(np.float32), dtype=wp.float32, device=dev)
+    order = wp.array(np.concatenate([ids, np.zeros(n, ids.dtype)]).astype(np.int32), dtype=wp.int32, device=dev)
+    wp.utils.radix_sort_pairs(depth, order, n)
+    means2d = wp.array(np.ascontiguousarray(projection.means2d, dtype=np.float32), dtype=wp.vec2f, device=dev)
+    radii = wp.array(np.ascontiguousarray(projection.radii, dtype=np.float32), dtype=wp.vec2f, device=dev)
+    # 2. pairs per Gaussian, offsets, emitted in depth order
+    counts = wp.zeros(n, dtype=wp.int32, device=dev)
+    wp.launch(tile_count_kernel, dim=n, inputs=[order, means2d, radii, tile_size, tiles_x, tiles_y], outputs=[counts], device=dev)
+    offsets = wp.zeros(n, dtype=wp.int32, device=dev)
+    wp.utils.array_scan(counts, offsets, inclusive=False)
+    total = int(offsets[n - 1 : n].numpy()[0] + counts[n - 1 : n].numpy()[0])
+    keys = wp.zeros(max(2 * total, 2), dtype=wp.int32, device=dev)
+    gids = wp.zeros(max(2 * total, 2), dtype=wp.int32, device=dev)
+    wp.launch(tile_emit_kernel, dim=n, inputs=[order, means2d, radii, offsets, tile_size, tiles_x, tiles_y], outputs=[keys, gids], device=dev)
+    # 3. stable sort by tile keeps the depth order inside each tile
+    if total > 1:
+        wp.utils.radix_sort_pairs(keys, gids, total, end_bit=max(1, int(n_tiles).bit_length()))
+    starts = wp.zeros(n_tiles, dtype=wp.int32, device=dev)
+    ends = wp.zeros(n_tiles, dtype=wp.int32, device=dev)
+    wp.launch(tile_ranges_kernel, dim=n_tiles, inputs=[keys, total], outputs=[starts, ends], device=dev)
+    ranges = np.stack([starts.numpy(), ends.numpy()], axis=1).astype(np.int32)
+    return TileBins(gaussian_ids=gids.numpy()[:total].copy(), tile_ranges=ranges, width=width, height=height, tile_size=tile_size)
 
 
 def rasterize(
@@ -307,5 +343,7 @@ def render(
         raise InputError(src, "camera", f"expected a Camera, got {type(camera).__name__}")
     check_background(background, src)
     proj = project(means, covariances, opacities, camera, device=device)
-    bins = bin_tiles(proj, camera.width, camera.height, tile_size=C.tile_size_for(_device(device)))
+    dev = _device(device)
+    # CUDA bins on the device; on the CPU the host sort is as fast and Warp runs one thread
+    bins = bin_tiles(proj, camera.width, camera.height, tile_size=C.tile_size_for(dev), device=None if dev.is_cpu else device)
     return rasterize(proj, colors, opacities, bins, background=background, device=device)
