@@ -138,3 +138,27 @@ def test_bad_config_is_a_clear_error(tmp_path):
     bad.write_text((ROOT / "config/ci.yaml").read_text() + "\nunknown_key: 1\n")
     out = subprocess.run([sys.executable, "-m", "snakemake", "-n", f"--configfile={bad}", "all"], cwd=_scratch_copy(tmp_path / "w"), capture_output=True, text=True)
     assert out.returncode != 0 and "unknown_key" in out.stdout + out.stderr
+
+
+def _planned(work: Path, *args) -> dict:
+    out = subprocess.run([sys.executable, "-m", "snakemake", "-n", *args], cwd=work, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-3000:]
+    counts = {}
+    for line in out.stdout.splitlines():
+        parts = line.split()
+        if len(parts) == 2 and parts[1].isdigit():
+            counts[parts[0]] = int(parts[1])
+    return counts
+
+
+def test_discrepancy_cases_run_at_their_configured_resolution(tmp_path):
+    # default profile, cases at the ci resolution: their own asset and library, not the profile's
+    work = _scratch_copy(tmp_path)
+    own = _planned(work, "--", "results/tables/discrepancy.csv")
+    assert own.get("discrepancy_asset") == 1 and own.get("discrepancy_library") == 54 and "rollout_library" not in own
+    assert own.get("discrepancy_run") == own.get("discrepancy_case") > 0
+    shared = _planned(work, "--config", "discrepancy={resolution: default}", "--", "results/tables/discrepancy.csv")
+    assert "discrepancy_library" not in shared and shared.get("rollout_library") == 54 and shared.get("asset") == 1
+    bad = subprocess.run([sys.executable, "-m", "snakemake", "-n", "--config", "discrepancy={resolution: huge}", "--", "results/tables/discrepancy.csv"],
+                         cwd=work, capture_output=True, text=True)
+    assert bad.returncode != 0 and "huge" in bad.stdout + bad.stderr
