@@ -4,6 +4,8 @@
 #   P/assets/{object}.ply                              normalized 3DGS asset (rendered Gaussians)
 #   P/assets/{object}.particles.npz                    simulated particles (GS first, then fill)
 #   P/rollouts/{object}/lib/{theta}.parquet            candidate library rollouts, Probe A only
+#                                                      (+ .F.parquet); also the candidates' Probe-A
+#                                                      evaluation rollouts
 #   P/rollouts/{object}/eval/{probe}/{theta}.parquet   evaluation rollouts (+ .F.parquet), keyed by
 #                                                      theta = sE{s_E:.6f}_sR{s_rho:.6f}, so every
 #                                                      method that lands on the same theta shares one

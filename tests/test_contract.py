@@ -267,3 +267,17 @@ def test_cli_summary_and_make(tmp_path, capsys):
     assert load_particles(tmp_path / "p.npz").n_fill > 0
     assert cli_main(["asset", "figure", "ficus", "--profile", "ci", "-o", str(tmp_path / "f.png")]) == 0
     assert (tmp_path / "f.png").stat().st_size > 10000
+
+
+@pytest.mark.parametrize("schema", sorted((Path(__file__).parents[1] / "workflow" / "schemas").glob("*.schema.yaml")), ids=lambda p: p.name)
+def test_schemas_are_valid_draft_2020_12(schema):
+    # contracts are validated without re-checking the schema in every process; checked here
+    import yaml
+    from jsonschema import Draft202012Validator
+    from jsonschema.exceptions import SchemaError
+
+    doc = yaml.safe_load(schema.read_text())
+    Draft202012Validator.check_schema(doc)
+    broken = dict(doc, type="no-such-type")
+    with pytest.raises(SchemaError):
+        Draft202012Validator.check_schema(broken)

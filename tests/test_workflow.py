@@ -63,6 +63,23 @@ def test_ci_render_outputs(ci_run):
 
 
 @pytest.mark.slow
+def test_ci_candidate_probe_a_evaluation_is_the_library_rollout(ci_run):
+    # response nearest lands on candidates: their Probe-A write-back is the library rollout
+    # (simulated once, with F), their Probe-B rollouts are evaluation rollouts
+    P = ci_run / "results/ci"
+    est = json.loads((P / "estimates/pillow/main/response_nearest.json").read_text())
+    tags = {f"sE{r['E_scale']:.6f}_sR{r['density_scale']:.6f}" for r in est["predictions"]}
+    assert tags
+    for tag in tags:
+        assert (P / f"rollouts/pillow/lib/{tag}.F.parquet").exists()
+        assert not (P / f"rollouts/pillow/eval/standard_x/{tag}.parquet").exists()
+        assert (P / f"rollouts/pillow/eval/standard_y/{tag}.parquet").exists()
+        assert (P / f"renders/pillow/standard_x/{tag}.npz").exists()
+    # a target (never a candidate) has its own Probe-A evaluation rollout
+    assert (P / "rollouts/pillow/eval/standard_x/sE0.950000_sR1.350000.parquet").exists()
+
+
+@pytest.mark.slow
 def test_ci_audits_pass_and_rerun_is_a_no_op(ci_run):
     for name in ["leakage", "duplicates", "nonfinite", "missing_frames"]:
         verdict = json.loads((ci_run / f"results/audits/{name}.json").read_text())
@@ -155,10 +172,13 @@ def test_discrepancy_cases_run_at_their_configured_resolution(tmp_path):
     # default profile, cases at the ci resolution: their own asset and library, not the profile's
     work = _scratch_copy(tmp_path)
     own = _planned(work, "--", "results/tables/discrepancy.csv")
-    assert own.get("discrepancy_asset") == 1 and own.get("discrepancy_library") == 54 and "rollout_library" not in own
+    def jobs(counts, prefix):  # library rollouts run in chunked rules: prefix_0, prefix_1, ...
+        return sum(n for rule, n in counts.items() if rule.startswith(prefix + "_"))
+
+    assert own.get("discrepancy_asset") == 1 and jobs(own, "discrepancy_library") == 9 and jobs(own, "rollout_library") == 0
     assert own.get("discrepancy_run") == own.get("discrepancy_case") > 0
     shared = _planned(work, "--config", "discrepancy={resolution: default}", "--", "results/tables/discrepancy.csv")
-    assert "discrepancy_library" not in shared and shared.get("rollout_library") == 54 and shared.get("asset") == 1
+    assert jobs(shared, "discrepancy_library") == 0 and jobs(shared, "rollout_library") == 9 and shared.get("asset") == 1
     bad = subprocess.run([sys.executable, "-m", "snakemake", "-n", "--config", "discrepancy={resolution: huge}", "--", "results/tables/discrepancy.csv"],
                          cwd=work, capture_output=True, text=True)
     assert bad.returncode != 0 and "huge" in bad.stdout + bad.stderr

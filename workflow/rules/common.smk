@@ -53,12 +53,30 @@ def lib_rollout(obj, case):
     return f"{P}/rollouts/{obj}/lib/{theta_tag((row.E_scale, row.density_scale))}.parquet"
 
 
+CANDIDATE_TAGS = frozenset(theta_tag((r.E_scale, r.density_scale)) for r in CANDIDATES.itertuples(index=False))
+
+
+def _eval_base(obj, probe, theta):
+    """A candidate's Probe-A evaluation rollout is its library rollout (the same simulation,
+    which exports F too); every other (probe, theta) has its own evaluation rollout."""
+    tag = theta_tag(theta)
+    if probe == calibration_probe(obj) and tag in CANDIDATE_TAGS:
+        return f"{P}/rollouts/{obj}/lib/{tag}"
+    return f"{P}/rollouts/{obj}/eval/{probe}/{tag}"
+
+
 def eval_rollout(obj, probe, theta):
-    return f"{P}/rollouts/{obj}/eval/{probe}/{theta_tag(theta)}.parquet"
+    return _eval_base(obj, probe, theta) + ".parquet"
 
 
 def eval_deformation(obj, probe, theta):
-    return f"{P}/rollouts/{obj}/eval/{probe}/{theta_tag(theta)}.F.parquet"
+    return _eval_base(obj, probe, theta) + ".F.parquet"
+
+
+def evaluation_rollout_map(wc):
+    """{"probe/theta_tag": rollout path} of the evaluation inputs (for the evaluate script)."""
+    ths = list(estimated_thetas(wc).values()) + list(target_thetas(wc.split).values())
+    return {f"{pr}/{theta_tag(th)}": eval_rollout(wc.object, pr, th) for pr in eval_probes(wc.object) for th in ths}
 
 
 def target_thetas(split=SPLIT):

@@ -56,31 +56,36 @@ rule discrepancy_asset:
         "../scripts/asset.py"
 
 
-rule discrepancy_library:
-    """A candidate's Probe-A rollout at the cases' resolution (the loop's library base)."""
-    conda:
-        "../envs/knockgs.yaml"
-    input:
-        particles=f"{_D}/{{res}}/assets/{{object}}.particles.npz",
-    output:
-        rollout=f"{_D}/{{res}}/library/{{object}}/{{theta}}.parquet",
-    log:
-        f"logs/{PROFILE}/discrepancy/{{res}}/library/{{object}}/{{theta}}.log",
-    benchmark:
-        f"results/{PROFILE}/benchmarks/discrepancy/{{res}}/library/{{object}}/{{theta}}.tsv"
-    params:
-        profile=lambda wc: wc.res,
-        probe=lambda wc: load_contract(wc.object, wc.res).roles["calibration"],
-        theta=lambda wc: parse_theta(wc.theta),
-        export_F=False,
-        device=DEVICE,
-    resources:
-        mem_mb=2000,
-        runtime=20,
-        gpu=1 if ON_GPU else 0,
-    threads: 1
-    script:
-        "../scripts/rollout.py"
+for _k, _chunk in enumerate(library_chunks()):
+
+    rule:
+        """Probe-A rollouts of a chunk of candidates at the cases' resolution (the loop's
+        library base); chunked as the main library (simulate.smk)."""
+        name:
+            f"discrepancy_library_{_k}"
+        conda:
+            "../envs/knockgs.yaml"
+        input:
+            particles=f"{_D}/{{res}}/assets/{{object}}.particles.npz",
+        output:
+            rollouts=[f"{_D}/{{res}}/library/{{object}}/{theta_tag(candidate_theta(c))}.parquet" for c in _chunk],
+        log:
+            f"logs/{PROFILE}/discrepancy/{{res}}/library/{{object}}/chunk{_k}.log",
+        benchmark:
+            f"results/{PROFILE}/benchmarks/discrepancy/{{res}}/library/{{object}}/chunk{_k}.tsv"
+        params:
+            profile=lambda wc: wc.res,
+            object=lambda wc: wc.object,
+            runs=lambda wc, chunk=_chunk: [(candidate_theta(c), load_contract(wc.object, wc.res).roles["calibration"]) for c in chunk],
+            export_F=False,
+            device=DEVICE,
+        resources:
+            mem_mb=2000,
+            runtime=20 * LIBRARY_CHUNK,
+            gpu=1 if ON_GPU else 0,
+        threads: 1
+        script:
+            "../scripts/rollout.py"
 
 
 rule discrepancy_case:

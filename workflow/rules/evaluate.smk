@@ -14,6 +14,6 @@ rule evaluate:
     params:
         probes=lambda wc: eval_probes(wc.object),
         split=lambda wc: wc.split,
-        rollout_dir=lambda wc: f"{P}/rollouts/{wc.object}/eval",
+        rollouts=evaluation_rollout_map,
     script:
         "../scripts/evaluate.py"

@@ -2,31 +2,37 @@
 # metrics of each method's frozen estimates against the hidden target's frames.
 
 
-rule render:
-    conda:
-        "../envs/knockgs.yaml"
-    input:
-        ply=f"{P}/assets/{{object}}.ply",
-        scene=f"{P}/assets/{{object}}.scene.npz",
-        rollout=f"{P}/rollouts/{{object}}/eval/{{probe}}/{{theta}}.parquet",
-        F=f"{P}/rollouts/{{object}}/eval/{{probe}}/{{theta}}.F.parquet",
-    output:
-        frames=f"{P}/renders/{{object}}/{{probe}}/{{theta}}.npz",
-    log:
-        f"logs/{PROFILE}/renders/{{object}}/{{probe}}/{{theta}}.log",
-    benchmark:
-        f"results/{PROFILE}/benchmarks/renders/{{object}}/{{probe}}/{{theta}}.tsv"
-    params:
-        camera=lambda wc: CONTRACTS[wc.object].camera,
-        width=RENDER["width"],
-        height=RENDER["height"],
-        device=DEVICE,
-    resources:
-        mem_mb=4000,
-        runtime=30,
-        gpu=1 if ON_GPU else 0,
-    script:
-        "../scripts/render.py"
+for _obj in OBJECTS:
+
+    rule:
+        """Every frame of one theta's evaluation rollouts, under every evaluation probe of the
+        object (one process per theta: start-up is amortized over the probes)."""
+        name:
+            f"render_{_obj}"
+        conda:
+            "../envs/knockgs.yaml"
+        input:
+            ply=f"{P}/assets/{_obj}.ply",
+            scene=f"{P}/assets/{_obj}.scene.npz",
+            rollouts=lambda wc, o=_obj: [eval_rollout(o, pr, parse_theta(wc.theta)) for pr in eval_probes(o)],
+            F=lambda wc, o=_obj: [eval_deformation(o, pr, parse_theta(wc.theta)) for pr in eval_probes(o)],
+        output:
+            frames=[f"{P}/renders/{_obj}/{pr}/{{theta}}.npz" for pr in eval_probes(_obj)],
+        log:
+            f"logs/{PROFILE}/renders/{_obj}/{{theta}}.log",
+        benchmark:
+            f"results/{PROFILE}/benchmarks/renders/{_obj}/{{theta}}.tsv"
+        params:
+            camera=CONTRACTS[_obj].camera,
+            width=RENDER["width"],
+            height=RENDER["height"],
+            device=DEVICE,
+        resources:
+            mem_mb=4000,
+            runtime=30,
+            gpu=1 if ON_GPU else 0,
+        script:
+            "../scripts/render.py"
 
 
 rule render_metrics:

@@ -11,7 +11,7 @@ p = snakemake.params
 with open(snakemake.input.estimate) as fh:
     est = json.load(fh)
 targets = load_targets(p.split, snakemake.input.targets)
-df = evaluate_method(est, targets, lambda probe, th: f"{p.rollout_dir}/{probe}/{theta_tag(th)}.parquet", p.probes)
+df = evaluate_method(est, targets, lambda probe, th: p.rollouts[f"{probe}/{theta_tag(th)}"], p.probes)
 df.insert(0, "method", snakemake.wildcards.method)
 df.insert(0, "object", snakemake.wildcards.object)
 df.to_csv(snakemake.output.table, index=False, float_format="%.10g")

@@ -1,4 +1,5 @@
-"""One MPM rollout (object, theta, probe) -> Parquet (+ deformation gradients)."""
+"""MPM rollouts of one job: (theta, probe) pairs of one object -> one Parquet file each
+(+ deformation gradients). The contract, particles and Warp kernels are loaded once."""
 import sys
 
 from knockgs_core.assets import load_particles
@@ -8,17 +9,22 @@ from knockgs_core.rollout import run_rollout, write_deformation, write_rollout
 log = open(snakemake.log[0], "w")
 sys.stderr = log
 p = snakemake.params
-contract = load_contract(snakemake.wildcards.object, p.profile)
+out = snakemake.output
+contract = load_contract(p.object, p.profile)
 particles = load_particles(snakemake.input.particles)
+runs = p.runs
+if len(out.rollouts) != len(runs):
+    raise SystemExit(f"rollout job: {len(runs)} runs but {len(out.rollouts)} output files")
 
+for i, (theta, probe) in enumerate(runs):
+    tag = f"[{i + 1}/{len(runs)}] theta ({theta[0]:.6f}, {theta[1]:.6f}) probe {probe}"
 
-def progress(frame, n_frames, stats):
-    if frame % 5 == 0 or frame == n_frames - 1:
-        print(f"frame {frame}/{n_frames - 1} cfl {stats['cfl']:.3g}", file=log, flush=True)
+    def progress(frame, n_frames, stats, tag=tag):
+        if frame % 5 == 0 or frame == n_frames - 1:
+            print(f"{tag}: frame {frame}/{n_frames - 1} cfl {stats['cfl']:.3g}", file=log, flush=True)
 
-
-ro = run_rollout(contract, p.theta, p.probe, particles=particles, device=p.device, export_F=p.export_F, progress=progress)
-write_rollout(snakemake.output.rollout, ro)
-if p.export_F:
-    write_deformation(snakemake.output.F, ro)
-print(f"done: {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s", file=log)
+    ro = run_rollout(contract, theta, probe, particles=particles, device=p.device, export_F=p.export_F, progress=progress)
+    write_rollout(out.rollouts[i], ro)
+    if p.export_F:
+        write_deformation(out.F[i], ro)
+    print(f"{tag}: done, {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s", file=log, flush=True)

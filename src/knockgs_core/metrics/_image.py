@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from skimage.metrics import structural_similarity
 
 from knockgs_core.errors import InputError
 
@@ -137,6 +136,8 @@ def crop_ssim(pred_rgb, target_rgb, pred_alpha, target_alpha, *,
     data_range=1.0)`` (7 x 7 uniform window) on the crop; the mean over frames is
     returned. Raises :class:`InputError` if a frame has no foreground at all.
     """
+    from skimage.metrics import structural_similarity  # scikit-image (and SciPy) only where used
+
     src = "metrics.crop_ssim"
     pred, target, _ = _sequences(pred_rgb, target_rgb, pred_alpha, target_alpha, threshold, src)
     boxes = crop_boxes(pred_alpha, target_alpha, pad=pad, threshold=threshold)
