@@ -57,17 +57,18 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--tiles", type=int, nargs="+", default=[2, 4, 8, 16], help="tile edges [px] compared in the second table")
     args = ap.parse_args()
-    default_tile = tile_size_for(wp.get_device(args.device))
+    dev = wp.get_device(args.device)
     bin_device = None if wp.get_device(args.device).is_cpu else args.device  # as render() does
 
     wp.init()
     print(f"device: {args.device} ({wp.get_device(args.device).name}); {platform.processor() or platform.machine()}; "
           f"warp {wp.__version__}; median of {args.repeats} repeats")
     print()
-    print("| Gaussians | image | render [s/frame] | project [s] | bin_tiles [s] | rasterize [s] | tile pairs |")
-    print("|---:|---:|---:|---:|---:|---:|---:|")
+    print("| Gaussians | image | tile [px] | render [s/frame] | project [s] | bin_tiles [s] | rasterize [s] | tile pairs |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|")
     for n in args.counts:
         means, cov, colors, opac = scene(n)
+        default_tile = tile_size_for(dev, n)  # the edge render() uses for this scene
         for size in args.sizes:
             cam = Camera.look_at([1.0, -1.6, 1.9], [1.0, 1.0, 1.0], [0.0, 0.0, 1.0],
                                  fov_deg=40.0, width=size, height=size)
@@ -75,16 +76,17 @@ def main() -> None:
             t_proj, proj = timed(lambda: project(means, cov, opac, cam, device=args.device), args.repeats)
             t_bin, bins = timed(lambda: bin_tiles(proj, size, size, tile_size=default_tile, device=bin_device), args.repeats)
             t_rast, _ = timed(lambda: rasterize(proj, colors, opac, bins, device=args.device), args.repeats)
-            print(f"| {n:,} | {size}x{size} | {t_render:.4f} | {t_proj:.4f} | {t_bin:.4f} | {t_rast:.4f} "
+            print(f"| {n:,} | {size}x{size} | {default_tile} | {t_render:.4f} | {t_proj:.4f} | {t_bin:.4f} | {t_rast:.4f} "
                   f"| {bins.gaussian_ids.size:,} |", flush=True)
 
     print()
-    print(f"bin_tiles + rasterize by tile edge (ratio to the default edge {default_tile} px; lower is faster)")
+    print("bin_tiles + rasterize by tile edge (ratio to the edge render() uses for the scene; lower is faster)")
     print()
-    print("| Gaussians | image | " + " | ".join(f"{t} px [s]" for t in args.tiles) + " | " + " | ".join(f"{t}/{default_tile}" for t in args.tiles) + " |")
-    print("|---:|---:|" + "---:|" * (2 * len(args.tiles)))
+    print("| Gaussians | image | render's edge | " + " | ".join(f"{t} px [s]" for t in args.tiles) + " | " + " | ".join(f"{t} px / render's" for t in args.tiles) + " |")
+    print("|---:|---:|---:|" + "---:|" * (2 * len(args.tiles)))
     for n in args.counts:
         means, cov, colors, opac = scene(n)
+        default_tile = tile_size_for(dev, n)
         for size in args.sizes:
             cam = Camera.look_at([1.0, -1.6, 1.9], [1.0, 1.0, 1.0], [0.0, 0.0, 1.0],
                                  fov_deg=40.0, width=size, height=size)
@@ -93,7 +95,7 @@ def main() -> None:
             for tile in args.tiles + [default_tile]:
                 if tile not in t:
                     t[tile], _ = timed(lambda: rasterize(proj, colors, opac, bin_tiles(proj, size, size, tile_size=tile, device=bin_device), device=args.device), args.repeats)
-            print(f"| {n:,} | {size}x{size} | " + " | ".join(f"{t[x]:.4f}" for x in args.tiles) + " | "
+            print(f"| {n:,} | {size}x{size} | {default_tile} | " + " | ".join(f"{t[x]:.4f}" for x in args.tiles) + " | "
                   + " | ".join(f"{t[x] / t[default_tile]:.2f}" for x in args.tiles) + " |", flush=True)
 
 

@@ -22,14 +22,24 @@ TILE_SIZE = 16
 """Tile edge [px] on CUDA (one thread block per tile's pixels, as in 3DGS)."""
 
 TILE_SIZE_CPU = 4
-"""Tile edge [px] on the CPU, where a pixel's cost is the length of its tile's list and no
-shared memory rewards big tiles: 4 px renders the Pillow 2.6x faster than 16 px, with
-identical pixels (``benchmarks/README_render.md``)."""
+"""Tile edge [px] on the CPU for small scenes, where a pixel's cost is the length of its
+tile's list and no shared memory rewards big tiles: 4 px renders the Pillow 2.6x faster
+than 16 px, with identical pixels (``benchmarks/README_render.md``)."""
+
+TILE_SIZE_CPU_LARGE = 8
+"""Tile edge [px] on the CPU from ``CPU_LARGE_SCENE`` Gaussians on: binning then costs more
+than the shorter lists save, and 8 px is about 1.5x faster than 4 px at 50k Gaussians."""
+
+CPU_LARGE_SCENE = 20_000
+"""Gaussian count from which the CPU uses ``TILE_SIZE_CPU_LARGE``."""
 
 
-def tile_size_for(device) -> int:
-    """The tile edge used on a Warp ``device``."""
-    return TILE_SIZE_CPU if device.is_cpu else TILE_SIZE
+def tile_size_for(device, n_gaussians: int = 0) -> int:
+    """The tile edge used on a Warp ``device`` for a scene of ``n_gaussians`` Gaussians
+    (the pixels do not depend on it, only the speed)."""
+    if not device.is_cpu:
+        return TILE_SIZE
+    return TILE_SIZE_CPU_LARGE if n_gaussians >= CPU_LARGE_SCENE else TILE_SIZE_CPU
 
 
 def jacobian_limits(camera):

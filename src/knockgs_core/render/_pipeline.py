@@ -345,5 +345,5 @@ def render(
     proj = project(means, covariances, opacities, camera, device=device)
     dev = _device(device)
     # CUDA bins on the device; on the CPU the host sort is as fast and Warp runs one thread
-    bins = bin_tiles(proj, camera.width, camera.height, tile_size=C.tile_size_for(dev), device=None if dev.is_cpu else device)
+    bins = bin_tiles(proj, camera.width, camera.height, tile_size=C.tile_size_for(dev, len(means)), device=None if dev.is_cpu else device)
     return rasterize(proj, colors, opacities, bins, background=background, device=device)

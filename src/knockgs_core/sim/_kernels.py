@@ -100,40 +100,10 @@ def grid_zero(lo: wp.vec3i, grid_mv: wp.array3d(dtype=wp.vec3), grid_m: wp.array
     grid_m[gi, gj, gk] = 0.0
 
 
-@wp.kernel
-def grid_update(
-    lo: wp.vec3i,
-    dt: float,
-    gravity: wp.vec3,
-    damping: float,
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
-):
-    """Momentum -> velocity, gravity, velocity damping (scale per substep); in place."""
-    i, j, k = wp.tid()
-    gi = i + lo[0]
-    gj = j + lo[1]
-    gk = k + lo[2]
-    m = grid_m[gi, gj, gk]
-    v = wp.vec3(0.0)
-    if m > 1.0e-15:
-        v = (grid_mv[gi, gj, gk] / m + dt * gravity) * damping
-    grid_mv[gi, gj, gk] = v
-
-
-@wp.kernel
-def grid_bc_walls(
-    lo: wp.vec3i,
-    n_grid: int,
-    padding: int,
-    sticky: int,
-    grid_v: wp.array3d(dtype=wp.vec3),
-):
-    """Domain walls: nodes within ``padding`` of a face lose their outward normal
-    velocity (``sticky=0``, slip) or all velocity (``sticky=1``)."""
-    i, j, k = wp.tid()
-    g = wp.vec3i(i + lo[0], j + lo[1], k + lo[2])
-    v = grid_v[g[0], g[1], g[2]]
+@wp.func
+def wall_velocity(g: wp.vec3i, v: wp.vec3, n_grid: int, padding: int, sticky: int) -> wp.vec3:
+    """Domain walls: a node within ``padding`` of a face loses its outward normal velocity
+    (``sticky=0``, slip) or all velocity (``sticky=1``)."""
     for a in range(3):
         if g[a] < padding and v[a] < 0.0:
             if sticky == 1:
@@ -145,7 +115,50 @@ def grid_bc_walls(
                 v = wp.vec3(0.0)
             else:
                 v[a] = 0.0
-    grid_v[g[0], g[1], g[2]] = v
+    return v
+
+
+@wp.kernel
+def grid_update(
+    lo: wp.vec3i,
+    dt: float,
+    gravity: wp.vec3,
+    damping: float,
+    walls: int,
+    n_grid: int,
+    padding: int,
+    sticky: int,
+    grid_m: wp.array3d(dtype=float),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+):
+    """Momentum -> velocity, gravity, velocity damping (scale per substep); in place. With
+    ``walls = 1`` the domain walls follow in the same pass (as :func:`grid_bc_walls` would:
+    one pass over the box instead of two)."""
+    i, j, k = wp.tid()
+    gi = i + lo[0]
+    gj = j + lo[1]
+    gk = k + lo[2]
+    m = grid_m[gi, gj, gk]
+    v = wp.vec3(0.0)
+    if m > 1.0e-15:
+        v = (grid_mv[gi, gj, gk] / m + dt * gravity) * damping
+    if walls == 1:
+        v = wall_velocity(wp.vec3i(gi, gj, gk), v, n_grid, padding, sticky)
+    grid_mv[gi, gj, gk] = v
+
+
+@wp.kernel
+def grid_bc_walls(
+    lo: wp.vec3i,
+    n_grid: int,
+    padding: int,
+    sticky: int,
+    grid_v: wp.array3d(dtype=wp.vec3),
+):
+    """Domain walls on node velocities (see :func:`wall_velocity`)."""
+    i, j, k = wp.tid()
+    g = wp.vec3i(i + lo[0], j + lo[1], k + lo[2])
+    grid_v[g[0], g[1], g[2]] = wall_velocity(g, grid_v[g[0], g[1], g[2]], n_grid, padding, sticky)
 
 
 @wp.func

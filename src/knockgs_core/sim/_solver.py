@@ -336,9 +336,14 @@ class MPMSolver:
             **rec,
         )
         damping = p.grid_v_damping_scale ** (dt / p.damping_dt_ref) if p.grid_v_damping_scale < 1.0 else 1.0
-        cmds["update"] = wp.launch(K.grid_update, dim=dims, inputs=[lo, dt, wp.vec3(*p.gravity), damping, state.grid_m], outputs=[state.grid_mv], **rec)
+        # domain walls listed first are applied in the update pass (same order, one pass less)
+        fused = p.boundaries[0] if p.boundaries and isinstance(p.boundaries[0], DomainWalls) else None
+        wall_args = [1, p.n_grid, fused.padding, int(fused.mode == "sticky")] if fused else [0, p.n_grid, 0, 0]
+        cmds["update"] = wp.launch(K.grid_update, dim=dims, inputs=[lo, dt, wp.vec3(*p.gravity), damping, *wall_args, state.grid_m], outputs=[state.grid_mv], **rec)
         bcs = []
         for bc in p.boundaries:
+            if bc is fused:
+                continue
             if isinstance(bc, DomainWalls):
                 bcs.append((bc, wp.launch(K.grid_bc_walls, dim=dims, inputs=[lo, p.n_grid, bc.padding, int(bc.mode == "sticky")], outputs=[state.grid_mv], **rec)))
             elif isinstance(bc, FixedCuboid):
