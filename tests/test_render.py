@@ -201,7 +201,7 @@ def test_rasterize_uses_the_binned_lists_only():
     np.testing.assert_array_equal(cut.rgb[16:], full.rgb[16:])
 
 
-@pytest.mark.parametrize("tile_size", [1, 2, 4, 7, 32])
+@pytest.mark.parametrize("tile_size", [1, 2, 4, 7, 8, 32])
 def test_tile_size_changes_work_not_pixels(tile_size):
     # Binning is conservative at every tile edge: each pixel composites the same Gaussians in
     # the same depth order, so the image is identical (the CPU path uses small tiles).
@@ -214,6 +214,18 @@ def test_tile_size_changes_work_not_pixels(tile_size):
     for name in ("rgb", "depth", "alpha"):
         np.testing.assert_array_equal(getattr(out, name), getattr(ref, name))
     assert ref.alpha.max() > 0.5
+
+
+def test_cpu_tile_edge_follows_the_scene_size():
+    import warp as wp
+
+    from knockgs_core.render._constants import CPU_LARGE_SCENE, TILE_SIZE, tile_size_for
+
+    cpu = wp.get_device("cpu")
+    assert tile_size_for(cpu, 0) == 4 and tile_size_for(cpu, CPU_LARGE_SCENE - 1) == 4
+    assert tile_size_for(cpu, CPU_LARGE_SCENE) == 8
+    cuda_like = type("D", (), {"is_cpu": False})()
+    assert tile_size_for(cuda_like, 10**6) == TILE_SIZE
 
 
 @pytest.mark.parametrize("tile_size", [1, 4, 16])
