@@ -58,7 +58,7 @@ def main() -> None:
     ap.add_argument("--tiles", type=int, nargs="+", default=[2, 4, 8, 16], help="tile edges [px] compared in the second table")
     args = ap.parse_args()
     dev = wp.get_device(args.device)
-    bin_device = None if wp.get_device(args.device).is_cpu else args.device  # as render() does
+    bin_device = None if dev.is_cpu else args.device  # as render() does
 
     wp.init()
     print(f"device: {args.device} ({wp.get_device(args.device).name}); {platform.processor() or platform.machine()}; "

@@ -281,3 +281,17 @@ def test_schemas_are_valid_draft_2020_12(schema):
     broken = dict(doc, type="no-such-type")
     with pytest.raises(SchemaError):
         Draft202012Validator.check_schema(broken)
+
+
+def test_yaml_reads_exponent_floats_and_rejects_duplicate_keys(tmp_path):
+    # the loader (libyaml when available) keeps YAML 1.2 floats and refuses duplicate keys
+    from knockgs_core.contract import _read_yaml
+    from knockgs_core.errors import InputError
+
+    f = tmp_path / "a.yaml"
+    f.write_text("dt: 1e-4\nn: 3\nv: [1.5e3, -2E-2]\n")
+    d = _read_yaml(f)
+    assert d == {"dt": 1e-4, "n": 3, "v": [1500.0, -0.02]} and isinstance(d["dt"], float)
+    f.write_text("a: 1\na: 2\n")
+    with pytest.raises(InputError):
+        _read_yaml(f)

@@ -48,9 +48,14 @@ def parse_theta(tag):
     return float(se), float(sr)
 
 
-def lib_rollout(obj, case):
+def candidate_theta(case):
+    """(s_E, s_rho) of a candidate, by case name."""
     row = CANDIDATES.set_index("case_name").loc[case]
-    return f"{P}/rollouts/{obj}/lib/{theta_tag((row.E_scale, row.density_scale))}.parquet"
+    return float(row.E_scale), float(row.density_scale)
+
+
+def lib_rollout(obj, case):
+    return f"{P}/rollouts/{obj}/lib/{theta_tag(candidate_theta(case))}.parquet"
 
 
 CANDIDATE_TAGS = frozenset(theta_tag((r.E_scale, r.density_scale)) for r in CANDIDATES.itertuples(index=False))
@@ -125,13 +130,8 @@ def _rollout_resources(wildcards, attempt):
 
 # used by evaluate.smk
 def evaluation_inputs(wc):
-    ests = estimated_thetas(wc)
-    truths = target_thetas(wc.split)
-    rollouts = set()
-    for probe in eval_probes(wc.object):
-        for th in list(ests.values()) + list(truths.values()):
-            rollouts.add(eval_rollout(wc.object, probe, th))
-    return {"estimate": estimate_json(wc), "targets": "config/targets.csv", "rollouts": sorted(rollouts)}
+    rollouts = sorted(set(evaluation_rollout_map(wc).values()))
+    return {"estimate": estimate_json(wc), "targets": "config/targets.csv", "rollouts": rollouts}
 
 
 # used by render.smk
@@ -188,8 +188,7 @@ def _discrepancy_library(case_name):
     obj = DISCREPANCY_OBJECT
     if DISCREPANCY_RES == PROFILE:
         return lib_rollout(obj, case_name)
-    row = CANDIDATES.set_index("case_name").loc[case_name]
-    return f"{_D}/{DISCREPANCY_RES}/library/{obj}/{theta_tag((row.E_scale, row.density_scale))}.parquet"
+    return f"{_D}/{DISCREPANCY_RES}/library/{obj}/{theta_tag(candidate_theta(case_name))}.parquet"
 
 
 def _discrepancy_run_inputs(case):

@@ -56,6 +56,12 @@ rule discrepancy_asset:
         "../scripts/asset.py"
 
 
+def _discrepancy_library_runs(wc, chunk):
+    """(theta, Probe A) of each candidate of a chunk, at the cases' resolution."""
+    probe = load_contract(wc.object, wc.res).roles["calibration"]
+    return [(candidate_theta(c), probe) for c in chunk]
+
+
 for _k, _chunk in enumerate(library_chunks()):
 
     rule:
@@ -76,7 +82,7 @@ for _k, _chunk in enumerate(library_chunks()):
         params:
             profile=lambda wc: wc.res,
             object=lambda wc: wc.object,
-            runs=lambda wc, chunk=_chunk: [(candidate_theta(c), load_contract(wc.object, wc.res).roles["calibration"]) for c in chunk],
+            runs=lambda wc, chunk=_chunk: _discrepancy_library_runs(wc, chunk),
             export_F=False,
             device=DEVICE,
         resources:

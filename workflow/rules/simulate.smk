@@ -18,11 +18,6 @@ def library_chunks():
     return [names[i : i + LIBRARY_CHUNK] for i in range(0, len(names), LIBRARY_CHUNK)]
 
 
-def candidate_theta(case):
-    row = CANDIDATES.set_index("case_name").loc[case]
-    return float(row.E_scale), float(row.density_scale)
-
-
 for _k, _chunk in enumerate(library_chunks()):
 
     rule:
