@@ -191,6 +191,12 @@ def _discrepancy_library(case_name):
     return f"{_D}/{DISCREPANCY_RES}/library/{obj}/{theta_tag(candidate_theta(case_name))}.parquet"
 
 
+def _discrepancy_library_runs(wc, chunk):
+    """(theta, Probe A) of each candidate of a chunk, at the cases' resolution."""
+    probe = load_contract(wc.object, wc.res).roles["calibration"]
+    return [(candidate_theta(c), probe) for c in chunk]
+
+
 def _discrepancy_run_inputs(case):
     """The run job's inputs: measured files, particles, the object's candidate library."""
     return {

@@ -56,12 +56,6 @@ rule discrepancy_asset:
         "../scripts/asset.py"
 
 
-def _discrepancy_library_runs(wc, chunk):
-    """(theta, Probe A) of each candidate of a chunk, at the cases' resolution."""
-    probe = load_contract(wc.object, wc.res).roles["calibration"]
-    return [(candidate_theta(c), probe) for c in chunk]
-
-
 for _k, _chunk in enumerate(library_chunks()):
 
     rule:
