@@ -13,6 +13,7 @@ from typing import Union
 
 import numpy as np
 
+from .._long_format import read_positions
 from ..errors import InputError
 
 __all__ = [
@@ -169,106 +170,6 @@ def descriptor(positions, *, n_frames: int | None = 31, source: object = "positi
         dtype=_F32,
     )
     return phi.astype(np.float64)
-
-
-_ROLLOUT_COLUMNS = ("frame", "particle", "x", "y", "z")
-
-
-def read_positions(path: PathLike, *, particles: Iterable[int] | None = None) -> np.ndarray:
-    """Read a long-format rollout Parquet file into positions [T, N, 3] (float32).
-
-    The file has one row per (frame, particle) with columns ``frame``, ``particle``
-    (integers) and ``x``, ``y``, ``z``. Rows are sorted by (frame, particle); frames must be
-    0..T-1 without gaps and every frame must hold the same particle set.
-
-    Parameters
-    ----------
-    path:
-        The Parquet file.
-    particles:
-        Optional particle ids to keep (in ascending id order in the result).
-
-    Raises
-    ------
-    InputError
-        Unreadable file, missing column, nulls, duplicate or missing (frame, particle) rows,
-        unknown particle ids in ``particles``.
-    """
-    import pyarrow.parquet as pq
-
-    source = os.fspath(path)
-    try:
-        schema = pq.read_schema(source)
-    except Exception as exc:
-        raise InputError(source, "file", f"cannot read Parquet file: {exc}") from None
-    for col in _ROLLOUT_COLUMNS:
-        if col not in schema.names:
-            raise InputError(source, col, "missing column")
-    table = pq.read_table(source, columns=list(_ROLLOUT_COLUMNS))
-    cols = {}
-    for col in _ROLLOUT_COLUMNS:
-        arr = table.column(col)
-        if arr.null_count:
-            raise InputError(source, col, f"{arr.null_count} null values")
-        values = arr.to_numpy()
-        want_int = col in ("frame", "particle")
-        ok = np.issubdtype(values.dtype, np.integer) if want_int else (
-            np.issubdtype(values.dtype, np.floating) or np.issubdtype(values.dtype, np.integer)
-        )
-        if not ok:
-            kind = "integers" if want_int else "real numbers"
-            raise InputError(source, col, f"expected {kind}, got {arr.type}")
-        cols[col] = values
-    if table.num_rows == 0:
-        raise InputError(source, "frame", "no rows")
-
-    frame = cols["frame"].astype(np.int64)
-    particle = cols["particle"].astype(np.int64)
-    order = np.lexsort((particle, frame))
-    frame, particle = frame[order], particle[order]
-    xyz = np.stack([cols[c][order] for c in ("x", "y", "z")], axis=1).astype(_F32)
-
-    frames, counts = np.unique(frame, return_counts=True)
-    if frames[0] != 0 or not np.array_equal(frames, np.arange(frames.size)):
-        missing = sorted(set(range(int(frames[-1]) + 1)) - set(frames.tolist()))
-        detail = f"missing frame(s) {missing[:5]}" if missing else f"frames start at {frames[0]}"
-        raise InputError(source, "frame", f"frames must be 0..T-1 without gaps: {detail}")
-    if np.any(counts != counts[0]):
-        t = int(frames[np.argmax(counts != counts[0])])
-        raise InputError(
-            source,
-            "particle",
-            f"frame {t} has {int(counts[frames == t][0])} rows, frame 0 has {int(counts[0])}: "
-            "every frame needs the same particles",
-        )
-    n_t, n_p = frames.size, int(counts[0])
-    ids = particle.reshape(n_t, n_p)
-    dup = ids[:, 1:] == ids[:, :-1]
-    if dup.any():
-        t, j = np.argwhere(dup)[0]
-        raise InputError(
-            source, "particle", f"duplicate row for frame {int(t)}, particle {int(ids[t, j])}"
-        )
-    differ = np.any(ids != ids[0], axis=1)
-    if differ.any():
-        t = int(np.argmax(differ))
-        raise InputError(
-            source, "particle", f"frame {t} holds a different particle set than frame 0"
-        )
-    positions = xyz.reshape(n_t, n_p, 3)
-    if particles is not None:
-        wanted = np.unique(np.asarray(list(particles), dtype=np.int64))
-        if wanted.size == 0:
-            raise InputError(source, "particle", "empty particle subset")
-        idx = np.searchsorted(ids[0], wanted)
-        idx_c = np.clip(idx, 0, n_p - 1)
-        absent = ids[0][idx_c] != wanted
-        if absent.any():
-            raise InputError(
-                source, "particle", f"particle ids not in the file: {wanted[absent][:5].tolist()}"
-            )
-        positions = positions[:, idx, :]
-    return positions
 
 
 def descriptor_from_rollout(

@@ -1,0 +1,155 @@
+"""The long Parquet format of per-particle trajectories: the one reader.
+
+A long-format file has one row per (frame, particle): integer columns ``frame`` and
+``particle`` and float value columns (``x``, ``y``, ``z`` for positions; ``F00`` .. ``F22``
+for deformation gradients). Rollouts, deformation-gradient files and every table derived
+from them are read here; the writer lives with the rollout (:mod:`knockgs_core.rollout`).
+This module imports neither Warp nor the simulator, so descriptors and audits can use it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterable, Sequence
+from typing import Union
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["POSITION_COLUMNS", "read_long_values", "read_positions", "read_metadata"]
+
+PathLike = Union[str, os.PathLike]
+
+#: value columns of a positions file
+POSITION_COLUMNS: tuple[str, ...] = ("x", "y", "z")
+
+
+def read_metadata(path: PathLike, key: bytes) -> dict | None:
+    """The JSON object stored under ``key`` in the file's schema metadata (None when absent)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        md = pq.read_schema(os.fspath(path)).metadata or {}
+    except (OSError, pa.ArrowInvalid) as exc:
+        raise InputError(os.fspath(path), "file", f"not a readable Parquet file ({exc})") from None
+    if key not in md:
+        return None
+    try:
+        return json.loads(md[key])
+    except ValueError as exc:
+        raise InputError(os.fspath(path), f"metadata.{key.decode()}", f"not valid JSON ({exc})") from None
+
+
+def read_long_values(
+    path: PathLike, columns: Sequence[str], *, particles: Iterable[int] | None = None
+) -> np.ndarray:
+    """Read value ``columns`` of a long-format Parquet file into an array [T, N, C] (float32).
+
+    Rows may come in any order; frames must be 0..T-1 without gaps and every frame must hold
+    the same particle set, each particle once.
+
+    Parameters
+    ----------
+    path:
+        The Parquet file.
+    columns:
+        The value columns, in the order of the last axis (C = len(columns)).
+    particles:
+        Optional particle ids to keep (in ascending id order in the result).
+
+    Raises
+    ------
+    InputError
+        Unreadable file, missing column, nulls, non-numeric or non-finite values, duplicate
+        or missing (frame, particle) rows, unknown particle ids in ``particles``.
+    """
+    import pyarrow.parquet as pq
+
+    source = os.fspath(path)
+    try:
+        schema = pq.read_schema(source)
+    except Exception as exc:
+        raise InputError(source, "file", f"cannot read Parquet file: {exc}") from None
+    wanted_cols = ("frame", "particle", *columns)
+    for col in wanted_cols:
+        if col not in schema.names:
+            raise InputError(source, col, "missing column")
+    table = pq.read_table(source, columns=list(wanted_cols))
+    cols = {}
+    for col in wanted_cols:
+        arr = table.column(col)
+        if arr.null_count:
+            raise InputError(source, col, f"{arr.null_count} null values")
+        values = arr.to_numpy()
+        want_int = col in ("frame", "particle")
+        ok = np.issubdtype(values.dtype, np.integer) if want_int else (
+            np.issubdtype(values.dtype, np.floating) or np.issubdtype(values.dtype, np.integer)
+        )
+        if not ok:
+            kind = "integers" if want_int else "real numbers"
+            raise InputError(source, col, f"expected {kind}, got {arr.type}")
+        cols[col] = values
+    if table.num_rows == 0:
+        raise InputError(source, "frame", "no rows")
+
+    frame = cols["frame"].astype(np.int64)
+    particle = cols["particle"].astype(np.int64)
+    n_rows = frame.size
+    # the canonical order (frame-major, particles 0..N-1) needs no sort
+    n_guess = int(particle.max()) + 1
+    canonical = (
+        n_rows % n_guess == 0
+        and np.array_equal(particle, np.tile(np.arange(n_guess), n_rows // n_guess))
+        and np.array_equal(frame, np.repeat(np.arange(n_rows // n_guess), n_guess))
+    )
+    order = slice(None) if canonical else np.lexsort((particle, frame))
+    frame, particle = frame[order], particle[order]
+    values = np.stack([cols[c][order] for c in columns], axis=1).astype(np.float32)
+    if not np.all(np.isfinite(values)):
+        bad = columns[int(np.argmax(~np.all(np.isfinite(values), axis=0)))]
+        raise InputError(source, bad, "non-finite values")
+
+    frames, counts = np.unique(frame, return_counts=True)
+    if frames[0] != 0 or not np.array_equal(frames, np.arange(frames.size)):
+        missing = sorted(set(range(int(frames[-1]) + 1)) - set(frames.tolist()))
+        detail = f"missing frame(s) {missing[:5]}" if missing else f"frames start at {frames[0]}"
+        raise InputError(source, "frame", f"frames must be 0..T-1 without gaps: {detail}")
+    if np.any(counts != counts[0]):
+        t = int(frames[np.argmax(counts != counts[0])])
+        raise InputError(
+            source,
+            "particle",
+            f"frame {t} has {int(counts[frames == t][0])} rows, frame 0 has {int(counts[0])}: "
+            "every frame needs the same particles",
+        )
+    n_t, n_p = frames.size, int(counts[0])
+    ids = particle.reshape(n_t, n_p)
+    dup = ids[:, 1:] == ids[:, :-1]
+    if dup.any():
+        t, j = np.argwhere(dup)[0]
+        raise InputError(source, "particle", f"duplicate row for frame {int(t)}, particle {int(ids[t, j])}")
+    differ = np.any(ids != ids[0], axis=1)
+    if differ.any():
+        t = int(np.argmax(differ))
+        raise InputError(source, "particle", f"frame {t} holds a different particle set than frame 0")
+    out = values.reshape(n_t, n_p, len(columns))
+    if particles is not None:
+        wanted = np.unique(np.asarray(list(particles), dtype=np.int64))
+        if wanted.size == 0:
+            raise InputError(source, "particle", "empty particle subset")
+        idx = np.searchsorted(ids[0], wanted)
+        idx_c = np.clip(idx, 0, n_p - 1)
+        absent = ids[0][idx_c] != wanted
+        if absent.any():
+            raise InputError(source, "particle", f"particle ids not in the file: {wanted[absent][:5].tolist()}")
+        out = out[:, idx, :]
+    return out
+
+
+def read_positions(path: PathLike, *, particles: Iterable[int] | None = None) -> np.ndarray:
+    """Positions [T, N, 3] (float32) of a long-format file (columns ``x``, ``y``, ``z``);
+    see :func:`read_long_values`."""
+    return read_long_values(path, POSITION_COLUMNS, particles=particles)
