@@ -465,9 +465,12 @@ def test_calibrate_rejects_bad_tables(ficus, make, source, field):
 
 def test_calibrate_rejects_unknown_method_and_options(ficus, tmp_path):
     library, queries, _ = ficus
-    allowed = "allowed: default, nearest, knn, global_ridge, local_ridge"
-    with pytest.raises(InputError, match=allowed):
+    allowed = "allowed: fixed_default, response_nearest, response_knn, global_ridge, local_ridge"
+    with pytest.raises(InputError, match=allowed + ".*evaluation-only"):
         calibrate(library, queries, "parameter_nearest_oracle")
+    with pytest.raises(InputError, match="aliases: default \\(fixed_default\\)") as err:
+        calibrate(library, queries, "ridge")
+    assert err.value.field == "method"
     with pytest.raises(InputError) as err:
         calibrate(library, queries, "knn", alpha=0.1)
     assert err.value.field == "alpha"

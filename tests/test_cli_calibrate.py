@@ -91,7 +91,7 @@ def _bad_tables(tmp_path, kind):
         (None, ("--method", "parameter_nearest_oracle"), "unknown method"),
         (None, ("--method", "lasso"), "unknown method 'lasso'"),
         (None, ("--k", "three"), "field '--k'"),
-        (None, ("--alpha", "0.1"), "not an option of method 'knn'"),
+        (None, ("--alpha", "0.1"), "not an option of method 'response_knn'"),
         (None, ("--output", "LIB"), "would overwrite the --library input"),
     ],
 )

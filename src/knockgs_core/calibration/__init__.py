@@ -2,7 +2,9 @@
 
 Every estimator here sees only the candidate library and the query descriptors. The
 evaluation-only parameter-nearest oracle, which reads hidden target labels, is kept out of
-this namespace: import it explicitly from :mod:`knockgs_core.calibration.oracle`.
+this namespace: import it explicitly from :mod:`knockgs_core.calibration.oracle`. Its name,
+:data:`ORACLE_METHOD`, is part of the method vocabulary (:data:`METHOD_NAMES`), which every
+layer (CLI, workflow, config schema) derives from.
 """
 
 from ._impl import (
@@ -23,8 +25,22 @@ from ._impl import (
     select_knn_k,
     select_ridge_alpha,
 )
+from ._registry import (
+    DEPLOYABLE_METHODS,
+    METHOD_ALIASES,
+    METHOD_NAMES,
+    METHOD_OPTIONS,
+    ORACLE_METHOD,
+    canonical_method,
+)
 
 __all__ = [
+    "METHOD_NAMES",
+    "DEPLOYABLE_METHODS",
+    "ORACLE_METHOD",
+    "METHOD_ALIASES",
+    "METHOD_OPTIONS",
+    "canonical_method",
     "THETA_NAMES",
     "FEATURE_NAMES",
     "METHODS",

@@ -30,6 +30,7 @@ import numpy as np
 
 from ..descriptors import FEATURE_NAMES
 from ..errors import InputError
+from ._registry import METHOD_ALIASES, METHOD_OPTIONS, canonical_method
 
 __all__ = [
     "THETA_NAMES",
@@ -350,7 +351,7 @@ class FixedDefault(_LibraryEstimator):
         The default scales (s_E, s_rho); SPEC §4 default (1, 1).
     """
 
-    method = "default"
+    method = "fixed_default"
 
     def __init__(self, *, theta: tuple[float, float] = (1.0, 1.0)):
         t = np.asarray(theta, dtype=float)
@@ -368,7 +369,7 @@ class FixedDefault(_LibraryEstimator):
 class ResponseNearest(_LibraryEstimator):
     """The single candidate nearest in standardized descriptor space."""
 
-    method = "nearest"
+    method = "response_nearest"
 
     def _predict_one(self, z):
         idx, d = self._neighbours(z, 1)
@@ -391,7 +392,7 @@ class ResponseKNN(_LibraryEstimator):
         Grid searched when ``k="cv"``.
     """
 
-    method = "knn"
+    method = "response_knn"
 
     def __init__(
         self,
@@ -690,9 +691,9 @@ class LocalRidge(_LibraryEstimator):
 
 #: deployable estimators, by method name (the parameter-nearest oracle is not one)
 METHODS: dict[str, type[_LibraryEstimator]] = {
-    "default": FixedDefault,
-    "nearest": ResponseNearest,
-    "knn": ResponseKNN,
+    "fixed_default": FixedDefault,
+    "response_nearest": ResponseNearest,
+    "response_knn": ResponseKNN,
     "global_ridge": GlobalRidge,
     "local_ridge": LocalRidge,
 }
@@ -867,13 +868,22 @@ def _library_hash(names, theta, features) -> str:
     return hashlib.sha256(payload.encode()).hexdigest()
 
 
-_METHOD_PARAMS = {
-    "default": ("theta",),
-    "nearest": (),
-    "knn": ("k", "weights", "ks"),
-    "global_ridge": ("alpha", "alphas"),
-    "local_ridge": ("k", "alpha", "alphas", "clip", "uncertainty"),
-}
+_METHOD_PARAMS = METHOD_OPTIONS
+
+
+def _deployable_method(method) -> str:
+    """The canonical name of a deployable ``method`` (aliases accepted), or an InputError."""
+    try:
+        name = canonical_method(method)
+    except ValueError:
+        name = None
+    if name not in METHODS:
+        hint = " (the parameter-nearest oracle reads target labels and is evaluation-only)" \
+            if "oracle" in str(method) else ""
+        aliases = ", ".join(f"{a} ({c})" for a, c in METHOD_ALIASES.items())
+        raise InputError("calibrate", "method",
+                         f"unknown method {method!r}; allowed: {', '.join(METHODS)}; aliases: {aliases}{hint}")
+    return name
 
 
 def calibrate(library, queries, method: str, **params) -> dict:
@@ -909,11 +919,7 @@ def calibrate(library, queries, method: str, **params) -> dict:
     """
     lib_df, lib_src = _as_table(library, "library table")
     q_df, q_src = _as_table(queries, "query table")
-    if method not in METHODS:
-        hint = " (the parameter-nearest oracle reads target labels and is evaluation-only)" \
-            if "oracle" in str(method) else ""
-        raise InputError("calibrate", "method",
-                         f"unknown method {method!r}; allowed: {', '.join(METHODS)}{hint}")
+    method = _deployable_method(method)
     unknown = sorted(set(params) - set(_METHOD_PARAMS[method]))
     if unknown:
         allowed = ", ".join(_METHOD_PARAMS[method]) or "none"
