@@ -78,14 +78,21 @@ def query_table(rollouts: Mapping[str, str]) -> pd.DataFrame:
 
 def frozen_estimate(method: str, library_csv, queries_csv, params: Mapping | None = None, *, config_hash: str = "") -> dict:
     """A deployable method's frozen estimates: the calibration output plus provenance
-    (inputs and their hashes, configuration hash). Reads only the library and query tables."""
-    from .calibration import calibrate
+    (inputs and their hashes, configuration hash). Reads only the library and query tables.
 
-    key = CALIBRATION_METHOD.get(method)
-    if key is None:
-        raise InputError("estimate", "method", f"'{method}' is not deployable; deployable: {', '.join(DEPLOYABLE_METHODS)}")
-    out = calibrate(str(library_csv), str(queries_csv), key, **dict(params or {}))
-    out["table_method"] = method
+    ``method`` is a canonical name of :data:`knockgs_core.calibration.DEPLOYABLE_METHODS` or
+    one of its aliases; the document's ``method`` and ``table_method`` hold the canonical name."""
+    from . import calibration
+
+    try:
+        name = calibration.canonical_method(method)
+    except ValueError as exc:
+        raise InputError("estimate", "method", str(exc)) from None
+    if name not in calibration.DEPLOYABLE_METHODS:
+        raise InputError("estimate", "method",
+                         f"'{method}' is not deployable; deployable: {', '.join(calibration.DEPLOYABLE_METHODS)}")
+    out = calibration.calibrate(str(library_csv), str(queries_csv), name, **dict(params or {}))
+    out["table_method"] = name
     out["deployable"] = True
     out["inputs"] = {"library": str(library_csv), "queries": str(queries_csv)}
     out["input_sha256"] = {"library": file_sha256(library_csv), "queries": file_sha256(queries_csv)}
