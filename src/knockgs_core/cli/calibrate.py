@@ -8,19 +8,24 @@ ignored) and writes the frozen estimates as JSON. Heavy imports happen inside :f
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 from ..errors import InputError
 
 __all__ = ["register", "run"]
 
-#: deployable methods (the parameter-nearest oracle needs target labels: not a CLI method)
-_METHOD_HELP = "default, nearest, knn, global_ridge, local_ridge"
-
 
 def register(subparsers) -> argparse.ArgumentParser:
-    """Add the ``calibrate`` subcommand to the dispatcher's subparsers."""
+    """Add the ``calibrate`` subcommand to the dispatcher's subparsers.
+
+    The ``--method`` choices are the deployable methods of the calibration registry and
+    their aliases (the parameter-nearest oracle needs target labels: not a CLI method).
+    """
+    from ..calibration import DEPLOYABLE_METHODS, METHOD_ALIASES
+
+    aliases = [a for a, name in METHOD_ALIASES.items() if name in DEPLOYABLE_METHODS]
+    method_help = (f"one of: {', '.join(DEPLOYABLE_METHODS)} (aliases: "
+                   + ", ".join(f"{a} = {METHOD_ALIASES[a]}" for a in aliases) + ")")
     parser = subparsers.add_parser(
         "calibrate",
         help="estimate (s_E, s_rho) from Probe-A descriptors and a candidate library",
@@ -30,9 +35,10 @@ def register(subparsers) -> argparse.ArgumentParser:
                         help="candidate library: case_name, E_scale, density_scale + descriptors")
     parser.add_argument("--queries", required=True, metavar="Q.csv",
                         help="query descriptors: case_name + descriptors (labels ignored)")
-    parser.add_argument("--method", required=True, help=f"one of: {_METHOD_HELP}")
+    parser.add_argument("--method", required=True, choices=(*DEPLOYABLE_METHODS, *aliases),
+                        metavar="METHOD", help=method_help)
     parser.add_argument("--k", default=None,
-                        help="neighbour count for knn / local_ridge (knn also accepts 'cv')")
+                        help="neighbour count for response_knn / local_ridge (response_knn also accepts 'cv')")
     parser.add_argument("--alpha", default=None,
                         help="ridge strength for global_ridge / local_ridge, or 'cv'")
     parser.add_argument("--output", required=True, metavar="OUT.json", help="estimates (JSON)")
@@ -62,8 +68,7 @@ def _parse_alpha(text: str):
 
 def run(args: argparse.Namespace) -> int:
     """Run ``knockgs calibrate``; bad input raises :class:`~knockgs_core.errors.InputError`."""
-    import json
-
+    from .._io import write_json
     from ..calibration import calibrate
 
     output = Path(args.output)
@@ -77,9 +82,5 @@ def run(args: argparse.Namespace) -> int:
         params["alpha"] = _parse_alpha(args.alpha)
     result = calibrate(args.library, args.queries, args.method, **params)
 
-    text = json.dumps(result, indent=2, allow_nan=False) + "\n"
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(f".{output.name}.tmp{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, output)
+    write_json(output, result)
     return 0
