@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from knockgs_core._warp import warp_device
 from knockgs_core.errors import InputError
 
 from . import _constants as C
@@ -65,10 +66,8 @@ class TileBins:
 
 
 def _device(device):
-    try:
-        return wp.get_device(device)
-    except Exception as exc:  # Warp raises RuntimeError / ValueError by version
-        raise InputError("render", "device", f"unknown or unavailable Warp device {device!r} ({exc})") from None
+    """The Warp device (Warp started quietly by :func:`knockgs_core._warp.warp_device`)."""
+    return warp_device(device)
 
 
 def project(means, covariances, opacities, camera: Camera, *, device: str = "cpu") -> Projection:
@@ -142,7 +141,9 @@ def project(means, covariances, opacities, camera: Camera, *, device: str = "cpu
     )
 
 
-def bin_tiles(projection: Projection, width: int, height: int, *, tile_size: int = C.TILE_SIZE, device: str | None = None) -> TileBins:
+def bin_tiles(
+    projection: Projection, width: int, height: int, *, tile_size: int = C.TILE_SIZE, device: str | None = None
+) -> TileBins:
     """Assign visible Gaussians to the ``tile_size`` x ``tile_size`` tiles they overlap.
 
     A Gaussian goes to every tile that holds a pixel centre inside its box
@@ -211,7 +212,8 @@ def _bin_tiles_device(projection: Projection, ids: np.ndarray, width: int, heigh
     total = int(offsets[n - 1 : n].numpy()[0] + counts[n - 1 : n].numpy()[0])
     keys = wp.zeros(max(2 * total, 2), dtype=wp.int32, device=dev)
     gids = wp.zeros(max(2 * total, 2), dtype=wp.int32, device=dev)
-    wp.launch(tile_emit_kernel, dim=n, inputs=[order, means2d, radii, offsets, tile_size, tiles_x, tiles_y], outputs=[keys, gids], device=dev)
+    wp.launch(tile_emit_kernel, dim=n, inputs=[order, means2d, radii, offsets, tile_size, tiles_x, tiles_y],
+              outputs=[keys, gids], device=dev)
     # 3. stable sort by tile keeps the depth order inside each tile
     if total > 1:
         wp.utils.radix_sort_pairs(keys, gids, total, end_bit=max(1, int(n_tiles).bit_length()))
@@ -345,5 +347,6 @@ def render(
     proj = project(means, covariances, opacities, camera, device=device)
     dev = _device(device)
     # CUDA bins on the device; on the CPU the host sort is as fast and Warp runs one thread
-    bins = bin_tiles(proj, camera.width, camera.height, tile_size=C.tile_size_for(dev, len(means)), device=None if dev.is_cpu else device)
+    bins = bin_tiles(proj, camera.width, camera.height, tile_size=C.tile_size_for(dev, len(means)),
+                     device=None if dev.is_cpu else device)
     return rasterize(proj, colors, opacities, bins, background=background, device=device)

@@ -12,10 +12,7 @@ from __future__ import annotations
 
 import warp as wp
 
-# keep Warp's start-up banner out of logs and CLI output (older and newer config names)
-wp.config.quiet = True
-if hasattr(wp, "LOG_WARNING"):
-    wp.config.log_level = wp.LOG_WARNING
+from .. import _warp  # noqa: F401  (Warp's log level: no start-up banner in logs and CLI output)
 
 wp.set_module_options({"enable_backward": False})
 

@@ -16,6 +16,7 @@ from typing import Callable
 import numpy as np
 import warp as wp
 
+from .._warp import init_warp
 from ..errors import InputError, SimulationError
 from . import _kernels as K
 from ._config import DomainWalls, FixedCuboid, ParticleTranslation, Probe, SimParams
@@ -28,7 +29,7 @@ _WARP_READY = False
 def _init_warp() -> None:
     global _WARP_READY
     if not _WARP_READY:
-        wp.init()
+        init_warp()  # quiet on a CPU run: knockgs_core._warp
         _WARP_READY = True
 
 
