@@ -132,12 +132,12 @@ def tile_box(m: wp.vec2f, r: wp.vec2f, tile_size: int, tiles_x: int, tiles_y: in
         lim = tiles_x - 1
         if a == 1:
             lim = tiles_y - 1
-        l = wp.floor((ma - ra - half) / ts)
-        h = wp.floor((ma + ra - half) / ts)
-        l = wp.min(wp.max(l, wp.float64(0.0)), wp.float64(lim + 1))
-        h = wp.min(wp.max(h, wp.float64(-1.0)), wp.float64(lim))
-        lo[a] = int(l)
-        span[a] = wp.max(int(h) - int(l) + 1, 0)
+        lf = wp.floor((ma - ra - half) / ts)
+        hf = wp.floor((ma + ra - half) / ts)
+        lf = wp.min(wp.max(lf, wp.float64(0.0)), wp.float64(lim + 1))
+        hf = wp.min(wp.max(hf, wp.float64(-1.0)), wp.float64(lim))
+        lo[a] = int(lf)
+        span[a] = wp.max(int(hf) - int(lf) + 1, 0)
     return wp.vec4i(lo[0], lo[1], span[0], span[1])
 
 
