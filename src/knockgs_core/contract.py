@@ -1,19 +1,24 @@
 """Object contracts: config/objects/NAME.yaml -> a validated, frozen :class:`ObjectContract`.
 
-Finding the configuration directory (:func:`find_config_dir`), first match wins:
+A contract is loaded by path (``load_contract("some/dir/pillow.yaml")``: works from any
+directory) or by name (``load_contract("pillow")``: ``objects/pillow.yaml`` in the
+configuration directory). Finding the configuration directory (:func:`find_config_dir`),
+first match wins:
 
 1. the ``config_dir`` argument;
 2. the environment variable ``KNOCKGS_CONFIG_DIR``;
 3. a ``config/`` folder holding ``objects/`` in the current working directory or one of
-   its parents;
-4. the ``config/`` folder of the source checkout this package was imported from.
+   its parents (a project checkout);
+4. the ``config/`` folder of the source checkout this package was imported from (an
+   editable install).
 
-The JSON Schema ``workflow/schemas/object.schema.yaml`` is looked up next to that
-``config/`` folder (``../workflow/schemas``). Every problem with a contract raises
+The JSON Schema of a contract ships with the package (``knockgs_core/schemas/
+object.schema.yaml``, read through :mod:`importlib.resources`; :func:`schema_path`), so
+validation never depends on the working directory. Every problem with a contract raises
 :class:`~knockgs_core.errors.InputError` naming the file and the field (a dotted path,
 ``probes.standard_x.force[0]``).
 
-Defaults live in the frozen dataclasses (this module and :mod:`knockgs_core.sim._config`);
+Defaults live in the frozen dataclasses (this module and :class:`knockgs_core.sim.SimParams`);
 the schema mirrors them.
 """
 
@@ -24,7 +29,7 @@ import json
 import math
 import os
 import re
-from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from dataclasses import dataclass, fields, replace
 from fractions import Fraction
 from functools import cached_property, lru_cache
 from pathlib import Path
@@ -32,8 +37,9 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from ._io import json_safe
 from .errors import InputError
-from .sim._config import (
+from .sim import (
     Box,
     DomainWalls,
     ExportSchedule,
@@ -272,12 +278,12 @@ class ObjectContract:
         a procedural asset adds its generator version."""
         d = {
             "name": self.name, "profile": self.profile, "description": self.description,
-            "asset": _jsonable(self.asset), "fill": _jsonable(self.fill), "sim": _jsonable(self.sim),
-            "materials": _jsonable(self.materials),
-            "regions": {k: _jsonable(v) for k, v in self.regions.items()},
-            "probes": _jsonable(self.probes), "probe_force_match": dict(self.probe_force_match),
-            "roles": _jsonable(self.roles), "probe_reference_particles": self.probe_reference_particles,
-            "camera": _jsonable(self.camera),
+            "asset": _asset_dict(self.asset), "fill": json_safe(self.fill), "sim": _sim_dict(self.sim),
+            "materials": json_safe(self.materials),
+            "regions": {k: json_safe(v) for k, v in self.regions.items()},
+            "probes": json_safe(self.probes), "probe_force_match": dict(self.probe_force_match),
+            "roles": json_safe(self.roles), "probe_reference_particles": self.probe_reference_particles,
+            "camera": json_safe(self.camera),
             "candidates": self.candidates_path.name, "targets": self.targets_path.name,
         }
         if self.asset.procedural is not None:
@@ -287,23 +293,20 @@ class ObjectContract:
         return d
 
 
-def _jsonable(obj):
-    if is_dataclass(obj) and not isinstance(obj, type):
-        d = {f.name: _jsonable(getattr(obj, f.name)) for f in fields(obj)}
-        if isinstance(obj, (DomainWalls, FixedCuboid, ParticleTranslation)):
-            d["type"] = _BOUNDARY_TYPES_INV[type(obj)]
-        return d
-    if isinstance(obj, Mapping):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, Path):
-        return obj.name
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else str(obj)
-    if isinstance(obj, (np.floating, np.integer)):
-        return _jsonable(obj.item())
-    return obj
+def _asset_dict(asset: AssetSettings) -> dict:
+    """``json_safe(asset)`` with the PLY path reduced to its file name (the hash of a
+    contract does not depend on where the project lives)."""
+    d = json_safe(asset)
+    if asset.ply is not None:
+        d["ply"] = asset.ply.name
+    return d
+
+
+def _sim_dict(sim: SimParams) -> dict:
+    """``json_safe(sim)`` with each boundary condition tagged by its contract ``type``."""
+    d = json_safe(sim)
+    d["boundaries"] = [{**json_safe(b), "type": _BOUNDARY_TYPES_INV[type(b)]} for b in sim.boundaries]
+    return d
 
 
 def _canonical_hash(d: dict) -> str:
@@ -333,17 +336,20 @@ def find_config_dir(config_dir: str | os.PathLike | None = None) -> Path:
     pkg_root = Path(__file__).resolve().parents[2] / "config"
     if (pkg_root / "objects").is_dir():
         return pkg_root
-    raise InputError(here, "config_dir", f"no config/objects folder here or above; set {_ENV}")
+    raise InputError(here, "config_dir",
+                     f"no config/objects folder in the working directory or above (contracts are looked up "
+                     f"by name there); give the contract as a path, pass config_dir or set {_ENV}")
 
 
-def schema_path(config_dir: str | os.PathLike | None = None) -> Path:
-    """``workflow/schemas/object.schema.yaml`` next to the configuration directory."""
-    cfg = find_config_dir(config_dir)
-    for root in (cfg.parent, Path(__file__).resolve().parents[2]):
-        p = root / "workflow" / "schemas" / "object.schema.yaml"
-        if p.is_file():
-            return p
-    raise InputError(cfg.parent / "workflow/schemas/object.schema.yaml", "schema", "not found")
+def schema_path() -> Path:
+    """The object-contract JSON Schema shipped with the package (``knockgs_core/schemas``)."""
+    from importlib.resources import as_file, files
+
+    resource = files("knockgs_core").joinpath("schemas", "object.schema.yaml")
+    with as_file(resource) as p:  # a real file for a normal (unzipped) install
+        if not Path(p).is_file():
+            raise InputError(p, "schema", "not found: the knockgs package is incomplete (reinstall it)")
+        return Path(p)
 
 
 def list_objects(config_dir: str | os.PathLike | None = None) -> list[str]:
@@ -519,11 +525,23 @@ def load_contract(name_or_path: str | os.PathLike, profile: str = "default", *,
     inconsistent references raise :class:`InputError` naming the file and the field.
     """
     path = _resolve_path(name_or_path, config_dir)
-    cfg = find_config_dir(config_dir) if config_dir is not None or not path.parent.name == "objects" \
-        else path.parent.parent
     data = _read_yaml(path)
-    _validate(data, path, schema_path(cfg))
-    return _build(data, path, cfg, profile)
+    _validate(data, path, schema_path())
+    return _build(data, path, _tables_dir(path, config_dir), profile)
+
+
+def _tables_dir(path: Path, config_dir) -> Path:
+    """Where a contract's candidate and target tables live: ``config_dir`` when given, the
+    configuration directory of a contract in ``.../objects/``, else the project's
+    configuration directory if there is one, else the contract's own folder."""
+    if config_dir is not None:
+        return find_config_dir(config_dir)
+    if path.parent.name == "objects":
+        return path.parent.parent
+    try:
+        return find_config_dir()
+    except InputError:
+        return path.parent
 
 
 def _build(data: dict, path: Path, cfg: Path, profile: str) -> ObjectContract:

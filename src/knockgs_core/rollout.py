@@ -10,8 +10,9 @@ n_gs, n_fill, the total probe force, the contract hash, solver settings, guard s
 and package versions. The deformation gradient of the Gaussian-associated particles, when
 asked for, goes to a second Parquet file (``frame, particle, F00 .. F22``).
 
-Files are written to a temporary name and renamed, so an interrupted run never leaves a
-partial rollout behind.
+Files are written through :mod:`knockgs_core._io` (a temporary name, renamed when complete),
+so an interrupted run never leaves a partial rollout behind; they are read back with the one
+long-format reader, :mod:`knockgs_core._long_format`.
 """
 
 from __future__ import annotations
@@ -19,21 +20,29 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 
 from . import __version__
+from ._io import json_safe, write_parquet
+from ._long_format import POSITION_COLUMNS, read_long_values, read_metadata
 from .errors import InputError
 from .sim import Probe, SimResult, build_model, make_state, simulate
 
-__all__ = ["Rollout", "run_rollout", "write_rollout", "read_rollout", "read_rollout_meta", "write_deformation", "read_deformation", "theta_tag"]
+__all__ = [
+    "Rollout",
+    "run_rollout",
+    "write_rollout",
+    "read_rollout",
+    "read_rollout_meta",
+    "write_deformation",
+    "read_deformation",
+    "theta_tag",
+]
 
 META_KEY = b"knockgs"
 F_COLUMNS = [f"F{i}{j}" for i in range(3) for j in range(3)]
@@ -51,20 +60,6 @@ class Rollout:
 def theta_tag(theta: tuple[float, float]) -> str:
     """A file-name tag for a parameter pair, exact to 1e-6: ``sE0.950000_sR1.350000``."""
     return f"sE{theta[0]:.6f}_sR{theta[1]:.6f}"
-
-
-def _jsonable(obj):
-    if dataclasses.is_dataclass(obj):
-        return {k: _jsonable(v) for k, v in dataclasses.asdict(obj).items()}
-    if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return str(obj)
-    if isinstance(obj, (np.floating, np.integer)):
-        return obj.item()
-    return obj
 
 
 def run_rollout(
@@ -121,7 +116,7 @@ def run_rollout(
         "profile": contract.profile,
         "contract_hash": contract.hash,
         "theta": [s_e, s_rho],
-        "probe": _jsonable(probe),
+        "probe": json_safe(probe),
         "probe_force_scale": force_scale,
         "probe_selected_count": model.probe_count,
         "probe_force_per_particle_step": list(model.probe_force),
@@ -130,21 +125,13 @@ def run_rollout(
         "export_times": result.times.tolist(),
         "n_gs": int(particles.n_gs),
         "n_fill": int(n - particles.n_gs),
-        "sim": _jsonable(params),
-        "stats": _jsonable(result.stats),
+        "sim": json_safe(params),
+        "stats": json_safe(result.stats),
         "device": model.device,
         "wall_seconds": wall,
         "versions": {"knockgs": __version__, "warp": wp.config.version, "numpy": np.__version__},
     }
     return Rollout(positions=result.positions, F=result.F, meta=meta)
-
-
-def _atomic_write_table(table: pa.Table, path: Path) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    pq.write_table(table, tmp, compression="zstd")
-    os.replace(tmp, path)
 
 
 def write_rollout(path, rollout: Rollout) -> None:
@@ -163,7 +150,7 @@ def write_rollout(path, rollout: Rollout) -> None:
         }
     )
     table = table.replace_schema_metadata({META_KEY: json.dumps(rollout.meta).encode()})
-    _atomic_write_table(table, path)
+    write_parquet(path, table, compression="zstd")
 
 
 def write_deformation(path, rollout: Rollout) -> None:
@@ -172,59 +159,30 @@ def write_deformation(path, rollout: Rollout) -> None:
         raise InputError(path, "F", "the rollout was run without export_F")
     F = np.asarray(rollout.F, dtype=np.float32)
     T, N = F.shape[:2]
-    cols = {"frame": pa.array(np.repeat(np.arange(T, dtype=np.int32), N)), "particle": pa.array(np.tile(np.arange(N, dtype=np.int32), T))}
+    cols = {"frame": pa.array(np.repeat(np.arange(T, dtype=np.int32), N)),
+            "particle": pa.array(np.tile(np.arange(N, dtype=np.int32), T))}
     flat = F.reshape(T * N, 9)
     for c, name in enumerate(F_COLUMNS):
         cols[name] = pa.array(flat[:, c])
     table = pa.table(cols).replace_schema_metadata({META_KEY: json.dumps(rollout.meta).encode()})
-    _atomic_write_table(table, path)
+    write_parquet(path, table, compression="zstd")
 
 
 def read_rollout_meta(path) -> dict:
     """The ``knockgs`` metadata of a rollout file."""
-    try:
-        md = pq.read_schema(path).metadata or {}
-    except (OSError, pa.ArrowInvalid) as exc:
-        raise InputError(path, "file", f"not a readable Parquet file ({exc})") from None
-    if META_KEY not in md:
+    meta = read_metadata(path, META_KEY)
+    if meta is None:
         raise InputError(path, "metadata.knockgs", "missing: not a KnockGS rollout")
-    return json.loads(md[META_KEY])
-
-
-def _reshape(table: pa.Table, path, value_cols: list[str]) -> np.ndarray:
-    for col in ["frame", "particle", *value_cols]:
-        if col not in table.column_names:
-            raise InputError(path, col, "missing column")
-    frame = table.column("frame").to_numpy()
-    particle = table.column("particle").to_numpy()
-    T = int(frame.max()) + 1 if len(frame) else 0
-    N = int(particle.max()) + 1 if len(particle) else 0
-    if T * N != len(frame):
-        raise InputError(path, "frame", f"{len(frame)} rows do not form {T} frames x {N} particles (missing rows)")
-    want_f = np.repeat(np.arange(T, dtype=frame.dtype), N)
-    want_p = np.tile(np.arange(N, dtype=particle.dtype), T)
-    if np.array_equal(frame, want_f) and np.array_equal(particle, want_p):
-        order = slice(None)  # the canonical order this module writes: no sort needed
-    else:
-        order = np.lexsort((particle, frame))
-        if not (np.array_equal(frame[order], want_f) and np.array_equal(particle[order], want_p)):
-            raise InputError(path, "particle", "duplicate or missing (frame, particle) rows")
-    vals = np.stack([table.column(c).to_numpy()[order].astype(np.float32) for c in value_cols], axis=-1)
-    if not np.all(np.isfinite(vals)):
-        raise InputError(path, value_cols[0], "non-finite values")
-    return vals.reshape(T, N, len(value_cols))
+    return meta
 
 
 def read_rollout(path) -> Rollout:
     """Read a rollout file: positions (T, N, 3) float32 and its metadata."""
     meta = read_rollout_meta(path)
-    table = pq.read_table(path)
-    X = _reshape(table, path, ["x", "y", "z"])
-    return Rollout(positions=X, F=None, meta=meta)
+    return Rollout(positions=read_long_values(path, POSITION_COLUMNS), F=None, meta=meta)
 
 
 def read_deformation(path) -> np.ndarray:
     """Deformation gradients (T, n_gs, 3, 3) float32 from a file of :func:`write_deformation`."""
-    table = pq.read_table(path)
-    F = _reshape(table, path, F_COLUMNS)
+    F = read_long_values(path, F_COLUMNS)
     return F.reshape(F.shape[0], F.shape[1], 3, 3)
