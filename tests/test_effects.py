@@ -13,10 +13,12 @@ from knockgs_core.sim import (
     BodyForcePulse,
     Box,
     DomainWalls,
+    Effect,
     FixedCuboid,
     Gravity,
     HiddenMass,
     MPMSolver,
+    ParticleTranslation,
     PoissonShift,
     Probe,
     SimParams,
@@ -26,18 +28,19 @@ from knockgs_core.sim import (
     VelocityDamping,
     VonMisesPlasticity,
     build_model,
+    is_still_sticky,
     make_state,
     simulate,
     with_effects,
 )
-from knockgs_core.sim._effects import von_mises_return
+from knockgs_core.sim._effects import PlasticStrain, von_mises_return
 
 N_GRID = 32
 DX = 2.0 / N_GRID
 
 
 def block(lo, hi, spacing=DX / 2):
-    axes = [np.arange(l + spacing / 2, h, spacing) for l, h in zip(lo, hi)]
+    axes = [np.arange(a + spacing / 2, b, spacing) for a, b in zip(lo, hi)]
     return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
 
 
@@ -55,7 +58,8 @@ SLIDER = ((0.6, 0.875, 0.75), (0.85, 1.125, 0.875))  # resting on the top face
 
 
 def slide(mu, v0=0.5):
-    params = SimParams(n_grid=N_GRID, dt=5e-4, gravity=(0.0, 0.0, -9.8), boundaries=(DomainWalls(), FixedCuboid(SLAB, friction=mu)))
+    params = SimParams(n_grid=N_GRID, dt=5e-4, gravity=(0.0, 0.0, -9.8),
+                       boundaries=(DomainWalls(), FixedCuboid(SLAB, friction=mu)))
     r = run(block(*SLIDER), params, v0=(v0, 0.0, 0.0))
     c = r.positions.astype(np.float64).mean(axis=1)
     return r.times, c
@@ -150,7 +154,8 @@ def test_von_mises_return_mapping_matches_numpy(rng):
     wp.init()
     Fw = wp.array(F.astype(np.float32), dtype=wp.mat33, device="cpu")
     plastic = wp.zeros(n, dtype=float, device="cpu")
-    wp.launch(von_mises_return, dim=n, inputs=[wp.array(mu.astype(np.float32), dtype=float, device="cpu"), yield_stress], outputs=[Fw, plastic], device="cpu")
+    mu_w = wp.array(mu.astype(np.float32), dtype=float, device="cpu")
+    wp.launch(von_mises_return, dim=n, inputs=[mu_w, yield_stress], outputs=[Fw, plastic], device="cpu")
     out = Fw.numpy().astype(np.float64)
     U, s, Vt = np.linalg.svd(F)
     e = np.log(s)
@@ -174,7 +179,8 @@ def test_plasticity_leaves_a_permanent_set():
     probe = Probe("push", (-0.3 * m / 1e-3, 0.0, 0.0), dt_ref=1e-3)  # a 0.3 m/s kick
     kw = dict(E=2e4, frame_dt=0.1, n_frames=16, probe=probe)
     elastic = run(X, with_effects(base, VelocityDamping(rate=8.0)), **kw).positions.astype(np.float64)
-    plastic = run(X, with_effects(base, VelocityDamping(rate=8.0), VonMisesPlasticity(yield_stress=300.0)), **kw).positions.astype(np.float64)
+    plastic_params = with_effects(base, VelocityDamping(rate=8.0), VonMisesPlasticity(yield_stress=300.0))
+    plastic = run(X, plastic_params, **kw).positions.astype(np.float64)
     off_el = elastic[-1, :, 0].mean() - X[:, 0].mean()
     off_pl = plastic[-1, :, 0].mean() - X[:, 0].mean()
     peak = np.abs(elastic[:, :, 0].mean(axis=1) - X[:, 0].mean()).max()
@@ -242,7 +248,8 @@ def test_force_pulse_delivers_its_impulse():
     """A half-sine acceleration a sin(pi (t - t0) / T) on a free body adds 2 a T / pi of velocity."""
     X = block(*FREE)
     a, t0, t1 = 0.5, 0.02, 0.1
-    params = with_effects(SimParams(n_grid=N_GRID, dt=1e-3, boundaries=()), BodyForcePulse(accel=a, direction=(0, 1, 0), start=t0, end=t1))
+    pulse = BodyForcePulse(accel=a, direction=(0, 1, 0), start=t0, end=t1)
+    params = with_effects(SimParams(n_grid=N_GRID, dt=1e-3, boundaries=()), pulse)
     model = build_model(X, E=1e4, nu=0.3, rho=1000.0, params=params)
     state = make_state(model, X)
     solver = MPMSolver(model)
@@ -259,7 +266,68 @@ def test_effect_values_and_validation():
     e = VelocityDamping().with_value(2.0)
     assert e.rate == 2.0 and e.value == 2.0 and "1/s" in e.describe()
     assert StiffnessGradient(axis=0).with_value(1.5).axis == 0
-    for bad in (lambda: VelocityDamping(rate=-1.0), lambda: VonMisesPlasticity(yield_stress=0.0), lambda: StiffnessGradient(axis=3),
-                lambda: Gravity(direction=(0, 0, 0)), lambda: SupportSlip(slip_time=-1.0), lambda: SupportFriction(mu=-1.0)):
+    for bad in (lambda: VelocityDamping(rate=-1.0), lambda: VonMisesPlasticity(yield_stress=0.0),
+                lambda: StiffnessGradient(axis=3), lambda: Gravity(direction=(0, 0, 0)),
+                lambda: SupportSlip(slip_time=-1.0), lambda: SupportFriction(mu=-1.0)):
         with pytest.raises(InputError):
             bad()
+
+
+# -------------------------------------------------------------------------------------
+# the effect protocol
+# -------------------------------------------------------------------------------------
+def test_effect_protocol_no_op_hooks_and_explicit_scratch():
+    """An effect overrides only the hooks it needs; its scratch comes from setup(model) and
+    is held by the solver, one per effect, in order."""
+    from dataclasses import dataclass
+
+    @dataclass(frozen=True)
+    class CountSteps(Effect):
+        def setup(self, model):
+            return {"grid": 0, "particles": 0, "n": model.particle_count}
+
+        def apply_grid(self, model, state, scratch, lo, dims, t):
+            scratch["grid"] += 1
+
+    X = block(*FREE)
+    params = with_effects(SimParams(n_grid=N_GRID, dt=1e-3, boundaries=()), CountSteps(), VonMisesPlasticity(yield_stress=50.0))
+    model = build_model(X, E=1e4, nu=0.3, rho=1000.0, params=params)
+    solver = MPMSolver(model)
+    state = make_state(model, X, np.tile(np.float32([0.1, 0.0, 0.0]), (len(X), 1)))
+    solver.check(state)
+    for _ in range(3):
+        solver.step(state)
+    counts, plastic = solver.effect_scratch
+    assert counts == {"grid": 3, "particles": 0, "n": len(X)}
+    assert isinstance(plastic, PlasticStrain) and plastic.plastic_strain.shape == (len(X),)
+    # a plain effect leaves the materials as they are; an effect off needs no scratch
+    assert Effect().materials(X, 1.0, 2.0, 3.0) == (1.0, 2.0, 3.0)
+    assert Gravity().setup(model) is None and VonMisesPlasticity().setup(model) is None
+
+
+def test_effects_must_follow_the_protocol():
+    with pytest.raises(InputError, match="effects"):
+        with_effects(SimParams(), object())
+    with pytest.raises(InputError, match=r"effects\[0\]"):
+        build_model(block(*FREE), E=1e4, nu=0.3, rho=1000.0, params=SimParams(n_grid=N_GRID, effects=("damping",)))
+
+
+def test_overlapping_particle_translations_are_refused():
+    box = Box((1.0, 1.0, 0.9), (0.1, 0.1, 0.1))
+    a = ParticleTranslation(box, (0.1, 0.0, 0.0), start_time=0.0, end_time=0.1)
+    later = ParticleTranslation(box, (0.0, 0.1, 0.0), start_time=0.1, end_time=0.2)
+    overlapping = ParticleTranslation(box, (0.0, 0.1, 0.0), start_time=0.05, end_time=0.2)
+    X = block(*FREE)
+    model = build_model(X, E=1e4, nu=0.3, rho=1000.0, params=SimParams(n_grid=N_GRID, boundaries=(DomainWalls(), a, later)))
+    assert len(model.translations) == 2
+    with pytest.raises(InputError, match=r"boundaries\[2\].*at most one particle translation"):
+        build_model(X, E=1e4, nu=0.3, rho=1000.0, params=SimParams(n_grid=N_GRID, boundaries=(DomainWalls(), a, overlapping)))
+
+
+def test_still_sticky_support_predicate():
+    assert is_still_sticky(FixedCuboid(SLAB))
+    assert not is_still_sticky(FixedCuboid(SLAB, friction=0.2))
+    assert not is_still_sticky(FixedCuboid(SLAB, velocity=(0.0, 0.0, 0.1)))
+    assert not is_still_sticky(FixedCuboid(SLAB, start_time=0.1))
+    assert not is_still_sticky(FixedCuboid(SLAB, end_time=0.5))
+    assert not is_still_sticky(DomainWalls())

@@ -4,7 +4,9 @@ A static :class:`Model` (particles, materials, boundary conditions, probe) apart
 time-varying :class:`State`; :class:`MPMSolver` advances one substep; :func:`simulate` runs
 a rollout and exports frames. Boundary conditions and probes are data
 (:mod:`knockgs_core.sim._config`). Extra physics terms, all off by default, are effects
-(:mod:`knockgs_core.sim._effects`) switched on with :func:`with_effects`.
+(:mod:`knockgs_core.sim._effects`) following the :class:`Effect` protocol
+(:mod:`knockgs_core.sim._protocol`: no-op hooks, scratch made by ``setup(model)`` and held
+by the solver), switched on with :func:`with_effects`.
 """
 
 from ._config import (
@@ -17,10 +19,10 @@ from ._config import (
     ParticleTranslation,
     Probe,
     SimParams,
+    is_still_sticky,
 )
 from ._effects import (
     BodyForcePulse,
-    Effect,
     Gravity,
     HiddenMass,
     PoissonShift,
@@ -31,6 +33,7 @@ from ._effects import (
     VonMisesPlasticity,
     with_effects,
 )
+from ._protocol import Effect
 from ._solver import MPMSolver, Model, SimResult, State, build_model, default_device, make_state, particle_volumes, simulate
 
 __all__ = [
@@ -43,6 +46,7 @@ __all__ = [
     "ParticleTranslation",
     "Probe",
     "SimParams",
+    "is_still_sticky",
     "MPMSolver",
     "Model",
     "SimResult",

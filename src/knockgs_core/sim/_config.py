@@ -10,12 +10,15 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal, Union
 
+from ._protocol import Effect
+
 __all__ = [
     "Box",
     "DomainWalls",
     "FixedCuboid",
     "ParticleTranslation",
     "BoundaryCondition",
+    "is_still_sticky",
     "Probe",
     "ExportSchedule",
     "Material",
@@ -91,6 +94,15 @@ class ParticleTranslation:
 
 
 BoundaryCondition = Union[DomainWalls, FixedCuboid, ParticleTranslation]
+
+
+def is_still_sticky(bc: BoundaryCondition) -> bool:
+    """Whether ``bc`` is a *still, sticky support*: a :class:`FixedCuboid` without friction
+    that does not move and holds for the whole rollout (from t <= 0 on, never released).
+    Such supports are what :class:`~knockgs_core.sim.SupportSlip` takes over and what the
+    discrepancy catalogue's support terms need."""
+    return (isinstance(bc, FixedCuboid) and bc.friction is None and not any(bc.velocity)
+            and bc.start_time <= 0.0 and math.isinf(bc.end_time))
 
 
 @dataclass(frozen=True)
@@ -190,11 +202,10 @@ class SimParams:
     cfl_limit: float = 1.0
     elastic_cfl_limit: float = 1.0
     guard_every: int = 50
-    effects: tuple = ()
-    """Optional extra physics (see :mod:`knockgs_core.sim` docs): frozen dataclasses with any of
-    ``materials(positions, E, nu, rho) -> (E, nu, rho)`` (applied once when the model is built),
-    ``apply_grid(solver, state, lo, dims, t)`` (after boundary conditions, each substep) and
-    ``apply_particles(solver, state, t)`` (after the grid-to-particle transfer, each substep)."""
+    effects: tuple[Effect, ...] = ()
+    """Optional extra physics, in the order their hooks run: :class:`~knockgs_core.sim.Effect`
+    instances (the protocol is in :mod:`knockgs_core.sim._protocol`), switched on with
+    :func:`~knockgs_core.sim.with_effects`."""
 
     @property
     def dx(self) -> float:

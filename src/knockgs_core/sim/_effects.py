@@ -1,17 +1,12 @@
 """Extra physics terms ("effects") the simulator can switch on; every one is off by default.
 
-An effect is a frozen dataclass placed in :attr:`SimParams.effects`; the solver calls its
-hooks (any subset of):
-
-* ``materials(positions, E, nu, rho) -> (E, nu, rho)``: once, when the model is built
-  (per-particle arrays, theta already applied);
-* ``apply_grid(solver, state, lo, dims, t)``: each substep, after the grid update and the
-  boundary conditions (``state.grid_mv`` then holds node velocities [m/s]);
-* ``apply_particles(solver, state, t)``: each substep, after the grid-to-particle transfer.
-
-An effect that changes static configuration instead (the support's friction) has a
-``configure(params) -> params`` method; :func:`with_effects` applies it and appends the
-effects, so ``with_effects(params, e1, e2)`` is the one way to switch effects on.
+An effect is a frozen dataclass deriving from :class:`~knockgs_core.sim.Effect` (the
+protocol, :mod:`knockgs_core.sim._protocol`), placed in :attr:`SimParams.effects` by
+:func:`with_effects`: ``with_effects(params, e1, e2)`` is the one way to switch effects on.
+It overrides the hooks of the stages it acts at (materials when the model is built, the
+grid after the boundary conditions, the particles after the grid-to-particle transfer);
+what it keeps while a rollout runs is a scratch object returned by its ``setup(model)``
+and held by the solver.
 
 Each effect has one scalar *strength* parameter, named by its class attribute
 ``parameter``, whose value ``off`` (also a class attribute) makes the effect a no-op;
@@ -37,10 +32,13 @@ import warp as wp
 
 from ..errors import InputError
 from . import _kernels as K
-from ._config import Box, FixedCuboid, SimParams
+from ._config import Box, FixedCuboid, SimParams, is_still_sticky
+from ._protocol import Effect
 
 __all__ = [
     "Effect",
+    "ParticleSelection",
+    "PlasticStrain",
     "VelocityDamping",
     "Gravity",
     "VonMisesPlasticity",
@@ -153,22 +151,30 @@ def von_mises_return(
 # --------------------------------------------------------------------------------------
 # helpers
 # --------------------------------------------------------------------------------------
-def _cached(solver, key, make):
-    """A per-solver cache (masks selected at t = 0, scratch arrays)."""
-    cache = solver.__dict__.setdefault("_effect_cache", {})
-    if key not in cache:
-        cache[key] = make()
-    return cache[key]
+@dataclass
+class ParticleSelection:
+    """Scratch of an effect acting on a set of particles selected once, at t = 0 (from the
+    model's rest positions): ``mask`` int32, shape (particle_count,), 1 = selected."""
+
+    mask: wp.array
 
 
-def _launch(solver, kernel, dim, inputs, outputs) -> None:
-    """Launch an effect's kernel on the solver's device."""
-    wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=solver.model.device)
+@dataclass
+class PlasticStrain:
+    """Scratch of :class:`VonMisesPlasticity`: accumulated plastic strain increments [-],
+    float, shape (particle_count,)."""
+
+    plastic_strain: wp.array
 
 
-def _add_velocity(solver, state, mask, dv) -> None:
+def _launch(model, kernel, dim, inputs, outputs) -> None:
+    """Launch an effect's kernel on the model's device."""
+    wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=model.device)
+
+
+def _add_velocity(model, state, mask, dv) -> None:
     """``v += dv`` on the particles selected by ``mask`` (int32, one per particle)."""
-    _launch(solver, particle_add_velocity, solver.model.particle_count, [mask, wp.vec3(*dv)], [state.particle_v])
+    _launch(model, particle_add_velocity, model.particle_count, [mask, wp.vec3(*dv)], [state.particle_v])
 
 
 def _finite(name: str, field: str, value: float) -> float:
@@ -185,39 +191,13 @@ def _unit(name: str, direction) -> np.ndarray:
     return d / np.linalg.norm(d)
 
 
-def _reapply_moving_supports(solver, state, lo, dims, t) -> None:
+def _reapply_moving_supports(model, state, lo, dims, t) -> None:
     """Re-impose sticky supports that move (a velocity scaling would otherwise change them)."""
-    p = solver.model.params
+    p = model.params
     for bc in p.boundaries:
         if isinstance(bc, FixedCuboid) and bc.friction is None and any(bc.velocity) and bc.start_time <= t < bc.end_time:
-            _launch(solver, K.grid_bc_cuboid, dims,
+            _launch(model, K.grid_bc_cuboid, dims,
                     [lo, p.dx, wp.vec3(*bc.box.center), wp.vec3(*bc.box.half_size), wp.vec3(*bc.velocity), -1.0], [state.grid_mv])
-
-
-class Effect:
-    """Common interface of the effects (a mixin of the frozen dataclasses below)."""
-
-    #: catalogue key
-    name: ClassVar[str] = ""
-    #: field holding the strength parameter, its unit and its "switched off" value
-    parameter: ClassVar[str] = ""
-    unit: ClassVar[str] = ""
-    off: ClassVar[float] = 0.0
-
-    @property
-    def value(self) -> float:
-        return float(getattr(self, self.parameter))
-
-    def with_value(self, value: float):
-        """A copy with the strength parameter set to ``value``."""
-        return dataclasses.replace(self, **{self.parameter: float(value)})
-
-    @property
-    def is_off(self) -> bool:
-        return self.value == self.off
-
-    def describe(self) -> str:
-        return f"{self.name}: {self.parameter} = {self.value:.4g} {self.unit}".rstrip()
 
 
 # --------------------------------------------------------------------------------------
@@ -240,12 +220,12 @@ class VelocityDamping(Effect):
         if _finite("VelocityDamping", "rate", self.rate) < 0:
             raise InputError("VelocityDamping", "rate", f"must be >= 0, got {self.rate!r}")
 
-    def apply_grid(self, solver, state, lo, dims, t):
+    def apply_grid(self, model, state, scratch, lo, dims, t):
         if self.rate == 0.0:
             return
-        factor = math.exp(-self.rate * solver.model.params.dt)
-        _launch(solver, grid_scale_velocity, dims, [lo, factor, state.grid_m], [state.grid_mv])
-        _reapply_moving_supports(solver, state, lo, dims, t)
+        factor = math.exp(-self.rate * model.params.dt)
+        _launch(model, grid_scale_velocity, dims, [lo, factor, state.grid_m], [state.grid_mv])
+        _reapply_moving_supports(model, state, lo, dims, t)
 
 
 @dataclass(frozen=True)
@@ -268,12 +248,15 @@ class Gravity(Effect):
         _finite("Gravity", "g", self.g)
         _unit("Gravity", self.direction)
 
-    def apply_particles(self, solver, state, t):
+    def setup(self, model):
+        if self.g == 0.0:
+            return None
+        return ParticleSelection(wp.ones(model.particle_count, dtype=wp.int32, device=model.device))
+
+    def apply_particles(self, model, state, scratch, t):
         if self.g == 0.0:
             return
-        m = solver.model
-        ones = _cached(solver, "all_particles", lambda: wp.ones(m.particle_count, dtype=wp.int32, device=m.device))
-        _add_velocity(solver, state, ones, _unit("Gravity", self.direction) * (self.g * m.params.dt))
+        _add_velocity(model, state, scratch.mask, _unit("Gravity", self.direction) * (self.g * model.params.dt))
 
 
 @dataclass(frozen=True)
@@ -294,12 +277,16 @@ class VonMisesPlasticity(Effect):
         if not (self.yield_stress > 0):
             raise InputError("VonMisesPlasticity", "yield_stress", f"must be > 0 (inf = off), got {self.yield_stress!r}")
 
-    def apply_particles(self, solver, state, t):
+    def setup(self, model):
+        if math.isinf(self.yield_stress):
+            return None
+        return PlasticStrain(wp.zeros(model.particle_count, dtype=float, device=model.device))
+
+    def apply_particles(self, model, state, scratch, t):
         if math.isinf(self.yield_stress):
             return
-        m = solver.model
-        plastic = _cached(solver, "plastic_strain", lambda: wp.zeros(m.particle_count, dtype=float, device=m.device))
-        _launch(solver, von_mises_return, m.particle_count, [m.particle_mu, float(self.yield_stress)], [state.particle_F, plastic])
+        _launch(model, von_mises_return, model.particle_count, [model.particle_mu, float(self.yield_stress)],
+                [state.particle_F, scratch.plastic_strain])
 
 
 @dataclass(frozen=True)
@@ -319,7 +306,8 @@ class PoissonShift(Effect):
     def materials(self, positions, E, nu, rho):
         nu = np.asarray(nu, dtype=np.float64) + self.delta_nu
         if np.any(nu <= -1.0) or np.any(nu >= 0.5):
-            raise InputError("PoissonShift", "delta_nu", f"nu + {self.delta_nu:g} leaves (-1, 0.5): range {nu.min():.4g}..{nu.max():.4g}")
+            raise InputError("PoissonShift", "delta_nu",
+                             f"nu + {self.delta_nu:g} leaves (-1, 0.5): range {nu.min():.4g}..{nu.max():.4g}")
         return E, nu, rho
 
 
@@ -370,7 +358,7 @@ class SupportFriction(Effect):
         if math.isinf(self.mu):
             return params
         bcs = []
-        found = False
+        found = False  # a sticky support, moving or not
         for bc in params.boundaries:
             if isinstance(bc, FixedCuboid) and bc.friction is None:
                 bc = dataclasses.replace(bc, friction=float(self.mu))
@@ -379,10 +367,6 @@ class SupportFriction(Effect):
         if not found:
             raise InputError("SupportFriction", "mu", "the simulation has no sticky FixedCuboid support to make frictional")
         return dataclasses.replace(params, boundaries=tuple(bcs), effects=tuple(params.effects) + (self,))
-
-
-def _still_sticky(bc) -> bool:
-    return isinstance(bc, FixedCuboid) and bc.friction is None and not any(bc.velocity) and bc.start_time <= 0.0 and math.isinf(bc.end_time)
 
 
 @dataclass(frozen=True)
@@ -410,22 +394,23 @@ class SupportSlip(Effect):
     def configure(self, params: SimParams) -> SimParams:
         if self.slip_time == 0.0:
             return params
-        held = tuple(bc.box for bc in params.boundaries if _still_sticky(bc))
+        held = tuple(bc.box for bc in params.boundaries if is_still_sticky(bc))
         if not held:
             raise InputError("SupportSlip", "slip_time", "the simulation has no still sticky FixedCuboid support")
-        bcs = tuple(bc for bc in params.boundaries if not _still_sticky(bc))
+        bcs = tuple(bc for bc in params.boundaries if not is_still_sticky(bc))
         me = dataclasses.replace(self, boxes=held)
         return dataclasses.replace(params, boundaries=bcs, effects=tuple(params.effects) + (me,))
 
-    def apply_grid(self, solver, state, lo, dims, t):
+    def apply_grid(self, model, state, scratch, lo, dims, t):
         if self.slip_time == 0.0:
             return
         if not self.boxes:
             raise InputError("SupportSlip", "boxes", "switch the effect on with with_effects(params, effect)")
-        p = solver.model.params
+        p = model.params
         factor = math.exp(-p.dt / self.slip_time)
         for box in self.boxes:
-            _launch(solver, grid_support_slip, dims, [lo, p.dx, wp.vec3(*box.center), wp.vec3(*box.half_size), factor, state.grid_m], [state.grid_mv])
+            _launch(model, grid_support_slip, dims,
+                    [lo, p.dx, wp.vec3(*box.center), wp.vec3(*box.half_size), factor, state.grid_m], [state.grid_mv])
 
 
 # --------------------------------------------------------------------------------------
@@ -452,23 +437,20 @@ class BodyForcePulse(Effect):
         if not (0 <= self.start < self.end):
             raise InputError("BodyForcePulse", "start/end", f"need 0 <= start < end, got {self.start!r}, {self.end!r}")
 
-    def apply_particles(self, solver, state, t):
+    def setup(self, model):
+        """The particles inside ``box`` at t = 0 (the model's rest positions)."""
         if self.accel == 0.0:
-            return
-        m = solver.model
+            return None
+        if self.box is None:
+            return ParticleSelection(wp.ones(model.particle_count, dtype=wp.int32, device=model.device))
+        inside = self.box.contains(model.particle_x0_host).astype(np.int32)
+        return ParticleSelection(wp.array(inside, dtype=wp.int32, device=model.device))
 
-        def make_mask():  # selected on the first substep (the positions are then the initial ones)
-            if state.step != 0:
-                raise InputError("BodyForcePulse", "box", "the solver must run from step 0 to select the particles at t = 0")
-            if self.box is None:
-                return wp.ones(m.particle_count, dtype=wp.int32, device=m.device)
-            return wp.array(self.box.contains(state.positions()).astype(np.int32), dtype=wp.int32, device=m.device)
-
-        mask = _cached(solver, ("pulse_mask", self.box), make_mask)
-        if not (self.start <= t < self.end):
+    def apply_particles(self, model, state, scratch, t):
+        if self.accel == 0.0 or not (self.start <= t < self.end):
             return
         a = self.accel * math.sin(math.pi * (t - self.start) / (self.end - self.start))
-        _add_velocity(solver, state, mask, _unit("BodyForcePulse", self.direction) * (a * m.params.dt))
+        _add_velocity(model, state, scratch.mask, _unit("BodyForcePulse", self.direction) * (a * model.params.dt))
 
 
 @dataclass(frozen=True)
@@ -492,13 +474,12 @@ class HiddenMass(Effect):
         return E, nu, rho
 
 
-def with_effects(params: SimParams, *effects) -> SimParams:
-    """``params`` with ``effects`` switched on, in order: an effect with a ``configure``
-    method rewrites the static configuration (and records itself in ``params.effects``);
-    any other effect is appended to ``params.effects``."""
+def with_effects(params: SimParams, *effects: Effect) -> SimParams:
+    """``params`` with ``effects`` switched on, in order, each by its
+    :meth:`~knockgs_core.sim.Effect.configure` (by default: appended to ``params.effects``;
+    an effect that rewrites static configuration also records itself there)."""
     for effect in effects:
-        if hasattr(effect, "configure"):
-            params = effect.configure(params)
-        else:
-            params = dataclasses.replace(params, effects=tuple(params.effects) + (effect,))
+        if not isinstance(effect, Effect):
+            raise InputError("SimParams", "effects", f"expected an Effect, got {type(effect).__name__}")
+        params = effect.configure(params)
     return params

@@ -363,13 +363,3 @@ def particle_stats(
         c = int(wp.floor(xp[a] * inv_dx))
         wp.atomic_min(out_i, 1 + a, c)
         wp.atomic_max(out_i, 4 + a, c)
-
-
-@wp.kernel
-def particle_momentum(
-    v: wp.array(dtype=wp.vec3),
-    mass: wp.array(dtype=float),
-    out: wp.array(dtype=wp.vec3),
-):
-    p = wp.tid()
-    wp.atomic_add(out, 0, mass[p] * v[p])

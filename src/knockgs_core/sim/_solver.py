@@ -20,6 +20,7 @@ from .._warp import init_warp
 from ..errors import InputError, SimulationError
 from . import _kernels as K
 from ._config import DomainWalls, FixedCuboid, ParticleTranslation, Probe, SimParams
+from ._protocol import Effect
 
 __all__ = ["Model", "State", "MPMSolver", "SimResult", "build_model", "particle_volumes", "default_device", "simulate"]
 
@@ -53,7 +54,11 @@ class Model:
     particle_mass [kg], particle_vol [m^3], particle_mu / particle_lam [Pa]: shape
     (particle_count,). ``probe_mask`` marks the particles the probe acts on (selected once
     at t = 0); ``probe_force`` is the per-step force on each of them [N] for steps
-    ``probe_first <= step < probe_first + probe_steps``.
+    ``probe_first <= step < probe_first + probe_steps``. ``translations`` pairs each
+    :class:`ParticleTranslation` with its particle mask (at most one is active at a time).
+    Host copies: ``mass_host`` particle masses [kg] (particle_count,) float32 and
+    ``particle_x0_host`` rest positions [m] (particle_count, 3) float32, from which regions
+    are selected at t = 0 (effects' ``setup``).
     """
 
     params: SimParams
@@ -71,6 +76,7 @@ class Model:
     translations: list[tuple[ParticleTranslation, wp.array]] = field(default_factory=list)
     mass_host: np.ndarray | None = None
     max_wave_speed: float = 0.0
+    particle_x0_host: np.ndarray | None = None
 
     @property
     def total_probe_force(self) -> tuple[float, float, float]:
@@ -132,6 +138,22 @@ def _as_particle_array(value, n: int, name: str) -> np.ndarray:
     return arr
 
 
+def _check_params(params: SimParams) -> None:
+    """What the solver supports beyond the dataclasses' own checks: effects following the
+    :class:`Effect` protocol, and particle translations active one at a time (the
+    grid-to-particle pass moves one selection per substep)."""
+    for i, effect in enumerate(params.effects):
+        if not isinstance(effect, Effect):
+            raise InputError("SimParams", f"effects[{i}]", f"expected an Effect (knockgs_core.sim), got {type(effect).__name__}")
+    spans = [(i, bc.start_time, bc.end_time) for i, bc in enumerate(params.boundaries) if isinstance(bc, ParticleTranslation)]
+    for k, (i, s0, e0) in enumerate(spans):
+        for j, s1, e1 in spans[k + 1:]:
+            if s0 < e1 and s1 < e0:
+                raise InputError("SimParams", f"boundaries[{j}]",
+                                 f"particle translation active over [{s1:g}, {e1:g}) s overlaps boundaries[{i}] over "
+                                 f"[{s0:g}, {e0:g}) s; at most one particle translation may be active at a time")
+
+
 def build_model(
     positions: np.ndarray,
     *,
@@ -147,10 +169,13 @@ def build_model(
     """Build the static model for particles at ``positions`` [m] (N, 3).
 
     ``E`` [Pa], ``nu`` [-], ``rho`` [kg/m^3]: scalars or per-particle arrays (theta already
-    applied). ``volumes`` [m^3] default to initial particles per cell. The probe's per-particle
-    force is multiplied by ``probe_force_scale`` and rescaled so its impulse is kept at
-    ``params.dt``; its contact box selects particles once, here.
+    applied), then passed through each effect's ``materials`` hook. ``volumes`` [m^3]
+    default to initial particles per cell. The probe's per-particle force is multiplied by
+    ``probe_force_scale`` and rescaled so its impulse is kept at ``params.dt``; its contact
+    box selects particles once, here. ``params.effects`` must be :class:`Effect` instances
+    and at most one :class:`ParticleTranslation` may be active at any time.
     """
+    _check_params(params)
     _init_warp()
     device = device or default_device()
     x = np.ascontiguousarray(positions, dtype=np.float32)
@@ -168,8 +193,7 @@ def build_model(
     nu = _as_particle_array(nu, n, "nu")
     rho = _as_particle_array(rho, n, "rho")
     for effect in params.effects:
-        if hasattr(effect, "materials"):
-            E, nu, rho = (np.asarray(a, dtype=np.float64) for a in effect.materials(x, E, nu, rho))
+        E, nu, rho = (np.asarray(a, dtype=np.float64) for a in effect.materials(x, E, nu, rho))
     if np.any(E <= 0) or np.any(rho <= 0) or np.any(nu <= -1) or np.any(nu >= 0.5):
         raise InputError("material", "E/nu/rho", "need E > 0, rho > 0, -1 < nu < 0.5")
     vol = particle_volumes(x, dx) if volumes is None else np.asarray(volumes, dtype=np.float32)
@@ -214,6 +238,7 @@ def build_model(
         translations=translations,
         mass_host=mass,
         max_wave_speed=wave,
+        particle_x0_host=x,
     )
 
 
@@ -242,7 +267,8 @@ class MPMSolver:
     A guard runs every ``params.guard_every`` substeps (and on demand): non-finite values,
     a CFL number ``max|v| dt / dx`` above ``params.cfl_limit``, or particles leaving the
     domain stop the run with a :class:`~knockgs_core.errors.SimulationError`. The guard also
-    sizes the active grid box for the next substeps.
+    sizes the active grid box for the next substeps. ``effect_scratch`` holds the scratch
+    object of each of ``params.effects`` (same order), made by its ``setup`` here.
     """
 
     polar_iters = 4
@@ -260,6 +286,7 @@ class MPMSolver:
         self._zero_mask = wp.zeros(model.particle_count, dtype=wp.int32, device=dev)
         self.max_cfl = 0.0
         self.min_det_F = 1.0
+        self.effect_scratch = tuple(effect.setup(model) for effect in p.effects)
 
     # -- guard -----------------------------------------------------------------------
     def check(self, state: State) -> dict:
@@ -268,7 +295,9 @@ class MPMSolver:
         self._stats_f.assign(np.array([0.0, np.inf], dtype=np.float32))
         big = np.iinfo(np.int32).max
         self._stats_i.assign(np.array([0, big, big, big, -big, -big, -big], dtype=np.int32))
-        wp.launch(K.particle_stats, dim=m.particle_count, inputs=[state.particle_x0, state.particle_u, state.particle_v, state.particle_F, self._inv_dx], outputs=[self._stats_f, self._stats_i], device=m.device)
+        wp.launch(K.particle_stats, dim=m.particle_count,
+                  inputs=[state.particle_x0, state.particle_u, state.particle_v, state.particle_F, self._inv_dx],
+                  outputs=[self._stats_f, self._stats_i], device=m.device)
         sf = self._stats_f.numpy()
         si = self._stats_i.numpy()
         overrun = int(self._overrun.numpy()[0])
@@ -279,7 +308,8 @@ class MPMSolver:
             raise SimulationError(
                 f"elastic CFL violation {where}: c_p dt / dx = {elastic:.3g} > {p.elastic_cfl_limit:g} "
                 f"(fastest p-wave speed {m.max_wave_speed:.4g} m/s, dt = {p.dt:g} s, dx = {p.dx:.4g} m). "
-                f"Likely cause: dt too large for the stiffest, lightest material; use dt <= {p.elastic_cfl_limit * p.dx / m.max_wave_speed:.3g} s."
+                f"Likely cause: dt too large for the stiffest, lightest material; "
+                f"use dt <= {p.elastic_cfl_limit * p.dx / m.max_wave_speed:.3g} s."
             )
         if si[0] > 0:
             raise SimulationError(
@@ -306,7 +336,8 @@ class MPMSolver:
             )
         cmin, cmax = si[1:4], si[4:7]
         if cmin.min() < 2 or cmax.max() > p.n_grid - 3:
-            raise SimulationError(f"particles left the simulation domain {where} (cells {cmin.tolist()}..{cmax.tolist()} of {p.n_grid})")
+            raise SimulationError(
+                f"particles left the simulation domain {where} (cells {cmin.tolist()}..{cmax.tolist()} of {p.n_grid})")
         # margin for the motion until the next check, in cells
         pad = 2 + int(math.ceil(2.0 * vmax * p.guard_every * p.dt / p.dx))
         self._lo = tuple(int(max(0, c - 1 - pad)) for c in cmin)
@@ -324,14 +355,15 @@ class MPMSolver:
         dt, dev = p.dt, m.device
         lo = wp.vec3i(*self._lo)
         hi = wp.vec3i(*self._hi)
-        dims = tuple(h - l for l, h in zip(self._lo, self._hi))
+        dims = tuple(h - low for low, h in zip(self._lo, self._hi))
         rec = dict(device=dev, record_cmd=True)
         cmds = {}
         cmds["zero"] = wp.launch(K.grid_zero, dim=dims, inputs=[lo], outputs=[state.grid_mv, state.grid_m], **rec)
         cmds["p2g"] = wp.launch(
             K.p2g,
             dim=m.particle_count,
-            inputs=[state.particle_x0, state.particle_u, state.particle_C, state.particle_F, m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
+            inputs=[state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
+                    m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
                     m.probe_mask, wp.vec3(*m.probe_force), 0, self._inv_dx, dt, self.polar_iters, lo, hi],
             outputs=[state.particle_v, state.particle_rot, state.grid_mv, state.grid_m, self._overrun],
             **rec,
@@ -340,15 +372,19 @@ class MPMSolver:
         # domain walls listed first are applied in the update pass (same order, one pass less)
         fused = p.boundaries[0] if p.boundaries and isinstance(p.boundaries[0], DomainWalls) else None
         wall_args = [1, p.n_grid, fused.padding, int(fused.mode == "sticky")] if fused else [0, p.n_grid, 0, 0]
-        cmds["update"] = wp.launch(K.grid_update, dim=dims, inputs=[lo, dt, wp.vec3(*p.gravity), damping, *wall_args, state.grid_m], outputs=[state.grid_mv], **rec)
+        update_args = [lo, dt, wp.vec3(*p.gravity), damping, *wall_args, state.grid_m]
+        cmds["update"] = wp.launch(K.grid_update, dim=dims, inputs=update_args, outputs=[state.grid_mv], **rec)
         bcs = []
         for bc in p.boundaries:
             if bc is fused:
                 continue
             if isinstance(bc, DomainWalls):
-                bcs.append((bc, wp.launch(K.grid_bc_walls, dim=dims, inputs=[lo, p.n_grid, bc.padding, int(bc.mode == "sticky")], outputs=[state.grid_mv], **rec)))
+                bcs.append((bc, wp.launch(K.grid_bc_walls, dim=dims, inputs=[lo, p.n_grid, bc.padding, int(bc.mode == "sticky")],
+                                          outputs=[state.grid_mv], **rec)))
             elif isinstance(bc, FixedCuboid):
-                bcs.append((bc, wp.launch(K.grid_bc_cuboid, dim=dims, inputs=[lo, p.dx, wp.vec3(*bc.box.center), wp.vec3(*bc.box.half_size), wp.vec3(*bc.velocity), bc.friction_coefficient], outputs=[state.grid_mv], **rec)))
+                box_args = [wp.vec3(*bc.box.center), wp.vec3(*bc.box.half_size), wp.vec3(*bc.velocity), bc.friction_coefficient]
+                cmd = wp.launch(K.grid_bc_cuboid, dim=dims, inputs=[lo, p.dx, *box_args], outputs=[state.grid_mv], **rec)
+                bcs.append((bc, cmd))
         cmds["bcs"] = bcs
         cmds["g2p"] = wp.launch(
             K.g2p,
@@ -359,14 +395,17 @@ class MPMSolver:
         )
         self._cmds = cmds
         self._cmds_key = (id(state), self._lo, self._hi)
+        self._box = (lo, dims)  # the active box as the effects' grid hooks take it
 
     def step(self, state: State) -> None:
+        """Advance ``state`` by one substep: P2G (probe force included), grid update, boundary
+        conditions, effects on the grid, G2P (particle translation included), effects on the
+        particles."""
         m, p = self.model, self.model.params
-        dt = p.dt
         if getattr(self, "_cmds_key", None) != (id(state), self._lo, self._hi):
             self._record(state)
         cmds = self._cmds
-        t = state.step * dt
+        t = state.step * p.dt
         probe_on = int(m.probe_steps > 0 and m.probe_first <= state.step < m.probe_first + m.probe_steps)
 
         cmds["zero"].launch()
@@ -376,26 +415,25 @@ class MPMSolver:
         for bc, cmd in cmds["bcs"]:
             if isinstance(bc, DomainWalls) or bc.start_time <= t < bc.end_time:
                 cmd.launch()
-        if p.effects:
-            lo = wp.vec3i(*self._lo)
-            dims = tuple(h - l for l, h in zip(self._lo, self._hi))
-            for effect in p.effects:
-                if hasattr(effect, "apply_grid"):
-                    effect.apply_grid(self, state, lo, dims, t)
-        trans_mask, trans_v, trans_on = self._zero_mask, wp.vec3(0.0), 0
-        for bc, mask in m.translations:  # at most one active translation is supported per step
-            if bc.start_time <= t < bc.end_time:
-                trans_mask, trans_v, trans_on = mask, wp.vec3(*bc.velocity), 1
-        g2p = cmds["g2p"]
+        for effect, scratch in zip(p.effects, self.effect_scratch):
+            effect.apply_grid(m, state, scratch, *self._box, t)
         if m.translations:
-            g2p.set_param_by_name("trans_mask", trans_mask)
-            g2p.set_param_by_name("trans_velocity", trans_v)
-            g2p.set_param_by_name("trans_on", trans_on)
-        g2p.launch()
-        for effect in p.effects:
-            if hasattr(effect, "apply_particles"):
-                effect.apply_particles(self, state, t)
+            self._set_translation(cmds["g2p"], t)
+        cmds["g2p"].launch()
+        for effect, scratch in zip(p.effects, self.effect_scratch):
+            effect.apply_particles(m, state, scratch, t)
         state.step += 1
+
+    def _set_translation(self, g2p, t: float) -> None:
+        """Point the recorded G2P launch at the particle translation active at ``t``, if any
+        (:func:`build_model` allows at most one at a time)."""
+        mask, velocity, on = self._zero_mask, wp.vec3(0.0), 0
+        for bc, selection in self.model.translations:
+            if bc.start_time <= t < bc.end_time:
+                mask, velocity, on = selection, wp.vec3(*bc.velocity), 1
+        g2p.set_param_by_name("trans_mask", mask)
+        g2p.set_param_by_name("trans_velocity", velocity)
+        g2p.set_param_by_name("trans_on", on)
 
     def momentum(self, state: State) -> np.ndarray:
         """Total particle momentum [kg m/s], accumulated in float64 on the host."""
