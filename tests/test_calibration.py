@@ -6,6 +6,7 @@ Probe-A descriptor table; its README pins the local-ridge mean joint error at 0.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -410,13 +411,17 @@ def test_joint_error_pct():
 
 
 def test_estimate_record_is_json_safe():
-    est = Estimate("q", 1.0, 1.0, "x", {"cond": float("inf"), "a": np.float64(2.0), "t": (1, 2)})
-    assert est.to_dict() == {
+    # the package-wide policy of knockgs_core._io.json_safe: NaN -> None, +-inf -> "inf"/"-inf"
+    details = {"cond": float("inf"), "low": -np.inf, "se": float("nan"), "a": np.float64(2.0), "t": (1, 2)}
+    est = Estimate("q", 1.0, 1.0, "x", details)
+    record = est.to_dict()
+    assert record == {
         "case_name": "q",
         "E_scale": 1.0,
         "density_scale": 1.0,
-        "details": {"cond": None, "a": 2.0, "t": [1, 2]},
+        "details": {"cond": "inf", "low": "-inf", "se": None, "a": 2.0, "t": [1, 2]},
     }
+    json.dumps(record, allow_nan=False)
 
 
 # ------------------------------------------------------------------ calibrate() validation

@@ -5,34 +5,38 @@ evaluation-only parameter-nearest oracle, which reads hidden target labels, is k
 this namespace: import it explicitly from :mod:`knockgs_core.calibration.oracle`. Its name,
 :data:`ORACLE_METHOD`, is part of the method vocabulary (:data:`METHOD_NAMES`), which every
 layer (CLI, workflow, config schema) derives from.
+
+Semantics follow the authors' released Ficus fixture (``tests/data/knockgs-ficus/``) exactly:
+features standardized on the candidates only; Euclidean distances in that space, ties broken
+by case name; inverse-distance weights ``1 / (d + 1e-8)``; ridge fits with an unregularized
+intercept, the two scales fitted independently; local ridge clipped to the candidate bounds,
+falling back to inverse-distance KNN (k = 5) when it cannot fit.
+
+Modules: ``_registry`` (method names, aliases, options, :data:`METHODS`), ``_estimate``
+(:class:`Estimate`, :func:`joint_error_pct`), ``_standardize``, ``_base`` (shared fit /
+predict / neighbour search), ``_fixed_default``, ``_neighbors`` (response nearest, KNN),
+``_ridge`` (global and local ridge), ``_selection`` (k / alpha by candidate-only
+leave-one-out), ``_tables`` (library and query tables, library hash), ``_calibrate`` (the
+``knockgs calibrate`` core).
 """
 
-from ._impl import (
-    DEFAULT_ALPHAS,
-    DEFAULT_KS,
-    FEATURE_NAMES,
-    METHODS,
-    THETA_NAMES,
-    Estimate,
-    FixedDefault,
-    GlobalRidge,
-    LocalRidge,
-    ResponseKNN,
-    ResponseNearest,
-    Standardizer,
-    calibrate,
-    joint_error_pct,
-    select_knn_k,
-    select_ridge_alpha,
-)
+from ..descriptors import FEATURE_NAMES
+from ._calibrate import calibrate
+from ._estimate import THETA_NAMES, Estimate, joint_error_pct
+from ._fixed_default import FixedDefault
+from ._neighbors import ResponseKNN, ResponseNearest
 from ._registry import (
     DEPLOYABLE_METHODS,
     METHOD_ALIASES,
     METHOD_NAMES,
     METHOD_OPTIONS,
+    METHODS,
     ORACLE_METHOD,
     canonical_method,
 )
+from ._ridge import GlobalRidge, LocalRidge
+from ._selection import DEFAULT_ALPHAS, DEFAULT_KS, select_knn_k, select_ridge_alpha
+from ._standardize import Standardizer
 
 __all__ = [
     "METHOD_NAMES",

@@ -2,15 +2,20 @@
 
 The canonical names are the names of the paper's tables. The CLI ``choices``, the
 workflow's wildcard constraint, the config schema's enum and the accepted method options
-all come from here. The older short spellings (``default``, ``nearest``, ``knn``) are
-accepted as aliases and mapped to their canonical names by :func:`canonical_method`.
-
-This module holds names only (no estimator, no NumPy), so importing it is cheap.
+all come from here, and :data:`METHODS` maps each deployable name to its estimator class.
+The older short spellings (``default``, ``nearest``, ``knn``) are accepted as aliases and
+mapped to their canonical names by :func:`canonical_method`.
 """
 
 from __future__ import annotations
 
+from ._base import LibraryEstimator
+from ._fixed_default import FixedDefault
+from ._neighbors import ResponseKNN, ResponseNearest
+from ._ridge import GlobalRidge, LocalRidge
+
 __all__ = [
+    "METHODS",
     "METHOD_NAMES",
     "DEPLOYABLE_METHODS",
     "ORACLE_METHOD",
@@ -34,6 +39,16 @@ DEPLOYABLE_METHODS: tuple[str, ...] = (
 
 #: every method of the tables, in table order: the deployable ones, then the oracle
 METHOD_NAMES: tuple[str, ...] = (*DEPLOYABLE_METHODS, ORACLE_METHOD)
+
+#: deployable estimators, by canonical name (the parameter-nearest oracle is not one: it
+#: lives in :mod:`knockgs_core.calibration.oracle`)
+METHODS: dict[str, type[LibraryEstimator]] = {
+    "fixed_default": FixedDefault,
+    "response_nearest": ResponseNearest,
+    "response_knn": ResponseKNN,
+    "global_ridge": GlobalRidge,
+    "local_ridge": LocalRidge,
+}
 
 #: older spellings -> canonical name
 METHOD_ALIASES: dict[str, str] = {

@@ -13,7 +13,8 @@ from typing import Literal
 
 import numpy as np
 
-from ._impl import Estimate, THETA_NAMES, joint_error_pct
+from ._estimate import THETA_NAMES, Estimate, joint_error_pct
+from ._registry import ORACLE_METHOD
 
 __all__ = ["ParameterNearestOracle"]
 
@@ -30,7 +31,7 @@ class ParameterNearestOracle:
         standardized by the candidates' population std. Ties go to the first case name.
     """
 
-    method = "parameter_nearest_oracle"
+    method = ORACLE_METHOD
 
     def __init__(self, *, metric: Literal["joint_error", "standardized"] = "joint_error"):
         if metric not in ("joint_error", "standardized"):

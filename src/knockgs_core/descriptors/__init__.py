@@ -1,6 +1,6 @@
 """Probe-A response descriptors: five numbers from an exported particle rollout (SPEC §5)."""
 
-from ._impl import (
+from ._descriptor import (
     FEATURE_NAMES,
     descriptor,
     descriptor_from_rollout,
