@@ -9,13 +9,12 @@ from hidden labels and never reachable from :func:`frozen_estimate` for deployab
 from __future__ import annotations
 
 import hashlib
-import json
-from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
 import pandas as pd
 
+from . import _io
 from .descriptors import FEATURE_NAMES, descriptor
 from .errors import InputError
 from .metrics import curve_metrics, joint_error_pct, trajectory_rmse
@@ -66,7 +65,8 @@ def library_table(candidates: pd.DataFrame, rollouts: Mapping[str, str]) -> pd.D
     rows = []
     for rec in candidates.itertuples(index=False):
         phi = _descriptor_of(rollouts[rec.case_name])
-        rows.append({"case_name": rec.case_name, "E_scale": rec.E_scale, "density_scale": rec.density_scale, **dict(zip(FEATURE_NAMES, phi))})
+        rows.append({"case_name": rec.case_name, "E_scale": rec.E_scale, "density_scale": rec.density_scale,
+                     **dict(zip(FEATURE_NAMES, phi))})
     return pd.DataFrame(rows)
 
 
@@ -170,9 +170,9 @@ def evaluate_method(
 
 
 def write_json(obj, path) -> None:
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w") as fh:
-        json.dump(obj, fh, indent=1, allow_nan=False)
+    """Write an estimates document as JSON (indent 1), atomically, NaN as null
+    (:func:`knockgs_core._io.write_json`)."""
+    _io.write_json(path, obj, indent=1)
 
 
 # ------------------------------------------------------------------------------------
@@ -187,31 +187,32 @@ def camera_from_contract(camera: Mapping, *, width: int | None = None, height: i
 
 
 def render_rollout(gaussians, static_mask, gaussian_index, positions, F, camera, *, device: str = "cpu"):
-    """Render every frame of a rollout as PhysGaussian does: Gaussian-associated particles
-    move the means of their Gaussians, covariances become F Sigma_0 F^T, static support
-    Gaussians stay, fill particles are not rendered.
+    """Render every frame of a rollout as PhysGaussian does (:func:`knockgs_core.render.deformed_scene`):
+    Gaussian-associated particles move the means of their Gaussians, covariances become
+    F Sigma_0 F^T, static support Gaussians stay, fill particles are not rendered.
 
-    ``positions`` (T, N, 3) (the first ``len(gaussian_index)`` rows are GS particles),
-    ``F`` (T, n_gs, 3, 3). Returns ``rgb`` (T, H, W, 3) and ``alpha`` (T, H, W), float32.
+    ``static_mask`` [G] bool and ``gaussian_index`` [n_gs] (which must equal
+    ``flatnonzero(~static_mask)``) come from the asset's scene file; ``positions`` (T, N, 3)
+    (the first ``n_gs`` rows are GS particles), ``F`` (T, n_gs, 3, 3).
+    Returns ``rgb`` (T, H, W, 3) and ``alpha`` (T, H, W), float32.
     """
-    from .render import deform_covariances, render
+    from .render import deformed_scene, render
 
     means0 = np.asarray(gaussians.means, dtype=np.float64)
     cov0 = np.asarray(gaussians.covariances(), dtype=np.float64)
     colors = np.asarray(gaussians.colors(), dtype=np.float64)
     opac = np.asarray(gaussians.opacities, dtype=np.float64)
+    mask = np.asarray(static_mask)
     idx = np.asarray(gaussian_index)
     n_gs = len(idx)
-    if F is not None and F.shape[1] != n_gs:
-        raise InputError("deformation", "F", f"{F.shape[1]} deformation gradients for {n_gs} Gaussian-associated particles")
+    if mask.shape != (len(means0),) or not np.array_equal(idx, np.flatnonzero(~mask)):
+        raise InputError("scene", "gaussian_index", "must list the rows where static_mask is False, in order")
+    if F is None or F.shape[1] != n_gs:
+        got = "no deformation gradients" if F is None else f"{F.shape[1]} deformation gradients"
+        raise InputError("deformation", "F", f"{got} for {n_gs} Gaussian-associated particles")
     rgbs, alphas = [], []
     for t in range(positions.shape[0]):
-        means = means0.copy()
-        cov = cov0.copy()
-        means[idx] = positions[t, :n_gs]
-        if F is not None:
-            cov[idx] = deform_covariances(cov0[idx], F[t])
-        out = render(means, cov, colors, opac, camera, device=device)
+        out = render(*deformed_scene(means0, cov0, colors, opac, positions[t, :n_gs], F[t], mask), camera, device=device)
         rgbs.append(out.rgb)
         alphas.append(out.alpha)
     return np.stack(rgbs), np.stack(alphas)
@@ -230,5 +231,6 @@ def render_metrics_rows(estimate: Mapping, targets: pd.DataFrame, render_path, p
             a = np.load(render_path(probe, thetas[rec.case_name]))
             b = np.load(render_path(probe, truth))
             pr, pa, tr, ta = (x.astype(np.float32) for x in (a["rgb"], a["alpha"], b["rgb"], b["alpha"]))
-            rows.append({"target": rec.case_name, "probe": probe, "psnr_fg": foreground_psnr(pr, tr, pa, ta), "ssim_crop": crop_ssim(pr, tr, pa, ta)})
+            rows.append({"target": rec.case_name, "probe": probe, "psnr_fg": foreground_psnr(pr, tr, pa, ta),
+                         "ssim_crop": crop_ssim(pr, tr, pa, ta)})
     return pd.DataFrame(rows)

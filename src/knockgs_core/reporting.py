@@ -13,7 +13,22 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
-__all__ = ["main_table", "targetwise_table", "objects_table", "render_table", "write_table", "plot_main", "plot_objects", "qualitative_figure", "comparison_gif", "CURVE_METRICS"]
+from ._io import atomic_write, write_text
+
+__all__ = [
+    "main_table",
+    "targetwise_table",
+    "objects_table",
+    "render_table",
+    "write_table",
+    "to_markdown",
+    "plot_main",
+    "plot_objects",
+    "qualitative_figure",
+    "comparison_gif",
+    "save_figure",
+    "CURVE_METRICS",
+]
 
 CURVE_METRICS = ("curve_rmse", "peak_abs_diff", "auc_abs_diff", "final_abs_diff")
 
@@ -33,7 +48,8 @@ def main_table(evals: pd.DataFrame, methods: Sequence[str], probes: Sequence[str
         if e.empty:
             continue
         per_target = e.drop_duplicates("target")
-        row = {"method": m, "joint_error_pct": per_target["joint_error_pct"].mean(), "joint_error_sd": _sd(per_target["joint_error_pct"]), "n_targets": len(per_target)}
+        row = {"method": m, "joint_error_pct": per_target["joint_error_pct"].mean(),
+               "joint_error_sd": _sd(per_target["joint_error_pct"]), "n_targets": len(per_target)}
         for p in probes:
             ep = e[e["probe"] == p]
             row[f"traj_rmse_{p}"] = ep["traj_rmse"].mean()
@@ -51,7 +67,8 @@ def targetwise_table(evals: pd.DataFrame, methods: Sequence[str], probes: Sequen
     rows = []
     for (target, m), e in evals.groupby(["target", "method"], sort=False):
         first = e.iloc[0]
-        row = {"target": target, "method": m, "E_true": first.E_true, "rho_true": first.rho_true, "E_hat": first.E_hat, "rho_hat": first.rho_hat, "joint_error_pct": first.joint_error_pct}
+        row = {"target": target, "method": m, "E_true": first.E_true, "rho_true": first.rho_true,
+               "E_hat": first.E_hat, "rho_hat": first.rho_hat, "joint_error_pct": first.joint_error_pct}
         for p in probes:
             row[f"traj_rmse_{p}"] = float(e.loc[e["probe"] == p, "traj_rmse"].mean())
         rows.append(row)
@@ -60,7 +77,9 @@ def targetwise_table(evals: pd.DataFrame, methods: Sequence[str], probes: Sequen
     return df.sort_values(["target", "method"], key=lambda s: s.map(order) if s.name == "method" else s).reset_index(drop=True)
 
 
-def objects_table(mains: dict[str, pd.DataFrame], heldout: dict[str, Sequence[str]], calibration_probes: dict[str, str]) -> pd.DataFrame:
+def objects_table(
+    mains: dict[str, pd.DataFrame], heldout: dict[str, Sequence[str]], calibration_probes: dict[str, str]
+) -> pd.DataFrame:
     """Three-object repeatability: per object and method, joint error and the Probe-A and
     (first) Probe-B trajectory RMSE."""
     rows = []
@@ -68,8 +87,9 @@ def objects_table(mains: dict[str, pd.DataFrame], heldout: dict[str, Sequence[st
         pb = heldout[obj][0]
         for r in t.itertuples(index=False):
             d = r._asdict()
-            rows.append({"object": obj, "method": d["method"], "joint_error_pct": d["joint_error_pct"], "joint_error_sd": d["joint_error_sd"],
-                         "traj_rmse_A": d[f"traj_rmse_{calibration_probes[obj]}"], "probe_B": pb, "traj_rmse_B": d[f"traj_rmse_{pb}"]})
+            rows.append({"object": obj, "method": d["method"], "joint_error_pct": d["joint_error_pct"],
+                         "joint_error_sd": d["joint_error_sd"], "traj_rmse_A": d[f"traj_rmse_{calibration_probes[obj]}"],
+                         "probe_B": pb, "traj_rmse_B": d[f"traj_rmse_{pb}"]})
     return pd.DataFrame(rows)
 
 
@@ -98,11 +118,18 @@ def to_markdown(df: pd.DataFrame, *, title: str = "", note: str = "") -> str:
 
 
 def write_table(df: pd.DataFrame, csv_path, md_path=None, *, title: str = "", note: str = "") -> None:
-    csv_path = Path(csv_path)
-    csv_path.parent.mkdir(parents=True, exist_ok=True)
-    df.to_csv(csv_path, index=False, float_format="%.8g")
+    """Write ``df`` as CSV (floats ``%.8g``, no index) and, with ``md_path``, as a Markdown
+    table (:func:`to_markdown`), each file atomically (:mod:`knockgs_core._io`)."""
+    write_text(csv_path, df.to_csv(index=False, float_format="%.8g", lineterminator="\n"))
     if md_path is not None:
-        Path(md_path).write_text(to_markdown(df, title=title, note=note))
+        write_text(md_path, to_markdown(df, title=title, note=note))
+
+
+def save_figure(fig, path, *, dpi: int) -> None:
+    """Save a Matplotlib figure atomically; the format follows the file extension (PNG default)."""
+    fmt = Path(path).suffix.lstrip(".").lower() or "png"
+    with atomic_write(path, mode="wb") as fh:
+        fig.savefig(fh, dpi=dpi, format=fmt)
 
 
 def plot_main(table: pd.DataFrame, probes: Sequence[str], path, *, title: str = "") -> None:
@@ -129,8 +156,7 @@ def plot_main(table: pd.DataFrame, probes: Sequence[str], path, *, title: str = 
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
 
 
@@ -156,8 +182,7 @@ def plot_objects(table: pd.DataFrame, path) -> None:
     axes[1].set_yscale("log")
     axes[0].legend(fontsize=7)
     fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
 
 
@@ -192,7 +217,9 @@ def _moving_crop(alphas: Sequence[np.ndarray], rgbs: Sequence[np.ndarray], pad: 
     return slice(max(0, ys.min() - pad), min(H, ys.max() + pad + 1)), slice(max(0, xs.min() - pad), min(W, xs.max() + pad + 1))
 
 
-def qualitative_figure(names: Sequence[str], rgbs: Sequence[np.ndarray], alphas: Sequence[np.ndarray], path, *, title: str = "") -> None:
+def qualitative_figure(
+    names: Sequence[str], rgbs: Sequence[np.ndarray], alphas: Sequence[np.ndarray], path, *, title: str = ""
+) -> None:
     """Mid and final frame per method (row 1-2) and the final-frame absolute RGB error to
     the target (row 3) on one shared scale clipped at the 99.9th percentile; cropped to the
     moving region. ``names[0]`` is the target."""
@@ -222,8 +249,7 @@ def qualitative_figure(names: Sequence[str], rgbs: Sequence[np.ndarray], alphas:
     fig.colorbar(im, ax=axes[2, :].tolist(), shrink=0.8, label=f"final-frame |error| (clipped at 99.9th pct = {vmax:.2g})")
     if title:
         fig.suptitle(title, fontsize=10)
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 
@@ -245,5 +271,5 @@ def comparison_gif(names: Sequence[str], rgbs: Sequence[np.ndarray], path, *, du
             draw.text((j * w + 4, 4), name, fill=(0, 0, 0))
         draw.text((4, im.height - 14), f"frame {t}", fill=(255, 255, 255))
         frames.append(im)
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    frames[0].save(path, save_all=True, append_images=frames[1:], duration=duration_ms, loop=0)
+    with atomic_write(path, mode="wb") as fh:
+        frames[0].save(fh, format="GIF", save_all=True, append_images=frames[1:], duration=duration_ms, loop=0)

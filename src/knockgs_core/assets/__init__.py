@@ -14,6 +14,7 @@ from ._gaussians import SH_C0, GaussianSet, matrix_to_quat, quat_multiply, quat_
 from ._particles import ParticleSet, load_particles, save_particles
 from ._ply import read_ply, write_ply
 from ._procedural import CAPTURE_ROTATION, PROCEDURAL_ASSETS, make_procedural
+from ._scene import load_scene, save_scene, scene_path
 from ._transform import Normalization, preprocess, rotation_matrix, transform_gaussians
 
 __all__ = [
@@ -28,6 +29,9 @@ __all__ = [
     "ParticleSet",
     "save_particles",
     "load_particles",
+    "save_scene",
+    "load_scene",
+    "scene_path",
     "FillResult",
     "fill_interior",
     "density_grid",

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
+
+from knockgs_core._io import atomic_write
 
 
 def asset_figure(built, path: str | os.PathLike, *, title: str = "", max_points: int = 60000) -> None:
@@ -41,5 +44,7 @@ def asset_figure(built, path: str | os.PathLike, *, title: str = "", max_points:
     axes[0].legend(loc="lower left", fontsize=8, markerscale=4)
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    fmt = Path(path).suffix.lstrip(".").lower() or "png"
+    with atomic_write(path, mode="wb") as fh:
+        fig.savefig(fh, dpi=100, format=fmt)
     plt.close(fig)

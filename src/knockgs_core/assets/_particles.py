@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from knockgs_core._io import write_bytes
 from knockgs_core.errors import InputError
 
 from ._gaussians import _as_array, _readonly
@@ -116,7 +117,7 @@ def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
 
 
 def save_particles(ps: ParticleSet, path: str | os.PathLike) -> None:
-    """Write ``ps`` to an ``.npz`` file (byte-identical for identical particle sets)."""
+    """Write ``ps`` to an ``.npz`` file (byte-identical for identical particle sets), atomically."""
     meta = {"n_gs": ps.n_gs, "region_names": list(ps.region_names), "fill_cells": ps.fill_cells,
             "has_volumes": ps.volumes is not None, "format": "knockgs-particles/1"}
     arrays = {"positions": ps.positions, "gaussian_index": ps.gaussian_index,
@@ -124,9 +125,7 @@ def save_particles(ps: ParticleSet, path: str | os.PathLike) -> None:
               "meta": np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)}
     if ps.volumes is not None:
         arrays["volumes"] = ps.volumes
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(_npz_bytes(arrays))
+    write_bytes(path, _npz_bytes(arrays))
 
 
 def load_particles(path: str | os.PathLike) -> ParticleSet:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from knockgs_core._io import atomic_write
 from knockgs_core.errors import InputError
 
 from ._gaussians import GaussianSet
@@ -99,7 +100,7 @@ def write_ply(gs: GaussianSet, path: str | os.PathLike) -> None:
 
     Inverse activations: ``scale_* = log(scales)``, ``opacity = logit(opacities)``
     (opacities clipped to [1e-7, 1 - 1e-7]); quaternions are written normalized.
-    The bytes depend only on ``gs``.
+    The bytes depend only on ``gs``; the file is written atomically (:mod:`knockgs_core._io`).
     """
     from plyfile import PlyData, PlyElement
 
@@ -115,5 +116,5 @@ def write_ply(gs: GaussianSet, path: str | os.PathLike) -> None:
     rec = np.empty(n, dtype=[(p, "<f4") for p in props])
     for i, p in enumerate(props):
         rec[p] = table[:, i]
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    PlyData([PlyElement.describe(rec, "vertex")], text=False, byte_order="<").write(str(path))
+    with atomic_write(path, mode="wb") as fh:
+        PlyData([PlyElement.describe(rec, "vertex")], text=False, byte_order="<").write(fh)
