@@ -3,7 +3,8 @@
 - leakage: no deployable estimator read a Probe-B file, a target label or anything but the
   candidate library and the Probe-A query table; the query table carries no labels; no
   target is a library candidate; library rollouts are Probe-A rollouts of candidates.
-- non-finite: every rollout and table is finite.
+- non-finite: every rollout and table is finite (rollouts read with the one long-format
+  reader, :mod:`knockgs_core._long_format`, which also reports a malformed file).
 - missing frames: every rollout holds every exported frame of every particle.
 - duplicates: no duplicate case names or parameter pairs among candidates and targets.
 - completion: every expected output exists and every main table has every method.
@@ -19,11 +20,22 @@ import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 
+from ._long_format import POSITION_COLUMNS, read_long_values, read_metadata
 from .descriptors import FEATURE_NAMES
+from .errors import InputError
 
 __all__ = ["audit_leakage", "audit_nonfinite", "audit_missing_frames", "audit_duplicates", "audit_completion"]
 
 LABEL_COLUMNS = ("E_scale", "density_scale", "E_true", "rho_true")
+#: schema-metadata key of a rollout file (see :mod:`knockgs_core.rollout`)
+_META_KEY = b"knockgs"
+
+
+def _rollout_meta(path) -> dict:
+    meta = read_metadata(path, _META_KEY)
+    if meta is None:
+        raise InputError(path, "metadata.knockgs", "missing: not a KnockGS rollout")
+    return meta
 
 
 def audit_leakage(
@@ -72,13 +84,14 @@ def audit_leakage(
     n_lib = 0
     for f in library_rollouts:
         n_lib += 1
-        md = json.loads(pq.read_schema(f).metadata[b"knockgs"])
+        md = _rollout_meta(f)
         want = calibration_probes.get(md["object"])
         if md["probe"]["name"] != want:
             problems.append(f"{f}: library rollout under probe '{md['probe']['name']}', not Probe A '{want}'")
         if (round(md["theta"][0], 6), round(md["theta"][1], 6)) not in {(round(a, 6), round(b, 6)) for a, b in cand_pairs}:
             problems.append(f"{f}: library rollout at theta {md['theta']} is not a candidate")
-    return {"passed": not problems, "deployable_estimates_checked": checked, "library_rollouts_checked": n_lib, "problems": problems}
+    return {"passed": not problems, "deployable_estimates_checked": checked, "library_rollouts_checked": n_lib,
+            "problems": problems}
 
 
 def _rollout_files(dirs: Sequence) -> list[Path]:
@@ -93,10 +106,10 @@ def audit_nonfinite(rollout_dirs: Sequence, tables: Iterable) -> dict:
     problems = []
     files = _rollout_files(rollout_dirs)
     for f in files:
-        t = pq.read_table(f, columns=["x", "y", "z"])
-        for c in ("x", "y", "z"):
-            if not np.all(np.isfinite(t.column(c).to_numpy())):
-                problems.append(f"{f}: non-finite {c}")
+        try:  # the long-format reader refuses non-finite values, naming the column
+            read_long_values(f, POSITION_COLUMNS)
+        except InputError as exc:
+            problems.append(f"{f}: non-finite {exc.field}" if "non-finite" in exc.message else f"{f}: {exc.message}")
     n_tables = 0
     for f in tables:
         n_tables += 1
@@ -116,7 +129,7 @@ def audit_missing_frames(rollout_dirs: Sequence) -> dict:
     problems = []
     files = _rollout_files(rollout_dirs)
     for f in files:
-        md = json.loads(pq.read_schema(f).metadata[b"knockgs"])
+        md = _rollout_meta(f)
         t = pq.read_table(f, columns=["frame", "particle"])
         frames = t.column("frame").to_numpy()
         n_frames = md["probe"]["export"]["n_frames"]
