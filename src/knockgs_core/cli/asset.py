@@ -1,6 +1,8 @@
 """knockgs asset: make, summarize and draw an object's Gaussian asset.
 
     knockgs asset make NAME --profile PROFILE -o OUT.ply [--normalized] [--particles P.npz]
+        (with --normalized, the scene file OUT.scene.npz is written next to OUT.ply: with a
+        rollout, the PLY and the scene file are what `knockgs render` needs)
     knockgs asset summary NAME --profile PROFILE [--json]
     knockgs asset figure NAME --profile PROFILE -o OUT.png
 
@@ -30,7 +32,8 @@ def register(subparsers) -> None:
     common(mk)
     mk.add_argument("-o", "--output", required=True, help="output .ply")
     mk.add_argument("--normalized", action="store_true",
-                    help="write the preprocessed Gaussians in the normalized domain "
+                    help="write the preprocessed Gaussians in the normalized domain, the frame of rollouts, and "
+                         "their scene file (OUT.scene.npz) for `knockgs render` "
                          "(default: the source/capture frame, as a reconstruction would be)")
     mk.add_argument("--particles", default=None, help="also write the simulated particles (.npz)")
     mk.set_defaults(func=_make)
@@ -53,18 +56,22 @@ def _load(args):
 
 
 def _make(args) -> int:
-    from knockgs_core.assets import build_asset, load_source_gaussians, save_particles, write_ply
+    from knockgs_core.assets import build_asset, load_source_gaussians, save_particles, save_scene, scene_path, write_ply
 
     contract = _load(args)
     if args.normalized or args.particles:
         built = build_asset(contract)
+    written = [args.output]
     if args.normalized:
         write_ply(built.gaussians, args.output)
+        written.append(str(scene_path(args.output)))
+        save_scene(built, written[-1])
     else:
         write_ply(load_source_gaussians(contract), args.output)
     if args.particles:
         save_particles(built.particles, args.particles)
-    print(f"wrote {args.output}")
+        written.append(args.particles)
+    print(f"wrote {', '.join(written)}")
     return 0
 
 

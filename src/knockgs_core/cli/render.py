@@ -1,8 +1,10 @@
 """``knockgs render``: a rollout's frames as images, or as deformed 3DGS PLY files.
 
-Both subcommands take the asset's PLY (``results/<profile>/assets/<object>.ply``), its scene
-file (``<object>.scene.npz``, found next to the PLY by default) and an evaluation rollout
-with its deformation gradients (``<theta>.parquet`` and ``<theta>.F.parquet``).
+Both subcommands take the asset's normalized PLY and its scene file (``<object>.ply`` and
+``<object>.scene.npz`` next to it: written by ``knockgs asset make --normalized`` and by the
+workflow under ``results/<profile>/assets/``) and a rollout with its deformation gradients
+(``knockgs simulate ... -o R.parquet --export-F R.F.parquet``; the workflow's evaluation
+rollouts ``<theta>.parquet`` and ``<theta>.F.parquet``).
 """
 
 from __future__ import annotations
@@ -12,18 +14,21 @@ from pathlib import Path
 
 from ..errors import InputError
 
+__all__ = ["register", "run_frames", "run_ply"]
+
 
 def _common(p) -> None:
-    p.add_argument("--asset", required=True, help="the asset's 3DGS PLY (results/<profile>/assets/<object>.ply)")
-    p.add_argument("--rollout", required=True, help="an evaluation rollout .parquet")
-    p.add_argument("--deformation", help="its deformation gradients (default: the rollout's .F.parquet)")
+    p.add_argument("--asset", required=True, help="the asset's normalized 3DGS PLY (knockgs asset make --normalized)")
+    p.add_argument("--rollout", required=True, help="a rollout .parquet (knockgs simulate)")
+    p.add_argument("--deformation", help="its deformation gradients (default: R.F.parquet next to R.parquet)")
     p.add_argument("--scene", help="the asset's scene file (default: <asset>.scene.npz next to the PLY)")
     p.add_argument("--frames", default="all", help="frame indices, e.g. '0,15,30' or 'all' (default)")
     p.add_argument("-o", "--output", required=True, help="output folder")
 
 
 def register(sub) -> None:
-    p = sub.add_parser("render", help="render a rollout's frames (PNG) or export them as deformed 3DGS PLY", description=__doc__.splitlines()[0])
+    p = sub.add_parser("render", help="render a rollout's frames (PNG) or export them as deformed 3DGS PLY",
+                       description=__doc__.splitlines()[0])
     s = p.add_subparsers(dest="render_command", required=True)
     fr = s.add_parser("frames", help="PNG per frame with the object's camera")
     _common(fr)
@@ -53,25 +58,20 @@ def _frames(text: str, n: int) -> list[int]:
 
 
 def _load(args):
-    import numpy as np
-
-    from ..assets import read_ply
+    from ..assets import load_scene, read_ply, scene_path
     from ..rollout import read_deformation, read_rollout
 
     asset = Path(args.asset)
-    scene_path = Path(args.scene) if args.scene else asset.with_name(asset.name[: -len(".ply")] + ".scene.npz" if asset.name.endswith(".ply") else asset.name + ".scene.npz")
+    scene = Path(args.scene) if args.scene else scene_path(asset)
     rollout = Path(args.rollout)
     f_path = Path(args.deformation) if args.deformation else rollout.with_name(rollout.name.replace(".parquet", ".F.parquet"))
-    for path, field in ((asset, "--asset"), (scene_path, "--scene"), (rollout, "--rollout"), (f_path, "--deformation")):
+    hints = {"--scene": " (written next to the PLY by `knockgs asset make --normalized`)",
+             "--deformation": " (written by `knockgs simulate ... --export-F`)"}
+    for path, field in ((asset, "--asset"), (scene, "--scene"), (rollout, "--rollout"), (f_path, "--deformation")):
         if not path.is_file():
-            raise InputError(str(path), field, "no such file")
+            raise InputError(str(path), field, "no such file" + hints.get(field, ""))
     gaussians = read_ply(asset)
-    try:
-        scene = np.load(scene_path)
-        gaussian_index = np.asarray(scene["gaussian_index"])
-        static_mask = np.asarray(scene["static_mask"])
-    except (OSError, ValueError, KeyError) as exc:
-        raise InputError(str(scene_path), "gaussian_index/static_mask", f"not a KnockGS scene file ({exc})") from None
+    static_mask, gaussian_index = load_scene(scene, n_gaussians=len(gaussians))
     ro = read_rollout(rollout)
     F = read_deformation(f_path)
     if F.shape[0] != ro.positions.shape[0] or F.shape[1] != gaussian_index.size:

@@ -7,6 +7,8 @@ import sys
 
 from ..errors import InputError
 
+__all__ = ["register", "run"]
+
 
 def _theta(text: str) -> tuple[float, float]:
     try:
@@ -24,7 +26,8 @@ def register(sub) -> None:
     p.add_argument("--probe", required=True, help="probe name from the contract, e.g. standard_x")
     p.add_argument("-o", "--output", required=True, help="output rollout .parquet")
     p.add_argument("--particles", help="particles .npz from `knockgs asset` (default: build the asset)")
-    p.add_argument("--export-F", dest="export_F", help="also write the GS particles' deformation gradients here")
+    p.add_argument("--export-F", dest="export_F", metavar="R.F.parquet",
+                   help="also write the GS particles' deformation gradients here (needed by `knockgs render`)")
     p.add_argument("--device", help="Warp device (cpu, cuda:0); default $KNOCKGS_DEVICE or cpu")
     p.add_argument("--config-dir", help="folder holding objects/ (default: the project's config/)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -35,8 +38,8 @@ def run(args) -> int:
     from ..contract import load_contract
     from ..rollout import run_rollout, write_deformation, write_rollout
 
-    if args.output == args.particles:
-        raise InputError(args.output, "output", "the output path equals an input path")
+    if args.output in (args.particles, args.export_F):
+        raise InputError(args.output, "output", "the output path equals another path of the command")
     contract = load_contract(args.object, args.profile, config_dir=args.config_dir)
     particles = None
     if args.particles:
@@ -46,16 +49,19 @@ def run(args) -> int:
 
     def progress(frame: int, n_frames: int, stats: dict) -> None:
         if not args.quiet:
-            print(f"frame {frame}/{n_frames - 1}  cfl {stats['cfl']:.3g}  min det F {stats['min_det_F']:.5f}", file=sys.stderr, flush=True)
+            print(f"frame {frame}/{n_frames - 1}  cfl {stats['cfl']:.3g}  min det F {stats['min_det_F']:.5f}",
+                  file=sys.stderr, flush=True)
 
-    rollout = run_rollout(contract, args.theta, args.probe, particles=particles, device=args.device, export_F=bool(args.export_F), progress=progress)
+    rollout = run_rollout(contract, args.theta, args.probe, particles=particles, device=args.device,
+                          export_F=bool(args.export_F), progress=progress)
     write_rollout(args.output, rollout)
     if args.export_F:
         write_deformation(args.export_F, rollout)
     m = rollout.meta
     print(
         f"{m['object']}/{m['profile']} theta=({m['theta'][0]:g}, {m['theta'][1]:g}) probe={args.probe}: "
-        f"{m['n_gs']} GS + {m['n_fill']} fill particles, {m['stats']['steps']} substeps in {m['wall_seconds']:.2f} s -> {args.output}",
+        f"{m['n_gs']} GS + {m['n_fill']} fill particles, {m['stats']['steps']} substeps in {m['wall_seconds']:.2f} s "
+        f"-> {args.output}",
         file=sys.stderr,
     )
     return 0
