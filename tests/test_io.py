@@ -1,0 +1,165 @@
+"""The one atomic writer and JSON sanitizer (knockgs_core._io), and the library writers on it."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from knockgs_core import _io
+from knockgs_core._io import atomic_write, json_safe, write_bytes, write_json, write_npz, write_parquet, write_text
+from knockgs_core.errors import InputError
+
+
+def _temp_files(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if ".tmp" in p.name)
+
+
+def test_a_failing_writer_leaves_the_old_file_and_no_temporary(tmp_path):
+    target = tmp_path / "table.csv"
+    write_text(target, "old\n")
+    with pytest.raises(RuntimeError, match="disk full"):
+        with atomic_write(target, mode="w") as fh:
+            fh.write("new, half written")
+            raise RuntimeError("disk full")
+    assert target.read_text() == "old\n"
+    assert _temp_files(tmp_path) == []
+
+
+def test_an_interrupted_writer_leaves_nothing_new(tmp_path):
+    target = tmp_path / "new.bin"
+    with pytest.raises(KeyboardInterrupt):
+        with atomic_write(target) as fh:
+            fh.write(b"\x00" * 100)
+            raise KeyboardInterrupt
+    assert not target.exists() and _temp_files(tmp_path) == []
+
+
+def test_a_failing_rename_leaves_the_old_file(tmp_path, monkeypatch):
+    target = tmp_path / "est.json"
+    write_json(target, {"a": 1})
+    before = target.read_bytes()
+
+    def refuse(src, dst):
+        raise OSError("read-only file system")
+
+    monkeypatch.setattr(_io.os, "replace", refuse)
+    with pytest.raises(OSError, match="read-only"):
+        write_json(target, {"a": 2})
+    assert target.read_bytes() == before and _temp_files(tmp_path) == []
+
+
+@pytest.mark.parametrize("writer", [
+    lambda p: write_text(p, "x"),
+    lambda p: write_bytes(p, b"x"),
+    lambda p: write_json(p, {}),
+    lambda p: write_npz(p, a=np.zeros(2)),
+])
+def test_a_directory_is_refused(tmp_path, writer):
+    folder = tmp_path / "out.csv"
+    folder.mkdir()
+    with pytest.raises(InputError, match="directory"):
+        writer(folder)
+    assert folder.is_dir() and list(folder.iterdir()) == []
+
+
+@pytest.mark.skipif(not os.path.exists(os.devnull) or os.name == "nt", reason="needs a device node")
+def test_a_device_is_refused():
+    with pytest.raises(InputError, match="not a regular file"):
+        write_text(os.devnull, "x")
+
+
+def test_the_parent_folder_is_created_and_the_bytes_land(tmp_path):
+    target = tmp_path / "a" / "b" / "c.txt"
+    write_text(target, "line 1\nline 2\n")
+    assert target.read_bytes() == b"line 1\nline 2\n"  # no newline translation
+
+
+def test_parquet_and_npz_writers_round_trip(tmp_path):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    table = pa.table({"frame": pa.array([0, 1], pa.int32()), "x": pa.array([0.5, 1.5], pa.float32())})
+    write_parquet(tmp_path / "r.parquet", table)
+    assert pq.read_table(tmp_path / "r.parquet").equals(table)
+    write_npz(tmp_path / "s.npz", mask=np.array([True, False]))
+    with np.load(tmp_path / "s.npz") as z:
+        assert z["mask"].tolist() == [True, False]
+
+
+@dataclasses.dataclass(frozen=True)
+class _Point:
+    x: float
+    tags: tuple
+
+
+def test_json_safe_policy():
+    doc = {
+        "nan": math.nan, "inf": math.inf, "minus_inf": -math.inf, "f32": np.float32(0.5), "i64": np.int64(3),
+        "flag": np.bool_(True), "array": np.array([1.0, np.nan]), "tuple": (1, 2), "path": Path("a") / "b.csv",
+        "point": _Point(1.0, ("u", np.inf)), 7: "int key",
+    }
+    out = json_safe(doc)
+    assert out == {
+        "nan": None, "inf": "inf", "minus_inf": "-inf", "f32": 0.5, "i64": 3, "flag": True, "array": [1.0, None],
+        "tuple": [1, 2], "path": os.path.join("a", "b.csv"), "point": {"x": 1.0, "tags": ["u", "inf"]}, "7": "int key",
+    }
+    assert type(out["flag"]) is bool and type(out["i64"]) is int and type(out["f32"]) is float
+    json.dumps(out, allow_nan=False)  # strict JSON
+
+
+def test_write_json_is_strict_json_with_a_final_newline(tmp_path):
+    write_json(tmp_path / "e.json", {"value": math.nan, "scale": np.float64(2.0)}, indent=1)
+    text = (tmp_path / "e.json").read_text()
+    assert text.endswith("}\n") and "NaN" not in text
+    assert json.loads(text) == {"value": None, "scale": 2.0}
+
+
+# --------------------------------------------------------------------------- library writers
+
+def test_library_writers_refuse_a_directory_and_leave_no_temporary(tmp_path):
+    from knockgs_core.experiments import write_json as write_estimates
+    from knockgs_core.reporting import write_table
+
+    folder = tmp_path / "main.csv"
+    folder.mkdir()
+    df = pd.DataFrame({"method": ["a"], "x": [1.0]})
+    with pytest.raises(InputError, match="directory"):
+        write_table(df, folder)
+    with pytest.raises(InputError, match="directory"):
+        write_estimates({"a": 1}, folder)
+    write_table(df, tmp_path / "t.csv", tmp_path / "t.md", title="T")
+    assert (tmp_path / "t.csv").read_text() == "method,x\na,1\n"
+    assert (tmp_path / "t.md").read_text().startswith("# T\n")
+    assert _temp_files(tmp_path) == []
+
+
+def test_ply_and_particle_writers_are_atomic(tmp_path, monkeypatch):
+    from knockgs_core.assets import GaussianSet, ParticleSet, load_particles, read_ply, save_particles, write_ply
+
+    rng = np.random.default_rng(0)
+    n = 5
+    gs = GaussianSet(rng.normal(size=(n, 3)), np.full((n, 3), 0.1), np.tile([1.0, 0, 0, 0], (n, 1)),
+                     np.full(n, 0.5), rng.uniform(size=(n, 3)), np.zeros((n, 0, 3)))
+    ps = ParticleSet(positions=np.full((n, 3), 1.0), volumes=None, n_gs=n, gaussian_index=np.arange(n), region=np.zeros(n))
+    write_ply(gs, tmp_path / "g.ply")
+    save_particles(ps, tmp_path / "p.npz")
+    ply_before, npz_before = (tmp_path / "g.ply").read_bytes(), (tmp_path / "p.npz").read_bytes()
+    np.testing.assert_allclose(read_ply(tmp_path / "g.ply").means, gs.means, rtol=1e-6)
+    assert load_particles(tmp_path / "p.npz").n_gs == n
+
+    monkeypatch.setattr(_io.os, "replace", lambda src, dst: (_ for _ in ()).throw(OSError("no space left")))
+    moved = GaussianSet(gs.means + 1.0, gs.scales, gs.quats, gs.opacities, gs.sh_dc, gs.sh_rest)
+    with pytest.raises(OSError):
+        write_ply(moved, tmp_path / "g.ply")
+    with pytest.raises(OSError):
+        save_particles(ParticleSet(positions=np.full((n, 3), 1.5), volumes=None, n_gs=n, gaussian_index=np.arange(n),
+                                   region=np.zeros(n)), tmp_path / "p.npz")
+    assert (tmp_path / "g.ply").read_bytes() == ply_before and (tmp_path / "p.npz").read_bytes() == npz_before
+    assert _temp_files(tmp_path) == []
