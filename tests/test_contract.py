@@ -268,7 +268,10 @@ def test_cli_summary_and_make(tmp_path, capsys):
     assert (tmp_path / "f.png").stat().st_size > 10000
 
 
-@pytest.mark.parametrize("schema", sorted((Path(__file__).parents[1] / "workflow" / "schemas").glob("*.schema.yaml")), ids=lambda p: p.name)
+SCHEMAS = sorted([*(Path(__file__).parents[1] / "workflow" / "schemas").glob("*.schema.yaml"), schema_path()])
+
+
+@pytest.mark.parametrize("schema", SCHEMAS, ids=lambda p: p.name)
 def test_schemas_are_valid_draft_2020_12(schema):
     # contracts are validated without re-checking the schema in every process; checked here
     import yaml

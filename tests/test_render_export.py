@@ -92,7 +92,8 @@ def exported(tmp_path):
 
 def test_cli_render_ply_writes_viewer_frames(exported):
     d, g, idx, pos, F = exported
-    assert main(["render", "ply", "--asset", str(d / "obj.ply"), "--rollout", str(d / "r.parquet"), "--frames", "0,2", "-o", str(d / "ply")]) == 0
+    assert main(["render", "ply", "--asset", str(d / "obj.ply"), "--rollout", str(d / "r.parquet"), "--frames", "0,2",
+                 "-o", str(d / "ply")]) == 0
     assert sorted(p.name for p in (d / "ply").iterdir()) == ["frame_0000.ply", "frame_0002.ply"]
     f2 = read_ply(d / "ply" / "frame_0002.ply")
     np.testing.assert_allclose(f2.means[idx], pos[2, : idx.size], atol=1e-6)
@@ -108,12 +109,13 @@ def test_cli_render_errors_name_file_and_field(exported, capsys):
     assert main(["render", "ply", "--asset", str(d / "obj.ply"), "--rollout", str(d / "r.parquet"), "-o", str(d / "x")]) == 2
     err = capsys.readouterr().err
     assert "r.F.parquet" in err and "--deformation" in err and "Traceback" not in err
-    assert main(["render", "ply", "--asset", str(d / "obj.ply"), "--rollout", str(d / "r.parquet"), "--deformation", str(d / "r.parquet"),
-                 "-o", str(d / "x")]) == 2
+    assert main(["render", "ply", "--asset", str(d / "obj.ply"), "--rollout", str(d / "r.parquet"),
+                 "--deformation", str(d / "r.parquet"), "-o", str(d / "x")]) == 2
     assert "F00" in capsys.readouterr().err  # positions are not deformation gradients
     ro = Rollout(positions=exported[3], F=exported[4], meta={})
     write_deformation(d / "r.F.parquet", ro)
-    assert main(["render", "ply", "--asset", str(d / "obj.ply"), "--rollout", str(d / "r.parquet"), "--frames", "7", "-o", str(d / "x")]) == 2
+    assert main(["render", "ply", "--asset", str(d / "obj.ply"), "--rollout", str(d / "r.parquet"), "--frames", "7",
+                 "-o", str(d / "x")]) == 2
     err = capsys.readouterr().err
     assert "frames" in err and "0..2" in err
 
@@ -127,3 +129,38 @@ def test_cli_render_frames_png(exported):
     assert main(args) == 0
     img = Image.open(d / "png" / "frame_0001.png")
     assert img.size == (32, 24) and img.mode == "RGB"
+
+
+def test_render_rollout_is_deformed_scene_per_frame(exported):
+    # one way of moving Gaussians: the rollout renderer gives deformed_scene's frames exactly
+    from knockgs_core.experiments import render_rollout
+
+    d, g, idx, pos, F = exported
+    static = np.ones(len(g), bool)
+    static[idx] = False
+    cam = Camera.look_at([1.0, -2.0, 1.5], [1.0, 1.0, 1.0], [0, 0, 1], fov_deg=45, width=24, height=20)
+    rgb, alpha = render_rollout(g, static, idx, pos, F, cam)
+    for t in range(pos.shape[0]):
+        ref = render(*deformed_scene(g.means, g.covariances(), g.colors(), g.opacities, pos[t, : idx.size], F[t], static), cam)
+        np.testing.assert_array_equal(rgb[t], ref.rgb)
+        np.testing.assert_array_equal(alpha[t], ref.alpha)
+    with pytest.raises(Exception, match="gaussian_index"):  # the scene's two fields must agree
+        render_rollout(g, static, idx[::-1], pos, F, cam)
+
+
+def test_scene_file_round_trip_and_checks(tmp_path):
+    from knockgs_core.assets import load_scene, scene_path
+    from knockgs_core.errors import InputError
+
+    assert scene_path(tmp_path / "pillow.ply") == tmp_path / "pillow.scene.npz"
+    static = np.array([True, False, False, True, False])
+    np.savez_compressed(tmp_path / "a.scene.npz", static_mask=static, gaussian_index=np.flatnonzero(~static))
+    mask, idx = load_scene(tmp_path / "a.scene.npz", n_gaussians=5)
+    assert mask.tolist() == static.tolist() and idx.tolist() == [1, 2, 4]
+    with pytest.raises(InputError, match="static_mask"):
+        load_scene(tmp_path / "a.scene.npz", n_gaussians=6)
+    np.savez(tmp_path / "b.scene.npz", static_mask=static, gaussian_index=np.array([1, 2]))
+    with pytest.raises(InputError, match="b.scene.npz.*gaussian_index"):
+        load_scene(tmp_path / "b.scene.npz")
+    with pytest.raises(InputError, match="asset make --normalized"):
+        load_scene(tmp_path / "missing.scene.npz")

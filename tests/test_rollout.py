@@ -37,8 +37,9 @@ def test_each_asset_responds_to_its_probe_a(name, tmp_path):
     assert meta["n_gs"] == built.particles.n_gs and meta["n_gs"] + meta["n_fill"] == len(built.particles)
     assert meta["contract_hash"] == contract.hash
     # total force is the same at every resolution: per-particle force x count = reference count x f
-    np.testing.assert_allclose(np.asarray(meta["total_probe_force"]) * meta["sim"]["dt"] / contract.probes[probe].duration,
-                               f * contract.probe_reference_particles * meta["probe_selected_count"] / len(built.particles), rtol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(meta["total_probe_force"]) * meta["sim"]["dt"] / contract.probes[probe].duration,
+        f * contract.probe_reference_particles * meta["probe_selected_count"] / len(built.particles), rtol=1e-5)
 
 
 def test_rollout_parquet_round_trip_and_metadata(tmp_path):
@@ -82,17 +83,20 @@ def test_stiffer_heavier_scaling_on_an_asset():
 
 def test_simulate_cli_writes_the_rollout_format(tmp_path, capsys):
     out = tmp_path / "ro.parquet"
-    rc = cli_main(["simulate", "--object", "pillow", "--profile", "ci", "--theta", "1.05,1.1", "--probe", "standard_y", "-o", str(out), "--quiet"])
+    rc = cli_main(["simulate", "--object", "pillow", "--profile", "ci", "--theta", "1.05,1.1", "--probe", "standard_y",
+                   "-o", str(out), "--quiet"])
     assert rc == 0 and out.exists()
     ro = read_rollout(out)
     assert ro.meta["probe"]["name"] == "standard_y" and ro.positions.shape[0] == 31
 
 
 def test_simulate_cli_bad_input_is_a_message(tmp_path, capsys):
-    rc = cli_main(["simulate", "--object", "pillow", "--profile", "ci", "--probe", "no_such_probe", "-o", str(tmp_path / "x.parquet")])
+    rc = cli_main(["simulate", "--object", "pillow", "--profile", "ci", "--probe", "no_such_probe",
+                   "-o", str(tmp_path / "x.parquet")])
     assert rc == 2
     assert "no_such_probe" in capsys.readouterr().err
-    rc = cli_main(["simulate", "--object", "pillow", "--profile", "ci", "--theta=-1,1", "--probe", "standard_x", "-o", str(tmp_path / "x.parquet")])
+    rc = cli_main(["simulate", "--object", "pillow", "--profile", "ci", "--theta=-1,1", "--probe", "standard_x",
+                   "-o", str(tmp_path / "x.parquet")])
     assert rc == 2
 
 
@@ -100,7 +104,8 @@ def test_read_rollout_rejects_missing_rows(tmp_path):
     import pyarrow as pa
 
     t = pa.table({"frame": pa.array([0, 0, 1], pa.int32()), "particle": pa.array([0, 1, 0], pa.int32()),
-                  "x": pa.array([0.0, 1, 2], pa.float32()), "y": pa.array([0.0, 1, 2], pa.float32()), "z": pa.array([0.0, 1, 2], pa.float32())})
+                  "x": pa.array([0.0, 1, 2], pa.float32()), "y": pa.array([0.0, 1, 2], pa.float32()),
+                  "z": pa.array([0.0, 1, 2], pa.float32())})
     t = t.replace_schema_metadata({b"knockgs": b"{}"})
     pq.write_table(t, tmp_path / "bad.parquet")
     with pytest.raises(InputError, match="bad.parquet.*frame"):

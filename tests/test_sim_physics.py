@@ -14,7 +14,7 @@ from knockgs_core.sim import Box, DomainWalls, FixedCuboid, MPMSolver, Probe, Si
 
 def block(lo, hi, spacing, jitter=0.0, rng=None):
     """Particles on a lattice filling the box [lo, hi] (cell-centred samples)."""
-    axes = [np.arange(l + spacing / 2, h, spacing) for l, h in zip(lo, hi)]
+    axes = [np.arange(a + spacing / 2, b, spacing) for a, b in zip(lo, hi)]
     X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     if jitter:
         X = X + rng.uniform(-jitter, jitter, X.shape) * spacing
