@@ -23,7 +23,8 @@ def sim_parity(device: str) -> dict:
     params = SimParams(n_grid=32, dt=1e-3, boundaries=(DomainWalls(), FixedCuboid(Box((1.0, 1.0, 0.78), (0.3, 0.3, 0.05)))))
     out = {}
     for dev in ("cpu", device):
-        model = build_model(X, E=1e4, nu=0.3, rho=1000.0, params=params, probe=Probe("knock", (-0.6, 0.0, 0.0), dt_ref=1e-3), device=dev)
+        model = build_model(X, E=1e4, nu=0.3, rho=1000.0, params=params, probe=Probe("knock", (-0.6, 0.0, 0.0), dt_ref=1e-3),
+                            device=dev)
         out[dev] = simulate(model, make_state(model, X), frame_dt=0.02, n_frames=16).positions
     d_cpu = out["cpu"] - out["cpu"][0]
     d_gpu = out[device] - out[device][0]
@@ -45,7 +46,8 @@ def render_parity(device: str) -> dict:
     cam = Camera.look_at((1.0, -1.6, 1.3), (1.0, 1.0, 1.0), (0.0, 0.0, 1.0), fov_deg=40.0, width=160, height=120)
     a = render(means, cov, colors, opac, cam, device="cpu")
     b = render(means, cov, colors, opac, cam, device=device)
-    return {"gaussians": n, "max_abs_diff_rgb": float(np.abs(a.rgb - b.rgb).max()), "max_abs_diff_alpha": float(np.abs(a.alpha - b.alpha).max())}
+    return {"gaussians": n, "max_abs_diff_rgb": float(np.abs(a.rgb - b.rgb).max()),
+            "max_abs_diff_alpha": float(np.abs(a.alpha - b.alpha).max())}
 
 
 def main() -> None:
@@ -60,8 +62,9 @@ def main() -> None:
         res["render"] = {"skipped": str(exc)}
     print(json.dumps(res, indent=1))
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(res, fh, indent=1)
+        from knockgs_core._io import write_json
+
+        write_json(args.json, res, indent=1)
 
 
 if __name__ == "__main__":

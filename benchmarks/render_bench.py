@@ -26,6 +26,7 @@ import numpy as np
 import warp as wp
 from scipy.spatial.transform import Rotation
 
+from knockgs_core._warp import warp_device
 from knockgs_core.render import Camera, bin_tiles, project, rasterize, render
 from knockgs_core.render._constants import tile_size_for
 
@@ -57,11 +58,10 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--tiles", type=int, nargs="+", default=[2, 4, 8, 16], help="tile edges [px] compared in the second table")
     args = ap.parse_args()
-    dev = wp.get_device(args.device)
+    dev = warp_device(args.device)  # Warp started as the library starts it
     bin_device = None if dev.is_cpu else args.device  # as render() does
 
-    wp.init()
-    print(f"device: {args.device} ({wp.get_device(args.device).name}); {platform.processor() or platform.machine()}; "
+    print(f"device: {args.device} ({dev.name}); {platform.processor() or platform.machine()}; "
           f"warp {wp.__version__}; median of {args.repeats} repeats")
     print()
     print("| Gaussians | image | tile [px] | render [s/frame] | project [s] | bin_tiles [s] | rasterize [s] | tile pairs |")
@@ -82,7 +82,8 @@ def main() -> None:
     print()
     print("bin_tiles + rasterize by tile edge (ratio to the edge render() uses for the scene; lower is faster)")
     print()
-    print("| Gaussians | image | render's edge | " + " | ".join(f"{t} px [s]" for t in args.tiles) + " | " + " | ".join(f"{t} px / render's" for t in args.tiles) + " |")
+    print("| Gaussians | image | render's edge | " + " | ".join(f"{t} px [s]" for t in args.tiles) + " | "
+          + " | ".join(f"{t} px / render's" for t in args.tiles) + " |")
     print("|---:|---:|---:|" + "---:|" * (2 * len(args.tiles)))
     for n in args.counts:
         means, cov, colors, opac = scene(n)
@@ -94,7 +95,11 @@ def main() -> None:
             t = {}
             for tile in args.tiles + [default_tile]:
                 if tile not in t:
-                    t[tile], _ = timed(lambda: rasterize(proj, colors, opac, bin_tiles(proj, size, size, tile_size=tile, device=bin_device), device=args.device), args.repeats)
+                    def run(tile=tile):
+                        bins = bin_tiles(proj, size, size, tile_size=tile, device=bin_device)
+                        return rasterize(proj, colors, opac, bins, device=args.device)
+
+                    t[tile], _ = timed(run, args.repeats)
             print(f"| {n:,} | {size}x{size} | {default_tile} | " + " | ".join(f"{t[x]:.4f}" for x in args.tiles) + " | "
                   + " | ".join(f"{t[x] / t[default_tile]:.2f}" for x in args.tiles) + " |", flush=True)
 

@@ -12,7 +12,6 @@ dt = 1e-4 s. Each case runs ``--steps`` substeps after a warm-up and reports the
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -84,14 +83,16 @@ def cold_compile_seconds() -> float:
         "sv = MPMSolver(m); sv.check(s); sv.step(s); print(time.perf_counter() - t0)"
     )
     with tempfile.TemporaryDirectory() as d:
-        out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "WC": d}, capture_output=True, text=True, check=True)
+        out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "WC": d}, capture_output=True, text=True,
+                             check=True)
     return float(out.stdout.strip().splitlines()[-1])
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--cases", nargs="*", default=["5000:32", "5000:64", "5000:100", "20000:32", "20000:64", "100000:64", "100000:100"], help="PARTICLES:N_GRID")
+    ap.add_argument("--cases", nargs="*", help="PARTICLES:N_GRID",
+                    default=["5000:32", "5000:64", "5000:100", "20000:32", "20000:64", "100000:64", "100000:100"])
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--cold", action="store_true", help="also measure a cold compile")
@@ -105,14 +106,16 @@ def main() -> None:
         n, g = (int(v) for v in case.split(":"))
         r = run_case(n, g, args.steps, args.repeats, args.device)
         rows.append(r)
-        print(f"| {r['particles']:,} | {g} | {r['particle_substeps_per_s']:.3g} | {r['ms_per_substep']:.3f} | {r['s_per_6000_substeps']:.2f} |", flush=True)
+        print(f"| {r['particles']:,} | {g} | {r['particle_substeps_per_s']:.3g} | {r['ms_per_substep']:.3f} "
+              f"| {r['s_per_6000_substeps']:.2f} |", flush=True)
     out = {"device": args.device, "rows": rows}
     if args.cold:
         out["cold_compile_s"] = cold_compile_seconds()
         print(f"cold compile (import + init + build + first step, empty cache): {out['cold_compile_s']:.1f} s")
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(out, fh, indent=1)
+        from knockgs_core._io import write_json
+
+        write_json(args.json, out, indent=1)
 
 
 if __name__ == "__main__":
