@@ -360,3 +360,27 @@ def test_camera_and_option_errors():
         Camera.look_at([0, 0, 1], [0, 0, 0], [0, 0, 2], fov_deg=40, width=8, height=8)
     with pytest.raises(InputError, match="cov0"):
         deform_covariances(np.eye(3), np.eye(3)[None])
+
+
+def test_an_unavailable_cuda_device_is_a_one_line_error():
+    from knockgs_core._warp import warp_device
+
+    with pytest.raises(InputError) as err:
+        warp_device("cuda:99")
+    assert "'cuda:99'" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_cpu_run_prints_no_warp_message():
+    # Warp's native "no CUDA driver" warning and its banner are kept out of CPU runs (knockgs_core._warp)
+    import subprocess
+    import sys
+
+    code = ("import numpy as np; from knockgs_core.sim import SimParams, build_model; "
+            "from knockgs_core.render import Camera, render; "
+            "build_model(np.full((8, 3), 1.0, np.float32), E=1e4, nu=0.3, rho=1e3, params=SimParams(n_grid=16, dt=1e-4)); "
+            "cam = Camera.look_at([0, -3, 0], [0, 0, 0], [0, 0, 1], fov_deg=40, width=8, height=8); "
+            "render([[0, 0, 0]], [np.eye(3) * 0.01], [[1, 0, 0]], [0.5], cam)")
+    env = {k: v for k, v in __import__("os").environ.items() if k != "KNOCKGS_DEVICE"}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == "" and proc.stderr == ""
