@@ -623,20 +623,7 @@ def _build(data: dict, path: Path, cfg: Path, profile: str) -> ObjectContract:
     if np.allclose(camera["eye"], camera["target"]):
         raise InputError(path, "camera.target", "coincides with camera.eye")
 
-    # every profile: dt divides the export intervals and respects the CFL bound
-    frame_dts = [p.export.frame_dt for p in probes.values()]
-    grid_lim = float(s.get("grid_lim", SimParams.grid_lim))
-    for pname, pr in profiles.items():
-        for fdt in frame_dts:
-            k = fdt / pr.dt
-            if abs(k - round(k)) > 1e-6 * max(1.0, k):
-                raise InputError(path, f"profiles.{pname}.dt",
-                                 f"{pr.dt} does not divide the export interval {fdt}")
-        limit = cfl_dt(materials, n_grid=pr.n_grid, grid_lim=grid_lim)
-        if pr.dt > limit * (1 + 1e-9):
-            raise InputError(path, f"profiles.{pname}.dt",
-                             f"{pr.dt} exceeds the CFL bound 0.3 dx / c_p = {limit:.4g} s "
-                             f"(stiffest candidate {THETA_STIFFEST})")
+    _check_profile_steps(path, profiles, probes, materials, float(s.get("grid_lim", SimParams.grid_lim)))
 
     contract = ObjectContract(
         name=data["name"], profile=profile, source=path, description=data.get("description", ""),
@@ -648,6 +635,23 @@ def _build(data: dict, path: Path, cfg: Path, profile: str) -> ObjectContract:
     if contract.name != path.stem:
         raise InputError(path, "name", f"{contract.name!r} differs from the file name {path.stem!r}")
     return contract
+
+
+def _check_profile_steps(path: Path, profiles: Mapping[str, Profile], probes: Mapping[str, Probe],
+                         materials: Mapping[str, Material], grid_lim: float) -> None:
+    """Every profile's dt divides the export intervals and respects the CFL bound."""
+    frame_dts = [p.export.frame_dt for p in probes.values()]
+    for pname, pr in profiles.items():
+        for fdt in frame_dts:
+            k = fdt / pr.dt
+            if abs(k - round(k)) > 1e-6 * max(1.0, k):
+                raise InputError(path, f"profiles.{pname}.dt",
+                                 f"{pr.dt} does not divide the export interval {fdt}")
+        limit = cfl_dt(materials, n_grid=pr.n_grid, grid_lim=grid_lim)
+        if pr.dt > limit * (1 + 1e-9):
+            raise InputError(path, f"profiles.{pname}.dt",
+                             f"{pr.dt} exceeds the CFL bound 0.3 dx / c_p = {limit:.4g} s "
+                             f"(stiffest candidate {THETA_STIFFEST})")
 
 
 # --------------------------------------------------------------------------- candidates / targets
