@@ -1,34 +1,45 @@
 # KnockGS workflow: Probe-A calibration of (s_E, s_rho), frozen write-back, Probe-B prediction.
 #
-# Path grammar (P = results/{profile}):
-#   P/assets/{object}.ply                              normalized 3DGS asset (rendered Gaussians)
-#   P/assets/{object}.particles.npz                    simulated particles (GS first, then fill)
-#   P/rollouts/{object}/lib/{theta}.parquet            candidate library rollouts, Probe A only
-#                                                      (+ .F.parquet); also the candidates' Probe-A
-#                                                      evaluation rollouts
-#   P/rollouts/{object}/eval/{probe}/{theta}.parquet   evaluation rollouts (+ .F.parquet), keyed by
-#                                                      theta = sE{s_E:.6f}_sR{s_rho:.6f}, so every
-#                                                      method that lands on the same theta shares one
-#   P/descriptors/{object}/library.csv                 candidate descriptors + labels
-#   P/descriptors/{object}/queries_{split}.csv         target Probe-A descriptors, no labels
-#   P/estimates/{object}/{split}/{method}.json         frozen estimates (checkpoint)
-#   P/metrics/{object}/{split}/{method}.csv            write-back evaluation rows
-#   P/render/{object}/{split}/{method}.csv             rendered-frame metrics
-#   results/tables/*.csv|md, results/figures/*.png     reported tables and figures
-#   results/audits/{name}.json                         audit verdicts ({"passed": bool, ...})
-#   P/discrepancy/...                                  discrepancy cases (workflow/rules/discrepancy.smk);
-#                                                      at config discrepancy.resolution when it differs
-#                                                      from the profile: P/discrepancy/{res}/assets|library
+# Path grammar. Every output of a run lies under P = results/{profile} (its logs under
+# logs/{profile}), so two profiles never write the same file. theta = sE{s_E:.6f}_sR{s_rho:.6f}.
+#
+#   P/assets/{object}.ply                                 normalized 3DGS asset (rendered Gaussians)
+#   P/assets/{object}.particles.npz                       simulated particles (GS first, then fill)
+#   P/assets/{object}.scene.npz, .summary.json            render scene data, asset summary
+#   P/rollouts/{object}/lib/chunk{chunk}/{theta}.parquet  candidate library rollouts, Probe A only
+#                                                         (+ .F.parquet), one folder per library job;
+#                                                         also the candidates' Probe-A evaluation rollouts
+#   P/rollouts/{object}/eval/{theta}/{probe}.parquet      evaluation rollouts (+ .F.parquet), one folder
+#                                                         per evaluation job: a target's or an estimate's
+#                                                         theta under every evaluation probe (a candidate's:
+#                                                         the held-out probes only), so every method that
+#                                                         lands on the same theta shares them
+#   P/descriptors/{object}/library.csv                    candidate descriptors + labels
+#   P/descriptors/{object}/queries_{split}.csv            target Probe-A descriptors, no labels
+#   P/estimates/{object}/{split}/{method}.json            frozen estimates (checkpoint)
+#   P/metrics/{object}/{split}/{method}.csv               write-back evaluation rows
+#   P/frames/{object}/{theta}/{probe}.npz                 rendered frames (float16 RGB + alpha), one folder
+#                                                         per render job
+#   P/render_metrics/{object}/{split}/{method}.csv        image metrics of the rendered frames
+#   P/tables/{name}.csv, P/tables/{name}.md               reported tables: main_{object}, targetwise_{object},
+#                                                         render_{object}, objects, discrepancy
+#   P/figures/{name}.png|gif                              reported figures: main_{object}, fill_{object},
+#                                                         qualitative_{object}, compare_{object} (gif),
+#                                                         objects, discrepancy
+#   P/audits/{name}.json                                  audit verdicts ({"passed": bool, ...})
+#   P/discrepancy/...                                     discrepancy cases, runs and reports (grammar at
+#                                                         the top of workflow/rules/discrepancy.smk)
+#   P/benchmarks/...                                      time and memory of the expensive jobs (.tsv)
+#
+# Wildcards: object, probe, split, case (names), theta (above), method (knockgs_core.calibration
+# METHOD_NAMES), chunk (library job index), res (a profile: the discrepancy cases' resolution).
 
-from snakemake.utils import min_version, validate
+from snakemake.utils import min_version
 
 min_version("8.10")
 
 
 configfile: "config/config.yaml"
-
-
-validate(config, "workflow/schemas/config.schema.yaml")
 
 
 include: "workflow/rules/common.smk"
@@ -39,11 +50,14 @@ include: "workflow/rules/calibrate.smk"
 include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/render.smk"
 include: "workflow/rules/report.smk"
-include: "workflow/rules/audit.smk"
 include: "workflow/rules/discrepancy.smk"
+include: "workflow/rules/audit.smk"
 
 
 rule all:
     default_target: True
     input:
-        all_outputs(),
+        REPORT_OUTPUTS,
+        RENDER_OUTPUTS,
+        DISCREPANCY_OUTPUTS,
+        AUDIT_OUTPUTS,

@@ -9,9 +9,11 @@ rule asset:
         particles=f"{P}/assets/{{object}}.particles.npz",
         scene=f"{P}/assets/{{object}}.scene.npz",
         summary=f"{P}/assets/{{object}}.summary.json",
-        figure=report("results/figures/fill_{object}.png", caption="../report/fill.rst", category="Assets"),
+        figure=report(f"{P}/figures/fill_{{object}}.png", caption="../report/fill.rst", category="Assets"),
     log:
         f"logs/{PROFILE}/assets/{{object}}.log",
+    benchmark:
+        f"{P}/benchmarks/assets/{{object}}.tsv"
     params:
         profile=PROFILE,
     resources:

@@ -1,18 +1,31 @@
 # Audits: separate rules, each writing a machine-readable verdict; a failed audit fails the run
 # (its verdict is kept in logs/{profile}/audits/NAME.failed.json).
 
+AUDITS = ["leakage", "nonfinite", "missing_frames", "duplicates", "completion"]
+AUDIT_OUTPUTS = [f"{P}/audits/{name}.json" for name in AUDITS]
+# the reported tables, checked for non-finite cells
+REPORTED_TABLES = (
+    [f"{P}/tables/main_{o}.csv" for o in OBJECTS]
+    + [f"{P}/tables/targetwise_{o}.csv" for o in OBJECTS]
+    + [f"{P}/tables/objects.csv"]
+    + ([f"{P}/tables/render_{o}.csv" for o in OBJECTS] if RENDER["enabled"] else [])
+)
+LIBRARY_ROLLOUTS = [path for o in OBJECTS for path in library_rollouts(o).values()]
+
+
 rule audit_leakage:
     conda:
         "../envs/knockgs.yaml"
     input:
-        estimates=_all_estimates(),
-        library=lambda wc: [lib_rollout(o, c) for o in OBJECTS for c in CANDIDATES.case_name],
+        estimates=[f"{P}/estimates/{o}/{SPLIT}/{m}.json" for o in OBJECTS for m in METHODS],
+        library=folders(LIBRARY_ROLLOUTS),
     output:
-        "results/audits/leakage.json",
+        f"{P}/audits/leakage.json",
     log:
         f"logs/{PROFILE}/audits/leakage.log",
     params:
         calibration={o: calibration_probe(o) for o in OBJECTS},
+        library=LIBRARY_ROLLOUTS,
         split=SPLIT,
     script:
         "../scripts/audit.py"
@@ -22,9 +35,9 @@ rule audit_nonfinite:
     conda:
         "../envs/knockgs.yaml"
     input:
-        tables=_reported_tables(),
+        tables=REPORTED_TABLES,
     output:
-        "results/audits/nonfinite.json",
+        f"{P}/audits/nonfinite.json",
     log:
         f"logs/{PROFILE}/audits/nonfinite.log",
     params:
@@ -37,9 +50,9 @@ rule audit_missing_frames:
     conda:
         "../envs/knockgs.yaml"
     input:
-        tables=_reported_tables(),
+        tables=REPORTED_TABLES,
     output:
-        "results/audits/missing_frames.json",
+        f"{P}/audits/missing_frames.json",
     log:
         f"logs/{PROFILE}/audits/missing_frames.log",
     params:
@@ -54,7 +67,7 @@ rule audit_duplicates:
     input:
         libraries=[f"{P}/descriptors/{o}/library.csv" for o in OBJECTS],
     output:
-        "results/audits/duplicates.json",
+        f"{P}/audits/duplicates.json",
     log:
         f"logs/{PROFILE}/audits/duplicates.log",
     params:
@@ -67,14 +80,14 @@ rule audit_completion:
     conda:
         "../envs/knockgs.yaml"
     input:
-        tables=_reported_tables(),
+        tables=REPORTED_TABLES,
     output:
-        "results/audits/completion.json",
+        f"{P}/audits/completion.json",
     log:
         f"logs/{PROFILE}/audits/completion.log",
     params:
-        expected=lambda wc: [f for f in all_outputs() if not f.startswith("results/audits/")],
+        expected=[path for path in REPORT_OUTPUTS + RENDER_OUTPUTS + DISCREPANCY_OUTPUTS if not path.startswith(f"{P}/audits/")],
         methods=METHODS,
-        mains=[f"results/tables/main_{o}.csv" for o in OBJECTS],
+        mains=[f"{P}/tables/main_{o}.csv" for o in OBJECTS],
     script:
         "../scripts/audit.py"

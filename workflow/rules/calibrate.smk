@@ -1,5 +1,6 @@
 # Calibration: deployable estimators see only the library and the Probe-A queries.
 # The parameter-nearest oracle reads hidden labels: it has its own rule (evaluation only).
+# Method names and their options: knockgs_core.calibration (METHOD_NAMES, METHOD_OPTIONS).
 
 
 checkpoint estimate:
@@ -13,10 +14,10 @@ checkpoint estimate:
     log:
         f"logs/{PROFILE}/estimates/{{object}}/{{split}}/{{method}}.log",
     wildcard_constraints:
-        method="fixed_default|response_nearest|response_knn|global_ridge|local_ridge",
+        method="|".join(DEPLOYABLE_METHODS),
     params:
         method=lambda wc: wc.method,
-        options=lambda wc: config.get("method_params", {}).get(wc.method, {}),
+        options=lambda wc: config["method_params"].get(wc.method, {}),
         config_hash=config_hash(),
     script:
         "../scripts/estimate.py"
@@ -29,10 +30,11 @@ checkpoint oracle_estimate:
         library=f"{P}/descriptors/{{object}}/library.csv",
         targets="config/targets.csv",
     output:
-        json=f"{P}/estimates/{{object}}/{{split}}/parameter_nearest_oracle.json",
+        json=f"{P}/estimates/{{object}}/{{split}}/{ORACLE_METHOD}.json",
     log:
-        f"logs/{PROFILE}/estimates/{{object}}/{{split}}/parameter_nearest_oracle.log",
+        f"logs/{PROFILE}/estimates/{{object}}/{{split}}/{ORACLE_METHOD}.log",
     params:
+        options=config["method_params"].get(ORACLE_METHOD, {}),
         config_hash=config_hash(),
     script:
         "../scripts/oracle_estimate.py"

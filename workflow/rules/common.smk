@@ -1,21 +1,42 @@
-# Config helpers, wildcard constraints and path helpers shared by every rule file.
-import os
+# Shared by every stage: config validation, wildcard constraints, path helpers and the input
+# functions of the stages' rules. The path grammar is at the top of the Snakefile.
+#
+# The config schema (workflow/schemas/config.schema.yaml) is the one source of the workflow's
+# defaults: validate() fills them in, and nothing below restates one.
 
+import json
+import os
+from functools import cache
+
+from snakemake.utils import validate
+
+from knockgs_core.calibration import DEPLOYABLE_METHODS, METHOD_NAMES, ORACLE_METHOD
 from knockgs_core.contract import load_candidates, load_contract, load_targets
 from knockgs_core.rollout import theta_tag
 
+
+validate(config, "../schemas/config.schema.yaml", set_default=True)
+
 PROFILE = config["profile"]
 P = f"results/{PROFILE}"
-DEVICE = config.get("device", "cpu")
-OBJECTS = list(config["objects"])
-SPLIT = config.get("split", "main")
-METHODS = list(config["methods"])
-RENDER = {"enabled": True, "width": 160, "height": 120, "gif_target": "target_001", **config.get("render", {})}
+DEVICE = config["device"]
 ON_GPU = DEVICE.startswith("cuda")
-DISCREPANCY = {"enabled": True, "object": "pillow", "resolution": PROFILE, **config.get("discrepancy", {})}
+OBJECTS = list(config["objects"])
+SPLIT = config["split"]
+METHODS = list(config["methods"])
+RENDER = config["render"]
+DISCREPANCY = config["discrepancy"]
 
 CANDIDATES = load_candidates()
-CONTRACTS = {o: load_contract(o, PROFILE) for o in OBJECTS}
+
+# A library job simulates LIBRARY_CHUNK candidates in one process (simulate.smk), in
+# candidates.csv order: job {chunk} writes the folder .../lib/chunk{chunk}.
+LIBRARY_CHUNK = 6
+_CANDIDATE_NAMES = list(CANDIDATES.case_name)
+LIBRARY_CHUNKS = [_CANDIDATE_NAMES[i : i + LIBRARY_CHUNK] for i in range(0, len(_CANDIDATE_NAMES), LIBRARY_CHUNK)]
+_CHUNK_OF = {case: k for k, chunk in enumerate(LIBRARY_CHUNKS) for case in chunk}
+_CANDIDATE_THETA = {r.case_name: (float(r.E_scale), float(r.density_scale)) for r in CANDIDATES.itertuples(index=False)}
+_CANDIDATE_OF_TAG = {theta_tag(theta): case for case, theta in _CANDIDATE_THETA.items()}
 
 
 wildcard_constraints:
@@ -23,19 +44,31 @@ wildcard_constraints:
     probe="[A-Za-z0-9_]+",
     theta=r"sE[0-9.]+_sR[0-9.]+",
     split="[A-Za-z0-9_]+",
-    method="[a-z_]+",
+    method="|".join(METHOD_NAMES),
+    chunk="[0-9]+",
+    case="[A-Za-z0-9_]+",
+    res="ci|default|paper",
 
 
-def targets(split=SPLIT):
-    return load_targets(split)
+# ---------------------------------------------------------------- contracts, targets, thetas
+
+
+@cache
+def contract(obj, profile=PROFILE):
+    """The object contract at a resolution profile (loaded once)."""
+    return load_contract(obj, profile)
+
+
+for _obj in OBJECTS:  # a broken contract fails at parse time, naming its file and field
+    contract(_obj)
 
 
 def calibration_probe(obj):
-    return CONTRACTS[obj].roles["calibration"]
+    return contract(obj).roles["calibration"]
 
 
 def heldout_probes(obj):
-    return list(CONTRACTS[obj].roles["heldout"])
+    return list(contract(obj).roles["heldout"])
 
 
 def eval_probes(obj):
@@ -43,165 +76,164 @@ def eval_probes(obj):
     return [calibration_probe(obj)] + heldout_probes(obj)
 
 
-def parse_theta(tag):
-    se, sr = tag[2:].split("_sR")
-    return float(se), float(sr)
+def target_thetas(split=SPLIT):
+    """target name -> (s_E, s_rho) of a split, in targets.csv order."""
+    return {r.case_name: (r.E_scale, r.density_scale) for r in load_targets(split).itertuples(index=False)}
 
 
 def candidate_theta(case):
     """(s_E, s_rho) of a candidate, by case name."""
-    row = CANDIDATES.set_index("case_name").loc[case]
-    return float(row.E_scale), float(row.density_scale)
+    return _CANDIDATE_THETA[case]
 
 
-def lib_rollout(obj, case):
-    return f"{P}/rollouts/{obj}/lib/{theta_tag(candidate_theta(case))}.parquet"
-
-
-CANDIDATE_TAGS = frozenset(theta_tag((r.E_scale, r.density_scale)) for r in CANDIDATES.itertuples(index=False))
-
-
-def _eval_base(obj, probe, theta):
-    """A candidate's Probe-A evaluation rollout is its library rollout (the same simulation,
-    which exports F too); every other (probe, theta) has its own evaluation rollout."""
-    tag = theta_tag(theta)
-    if probe == calibration_probe(obj) and tag in CANDIDATE_TAGS:
-        return f"{P}/rollouts/{obj}/lib/{tag}"
-    return f"{P}/rollouts/{obj}/eval/{probe}/{tag}"
-
-
-def eval_rollout(obj, probe, theta):
-    return _eval_base(obj, probe, theta) + ".parquet"
-
-
-def eval_deformation(obj, probe, theta):
-    return _eval_base(obj, probe, theta) + ".F.parquet"
-
-
-def evaluation_rollout_map(wc):
-    """{"probe/theta_tag": rollout path} of the evaluation inputs (for the evaluate script)."""
-    ths = list(estimated_thetas(wc).values()) + list(target_thetas(wc.split).values())
-    return {f"{pr}/{theta_tag(th)}": eval_rollout(wc.object, pr, th) for pr in eval_probes(wc.object) for th in ths}
-
-
-def target_thetas(split=SPLIT):
-    t = targets(split)
-    return {r.case_name: (r.E_scale, r.density_scale) for r in t.itertuples(index=False)}
+def parse_theta(tag):
+    """(s_E, s_rho) of a theta tag (the 6-decimal values the evaluation rollouts run at)."""
+    se, sr = tag[2:].split("_sR")
+    return float(se), float(sr)
 
 
 def config_hash():
-    import hashlib, json
+    import hashlib
 
     return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def estimate_json(wc):
+# ---------------------------------------------------------------- rollout and frame paths
+
+
+def folders(paths):
+    """The folders holding ``paths``: the outputs of the jobs that write them."""
+    return sorted({os.path.dirname(p) for p in paths})
+
+
+def library_root(obj):
+    return f"{P}/rollouts/{obj}/lib"
+
+
+def library_rollout(root, case, suffix=".parquet"):
+    """A candidate's library rollout in the library folder ``root`` (suffix ".F.parquet": its
+    deformation gradients)."""
+    return f"{root}/chunk{_CHUNK_OF[case]}/{theta_tag(candidate_theta(case))}{suffix}"
+
+
+def library_rollouts(obj):
+    """candidate name -> library rollout of the object, in candidates.csv order."""
+    return {case: library_rollout(library_root(obj), case) for case in _CANDIDATE_NAMES}
+
+
+def library_runs(chunk, probe, root, *, export_F):
+    """The rollouts of library job ``chunk``: each candidate of the chunk under ``probe``."""
+    return [
+        {
+            "theta": candidate_theta(case),
+            "probe": probe,
+            "rollout": library_rollout(root, case),
+            "F": library_rollout(root, case, ".F.parquet") if export_F else None,
+        }
+        for case in LIBRARY_CHUNKS[int(chunk)]
+    ]
+
+
+def simulated_probes(obj, tag):
+    """The probes the evaluation job of theta ``tag`` simulates: a candidate's Probe-A
+    evaluation rollout is its library rollout, so a candidate needs only the held-out probes."""
+    return heldout_probes(obj) if tag in _CANDIDATE_OF_TAG else eval_probes(obj)
+
+
+def eval_rollout(obj, probe, theta, suffix=".parquet"):
+    """The evaluation rollout of (probe, theta): a candidate's library rollout under Probe A,
+    else the evaluation job's file (suffix ".F.parquet": the deformation gradients)."""
+    tag = theta_tag(theta)
+    if probe == calibration_probe(obj) and tag in _CANDIDATE_OF_TAG:
+        return library_rollout(library_root(obj), _CANDIDATE_OF_TAG[tag], suffix)
+    return f"{P}/rollouts/{obj}/eval/{tag}/{probe}{suffix}"
+
+
+def evaluation_runs(wc):
+    """The rollouts of the evaluation job of (object, theta), with deformation gradients."""
+    theta = parse_theta(wc.theta)
+    return [
+        {"theta": theta, "probe": probe, "rollout": eval_rollout(wc.object, probe, theta),
+         "F": eval_rollout(wc.object, probe, theta, ".F.parquet")}
+        for probe in simulated_probes(wc.object, wc.theta)
+    ]
+
+
+def frames_file(obj, probe, theta):
+    return f"{P}/frames/{obj}/{theta_tag(theta)}/{probe}.npz"
+
+
+def render_jobs(wc):
+    """Rollout, deformation gradients and frames file of each evaluation probe of the render
+    job of (object, theta)."""
+    theta = parse_theta(wc.theta)
+    return [
+        {"rollout": eval_rollout(wc.object, probe, theta), "F": eval_rollout(wc.object, probe, theta, ".F.parquet"),
+         "frames": frames_file(wc.object, probe, theta)}
+        for probe in eval_probes(wc.object)
+    ]
+
+
+# ---------------------------------------------------------------- frozen estimates (checkpoints)
+
+
+def estimate_json(obj, split, method):
     """The frozen-estimate file of (object, split, method): a checkpoint, so rules that
     depend on the estimated thetas are scheduled once it exists."""
-    cp = checkpoints.oracle_estimate if wc.method == "parameter_nearest_oracle" else checkpoints.estimate
-    return cp.get(object=wc.object, split=wc.split, method=wc.method).output.json
+    cp = checkpoints.oracle_estimate if method == ORACLE_METHOD else checkpoints.estimate
+    return cp.get(object=obj, split=split, method=method).output.json
 
 
-def estimated_thetas(wc):
-    import json
-
-    with open(estimate_json(wc)) as fh:
+def estimated_thetas(obj, split, method):
+    """target name -> frozen (s_E, s_rho) of a method."""
+    with open(estimate_json(obj, split, method)) as fh:
         doc = json.load(fh)
     return {p["case_name"]: (p["E_scale"], p["density_scale"]) for p in doc["predictions"]}
 
 
-def all_outputs():
-    out = []
-    for o in OBJECTS:
-        out += [f"results/tables/main_{o}.csv", f"results/tables/main_{o}.md", f"results/tables/targetwise_{o}.csv",
-                f"results/tables/targetwise_{o}.md", f"results/figures/main_{o}.png", f"results/figures/fill_{o}.png"]
-        if RENDER["enabled"]:
-            out += [f"results/tables/render_{o}.csv", f"results/tables/render_{o}.md", f"results/figures/qualitative_{o}.png", f"results/figures/compare_{o}.gif"]
-    out += ["results/tables/objects.csv", "results/tables/objects.md", "results/figures/objects.png"]
-    out += [f"results/audits/{a}.json" for a in AUDITS]
-    out += globals().get("DISCREPANCY_OUTPUTS", [])
-    return out
+def writeback_thetas(wc):
+    """The method's frozen estimates, then the split's hidden targets."""
+    return list(estimated_thetas(wc.object, wc.split, wc.method).values()) + list(target_thetas(wc.split).values())
 
 
-# used by simulate.smk
-def _rollout_resources(wildcards, attempt):
-    return 16000 if PROFILE == "paper" else 2000
+# ---------------------------------------------------------------- input functions
 
 
-# used by evaluate.smk
+def query_rollouts(wc):
+    """The targets' Probe-A rollouts, in targets.csv order."""
+    return [eval_rollout(wc.object, calibration_probe(wc.object), th) for th in target_thetas(wc.split).values()]
+
+
+def evaluation_rollouts(wc):
+    """{"probe/theta": rollout} of the write-back evaluation of (object, split, method)."""
+    ths = writeback_thetas(wc)
+    return {f"{pr}/{theta_tag(th)}": eval_rollout(wc.object, pr, th) for pr in eval_probes(wc.object) for th in ths}
+
+
 def evaluation_inputs(wc):
-    rollouts = sorted(set(evaluation_rollout_map(wc).values()))
-    return {"estimate": estimate_json(wc), "targets": "config/targets.csv", "rollouts": rollouts}
+    return {"estimate": estimate_json(wc.object, wc.split, wc.method), "targets": "config/targets.csv",
+            "rollouts": folders(evaluation_rollouts(wc).values())}
 
 
-# used by render.smk
+def render_frames(wc):
+    """{"probe/theta": frames file} of the image metrics of (object, split, method)."""
+    ths = writeback_thetas(wc)
+    return {f"{pr}/{theta_tag(th)}": frames_file(wc.object, pr, th) for pr in eval_probes(wc.object) for th in ths}
+
+
 def render_metric_inputs(wc):
-    ests = estimated_thetas(wc)
-    truths = target_thetas(wc.split)
-    frames = set()
-    for probe in eval_probes(wc.object):
-        for th in list(ests.values()) + list(truths.values()):
-            frames.add(f"{P}/renders/{wc.object}/{probe}/{theta_tag(th)}.npz")
-    return {"estimate": estimate_json(wc), "targets": "config/targets.csv", "frames": sorted(frames)}
+    return {"estimate": estimate_json(wc.object, wc.split, wc.method), "targets": "config/targets.csv",
+            "frames": folders(render_frames(wc).values())}
 
 
-# used by render.smk
-def qualitative_inputs(wc):
+def qualitative_frames(wc):
+    """Frames of the animated target, then of each method's estimate of it, under the object's
+    first held-out probe."""
     target = RENDER["gif_target"]
     probe = heldout_probes(wc.object)[0]
-    out = {"estimates": [], "frames": [f"{P}/renders/{wc.object}/{probe}/{theta_tag(target_thetas()[target])}.npz"]}
-    for m in METHODS:
-        w = type("W", (), {"object": wc.object, "split": SPLIT, "method": m})
-        out["estimates"].append(estimate_json(w))
-        out["frames"].append(f"{P}/renders/{wc.object}/{probe}/{theta_tag(estimated_thetas(w)[target])}.npz")
-    return out
+    thetas = [target_thetas()[target]] + [estimated_thetas(wc.object, SPLIT, m)[target] for m in METHODS]
+    return [frames_file(wc.object, probe, th) for th in thetas]
 
 
-# used by audit.smk
-AUDITS = ["leakage", "nonfinite", "missing_frames", "duplicates", "completion"]
-
-
-# used by audit.smk
-def _all_estimates():
-    return [f"{P}/estimates/{o}/{SPLIT}/{m}.json" for o in OBJECTS for m in METHODS]
-
-
-# used by audit.smk
-def _reported_tables():
-    t = [f"results/tables/main_{o}.csv" for o in OBJECTS] + [f"results/tables/targetwise_{o}.csv" for o in OBJECTS] + ["results/tables/objects.csv"]
-    if RENDER["enabled"]:
-        t += [f"results/tables/render_{o}.csv" for o in OBJECTS]
-    return t
-
-
-# used by discrepancy.smk (DISCREPANCY_OBJECT, DISCREPANCY_RES and _D are defined there)
-def _discrepancy_particles():
-    """The cases' particles: the main asset when the cases run at the profile's resolution,
-    else the discrepancy study's own build at its resolution."""
-    obj = DISCREPANCY_OBJECT
-    if DISCREPANCY_RES == PROFILE:
-        return f"{P}/assets/{obj}.particles.npz"
-    return f"{_D}/{DISCREPANCY_RES}/assets/{obj}.particles.npz"
-
-
-def _discrepancy_library(case_name):
-    obj = DISCREPANCY_OBJECT
-    if DISCREPANCY_RES == PROFILE:
-        return lib_rollout(obj, case_name)
-    return f"{_D}/{DISCREPANCY_RES}/library/{obj}/{theta_tag(candidate_theta(case_name))}.parquet"
-
-
-def _discrepancy_library_runs(wc, chunk):
-    """(theta, Probe A) of each candidate of a chunk, at the cases' resolution."""
-    probe = load_contract(wc.object, wc.res).roles["calibration"]
-    return [(candidate_theta(c), probe) for c in chunk]
-
-
-def _discrepancy_run_inputs(case):
-    """The run job's inputs: measured files, particles, the object's candidate library."""
-    return {
-        "measured": f"{_D}/cases/{case}/measured_calib.parquet",
-        "heldout": f"{_D}/cases/{case}/measured_heldout.parquet",
-        "particles": _discrepancy_particles(),
-        "library": [_discrepancy_library(c) for c in CANDIDATES.case_name],
-    }
+def qualitative_inputs(wc):
+    return {"estimates": [estimate_json(wc.object, SPLIT, m) for m in METHODS], "frames": folders(qualitative_frames(wc))}

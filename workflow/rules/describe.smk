@@ -5,13 +5,13 @@ rule library_descriptors:
     conda:
         "../envs/knockgs.yaml"
     input:
-        rollouts=lambda wc: [lib_rollout(wc.object, c) for c in CANDIDATES.case_name],
+        rollouts=lambda wc: folders(library_rollouts(wc.object).values()),
     output:
         table=f"{P}/descriptors/{{object}}/library.csv",
     log:
         f"logs/{PROFILE}/descriptors/{{object}}/library.log",
     params:
-        cases=list(CANDIDATES.case_name),
+        rollouts=lambda wc: library_rollouts(wc.object),
     script:
         "../scripts/library_descriptors.py"
 
@@ -20,12 +20,13 @@ rule query_descriptors:
     conda:
         "../envs/knockgs.yaml"
     input:
-        rollouts=lambda wc: [eval_rollout(wc.object, calibration_probe(wc.object), th) for th in target_thetas(wc.split).values()],
+        rollouts=lambda wc: folders(query_rollouts(wc)),
     output:
         table=f"{P}/descriptors/{{object}}/queries_{{split}}.csv",
     log:
         f"logs/{PROFILE}/descriptors/{{object}}/queries_{{split}}.log",
     params:
         names=lambda wc: list(target_thetas(wc.split)),
+        rollouts=query_rollouts,
     script:
         "../scripts/query_descriptors.py"

@@ -2,36 +2,48 @@
 # case and step, so runs parallelize and resume.
 #
 # Path grammar (P = results/{profile}, D = P/discrepancy):
-#   D/cases/{case}/measured_{calib,heldout}.parquet   measured trajectories (positions only)
-#   D/truth/{case}/truth.json, clean.npz              the truth: read by make-case and evaluate only
-#   results/discrepancy/{case}/report.md              the loop's report (+ result.json,
-#                                                     predictions.npz, residuals_*.png)
-#   results/discrepancy/{case}/evaluation.md          the run against the truth (evaluate step)
-#   D/eval/{case}.json                                one table row (run scored against the truth)
-#   results/tables/discrepancy.csv|md                 the table of cases
-#   results/figures/discrepancy.png                   RMSE before/after per case
-#   results/audits/discrepancy_truth.json             verdict: no run read the truth
+#   D/cases/{case}/measured_{calib,heldout}.parquet        measured trajectories (positions only)
+#   D/truth/{case}/truth.json, clean.npz                   the truth: read by make-case and evaluate only
+#   D/reports/{case}/report.md                             the loop's report (+ result.json,
+#                                                          predictions.npz, residuals_*.png)
+#   D/reports/{case}/evaluation.md                         the run against the truth (evaluate step)
+#   D/eval/{case}.json                                     one table row (run scored against the truth)
+#   D/{res}/assets/{object}.*                              the case object at the cases' resolution
+#   D/{res}/library/{object}/chunk{chunk}/{theta}.parquet  its candidate library (Probe A), chunked as
+#                                                          the main library (simulate.smk)
+#   P/tables/discrepancy.csv|md, P/figures/discrepancy.png the table of cases, RMSE before/after per case
+#   P/audits/discrepancy_truth.json                        verdict: no run read the truth
+#
+# The cases run at config discrepancy.resolution. At the profile's own resolution they share
+# its asset (P/assets) and candidate library (P/rollouts/{object}/lib); at another, the
+# D/{res}/ asset and library are built for them.
 
-from knockgs_core.discrepancy import default_cases as _discrepancy_default_cases
+from knockgs_core.discrepancy import default_cases
 
+D = f"{P}/discrepancy"
 DISCREPANCY_OBJECT = DISCREPANCY["object"]
-DISCREPANCY_RES = DISCREPANCY["resolution"]  # contract resolution of the cases (config: discrepancy)
-DISCREPANCY_CASES = [c.name for c in _discrepancy_default_cases()]
-_D = f"{P}/discrepancy"
-_DISCREPANCY_CONTRACT = load_contract(DISCREPANCY_OBJECT, DISCREPANCY_RES)
+DISCREPANCY_RES = DISCREPANCY["resolution"]
+DISCREPANCY_CASES = [c.name for c in default_cases()]
+_DISCREPANCY_CONTRACT = contract(DISCREPANCY_OBJECT, DISCREPANCY_RES)
+_DISCREPANCY_SHARED = DISCREPANCY_RES == PROFILE
+DISCREPANCY_PARTICLES = (f"{P}/assets/{DISCREPANCY_OBJECT}.particles.npz" if _DISCREPANCY_SHARED
+                         else f"{D}/{DISCREPANCY_RES}/assets/{DISCREPANCY_OBJECT}.particles.npz")
+DISCREPANCY_LIBRARY_ROOT = (library_root(DISCREPANCY_OBJECT) if _DISCREPANCY_SHARED
+                            else f"{D}/{DISCREPANCY_RES}/library/{DISCREPANCY_OBJECT}")
+# the loop's library base, in candidates.csv order
+DISCREPANCY_LIBRARY = [library_rollout(DISCREPANCY_LIBRARY_ROOT, case) for case in CANDIDATES.case_name]
+# the files each run job reads (and the truth audit checks)
+DISCREPANCY_RUN_READS = {
+    case: [f"{D}/cases/{case}/measured_calib.parquet", f"{D}/cases/{case}/measured_heldout.parquet", DISCREPANCY_PARTICLES, *DISCREPANCY_LIBRARY]
+    for case in DISCREPANCY_CASES
+}
 
-
-wildcard_constraints:
-    case="[A-Za-z0-9_]+",
-    res="ci|default|paper",
-
-
-DISCREPANCY_OUTPUTS = [] if not DISCREPANCY["enabled"] else [
-    "results/tables/discrepancy.csv",
-    "results/tables/discrepancy.md",
-    "results/figures/discrepancy.png",
-    "results/audits/discrepancy_truth.json",
-] + [f"results/discrepancy/{c}/report.md" for c in DISCREPANCY_CASES]
+DISCREPANCY_OUTPUTS = (
+    [f"{P}/tables/discrepancy.csv", f"{P}/tables/discrepancy.md", f"{P}/figures/discrepancy.png", f"{P}/audits/discrepancy_truth.json"]
+    + [f"{D}/reports/{case}/report.md" for case in DISCREPANCY_CASES]
+    if DISCREPANCY["enabled"]
+    else []
+)
 
 
 rule discrepancy_asset:
@@ -39,11 +51,11 @@ rule discrepancy_asset:
     conda:
         "../envs/knockgs.yaml"
     output:
-        ply=f"{_D}/{{res}}/assets/{{object}}.ply",
-        particles=f"{_D}/{{res}}/assets/{{object}}.particles.npz",
-        scene=f"{_D}/{{res}}/assets/{{object}}.scene.npz",
-        summary=f"{_D}/{{res}}/assets/{{object}}.summary.json",
-        figure=f"{_D}/{{res}}/assets/{{object}}.fill.png",
+        ply=f"{D}/{{res}}/assets/{{object}}.ply",
+        particles=f"{D}/{{res}}/assets/{{object}}.particles.npz",
+        scene=f"{D}/{{res}}/assets/{{object}}.scene.npz",
+        summary=f"{D}/{{res}}/assets/{{object}}.summary.json",
+        figure=f"{D}/{{res}}/assets/{{object}}.fill.png",
     log:
         f"logs/{PROFILE}/discrepancy/{{res}}/asset_{{object}}.log",
     params:
@@ -56,36 +68,32 @@ rule discrepancy_asset:
         "../scripts/asset.py"
 
 
-for _k, _chunk in enumerate(library_chunks()):
-
-    rule:
-        """Probe-A rollouts of a chunk of candidates at the cases' resolution (the loop's
-        library base); chunked as the main library (simulate.smk)."""
-        name:
-            f"discrepancy_library_{_k}"
-        conda:
-            "../envs/knockgs.yaml"
-        input:
-            particles=f"{_D}/{{res}}/assets/{{object}}.particles.npz",
-        output:
-            rollouts=[f"{_D}/{{res}}/library/{{object}}/{theta_tag(candidate_theta(c))}.parquet" for c in _chunk],
-        log:
-            f"logs/{PROFILE}/discrepancy/{{res}}/library/{{object}}/chunk{_k}.log",
-        benchmark:
-            f"results/{PROFILE}/benchmarks/discrepancy/{{res}}/library/{{object}}/chunk{_k}.tsv"
-        params:
-            profile=lambda wc: wc.res,
-            object=lambda wc: wc.object,
-            runs=lambda wc, chunk=_chunk: _discrepancy_library_runs(wc, chunk),
-            export_F=False,
-            device=DEVICE,
-        resources:
-            mem_mb=2000,
-            runtime=20 * LIBRARY_CHUNK,
-            gpu=1 if ON_GPU else 0,
-        threads: 1
-        script:
-            "../scripts/rollout.py"
+rule discrepancy_library:
+    """Probe-A rollouts of one chunk of candidates at the cases' resolution (the loop's
+    library base); chunked as the main library (simulate.smk)."""
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        particles=f"{D}/{{res}}/assets/{{object}}.particles.npz",
+    output:
+        folder=directory(f"{D}/{{res}}/library/{{object}}/chunk{{chunk}}"),
+    log:
+        f"logs/{PROFILE}/discrepancy/{{res}}/library/{{object}}/chunk{{chunk}}.log",
+    benchmark:
+        f"{P}/benchmarks/discrepancy/{{res}}/library/{{object}}/chunk{{chunk}}.tsv"
+    params:
+        profile=lambda wc: wc.res,
+        object=lambda wc: wc.object,
+        runs=lambda wc: library_runs(wc.chunk, contract(wc.object, wc.res).roles["calibration"], f"{D}/{wc.res}/library/{wc.object}",
+                                     export_F=False),
+        device=DEVICE,
+    resources:
+        mem_mb=2000,
+        runtime=20 * LIBRARY_CHUNK,
+        gpu=1 if ON_GPU else 0,
+    threads: 1
+    script:
+        "../scripts/rollout.py"
 
 
 rule discrepancy_case:
@@ -93,12 +101,12 @@ rule discrepancy_case:
     conda:
         "../envs/knockgs.yaml"
     input:
-        particles=_discrepancy_particles(),
+        particles=DISCREPANCY_PARTICLES,
     output:
-        calib=f"{_D}/cases/{{case}}/measured_calib.parquet",
-        heldout=f"{_D}/cases/{{case}}/measured_heldout.parquet",
-        truth=f"{_D}/truth/{{case}}/truth.json",
-        clean=f"{_D}/truth/{{case}}/clean.npz",
+        calib=f"{D}/cases/{{case}}/measured_calib.parquet",
+        heldout=f"{D}/cases/{{case}}/measured_heldout.parquet",
+        truth=f"{D}/truth/{{case}}/truth.json",
+        clean=f"{D}/truth/{{case}}/clean.npz",
     log:
         f"logs/{PROFILE}/discrepancy/case_{{case}}.log",
     params:
@@ -116,21 +124,25 @@ rule discrepancy_run:
     conda:
         "../envs/knockgs.yaml"
     input:
-        unpack(lambda wc: _discrepancy_run_inputs(wc.case)),
+        measured=f"{D}/cases/{{case}}/measured_calib.parquet",
+        heldout=f"{D}/cases/{{case}}/measured_heldout.parquet",
+        particles=DISCREPANCY_PARTICLES,
+        library=folders(DISCREPANCY_LIBRARY),
     output:
-        report=report(f"results/discrepancy/{{case}}/report.md", category="Discrepancy", subcategory="{case}"),
-        result=f"results/discrepancy/{{case}}/result.json",
-        predictions=f"results/discrepancy/{{case}}/predictions.npz",
+        report=report(f"{D}/reports/{{case}}/report.md", category="Discrepancy", subcategory="{case}"),
+        result=f"{D}/reports/{{case}}/result.json",
+        predictions=f"{D}/reports/{{case}}/predictions.npz",
     log:
         f"logs/{PROFILE}/discrepancy/run_{{case}}.log",
     benchmark:
-        f"results/{PROFILE}/benchmarks/discrepancy/run_{{case}}.tsv"
+        f"{P}/benchmarks/discrepancy/run_{{case}}.tsv"
     params:
         object=DISCREPANCY_OBJECT,
         profile=DISCREPANCY_RES,
         device=DEVICE,
         probe=_DISCREPANCY_CONTRACT.roles["calibration"],
         heldout_probe=_DISCREPANCY_CONTRACT.roles["heldout"][0],
+        library=DISCREPANCY_LIBRARY,
     threads: 1
     script:
         "../scripts/discrepancy_run.py"
@@ -140,13 +152,13 @@ rule discrepancy_evaluate:
     conda:
         "../envs/knockgs.yaml"
     input:
-        result=f"results/discrepancy/{{case}}/result.json",
-        predictions=f"results/discrepancy/{{case}}/predictions.npz",
-        truth=f"{_D}/truth/{{case}}/truth.json",
-        clean=f"{_D}/truth/{{case}}/clean.npz",
+        result=f"{D}/reports/{{case}}/result.json",
+        predictions=f"{D}/reports/{{case}}/predictions.npz",
+        truth=f"{D}/truth/{{case}}/truth.json",
+        clean=f"{D}/truth/{{case}}/clean.npz",
     output:
-        row=f"{_D}/eval/{{case}}.json",
-        page=report(f"results/discrepancy/{{case}}/evaluation.md", category="Discrepancy", subcategory="{case}"),
+        row=f"{D}/eval/{{case}}.json",
+        page=report(f"{D}/reports/{{case}}/evaluation.md", category="Discrepancy", subcategory="{case}"),
     log:
         f"logs/{PROFILE}/discrepancy/evaluate_{{case}}.log",
     script:
@@ -157,11 +169,11 @@ rule discrepancy_table:
     conda:
         "../envs/knockgs.yaml"
     input:
-        rows=[f"{_D}/eval/{c}.json" for c in DISCREPANCY_CASES],
+        rows=[f"{D}/eval/{case}.json" for case in DISCREPANCY_CASES],
     output:
-        csv=report("results/tables/discrepancy.csv", category="Discrepancy"),
-        md="results/tables/discrepancy.md",
-        figure=report("results/figures/discrepancy.png", category="Discrepancy"),
+        csv=report(f"{P}/tables/discrepancy.csv", category="Discrepancy"),
+        md=f"{P}/tables/discrepancy.md",
+        figure=report(f"{P}/figures/discrepancy.png", category="Discrepancy"),
     log:
         f"logs/{PROFILE}/discrepancy/table.log",
     script:
@@ -172,14 +184,14 @@ rule audit_discrepancy_truth:
     conda:
         "../envs/knockgs.yaml"
     input:
-        results=[f"results/discrepancy/{c}/result.json" for c in DISCREPANCY_CASES],
-        measured=[f"{_D}/cases/{c}/measured_{r}.parquet" for c in DISCREPANCY_CASES for r in ("calib", "heldout")],
+        results=[f"{D}/reports/{case}/result.json" for case in DISCREPANCY_CASES],
+        measured=[f"{D}/cases/{case}/measured_{role}.parquet" for case in DISCREPANCY_CASES for role in ("calib", "heldout")],
     output:
-        "results/audits/discrepancy_truth.json",
+        f"{P}/audits/discrepancy_truth.json",
     log:
         f"logs/{PROFILE}/audits/discrepancy_truth.log",
     params:
-        truth_dirs=[f"{_D}/truth"],
-        declared={c: [v for vs in _discrepancy_run_inputs(c).values() for v in ([vs] if isinstance(vs, str) else vs)] for c in DISCREPANCY_CASES},
+        truth_dirs=[f"{D}/truth"],
+        declared=DISCREPANCY_RUN_READS,
     script:
         "../scripts/discrepancy_audit.py"

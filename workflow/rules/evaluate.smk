@@ -14,6 +14,6 @@ rule evaluate:
     params:
         probes=lambda wc: eval_probes(wc.object),
         split=lambda wc: wc.split,
-        rollouts=evaluation_rollout_map,
+        rollouts=evaluation_rollouts,
     script:
         "../scripts/evaluate.py"

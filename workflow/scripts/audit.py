@@ -4,6 +4,7 @@ import sys
 from pathlib import Path
 
 from knockgs_core import audits
+from knockgs_core._io import write_text
 from knockgs_core.contract import load_candidates, load_targets
 
 sys.stderr = open(snakemake.log[0], "w")
@@ -11,7 +12,7 @@ name = snakemake.rule.removeprefix("audit_")
 p = snakemake.params
 if name == "leakage":
     verdict = audits.audit_leakage(snakemake.input.estimates, calibration_probes=p.calibration, candidates=load_candidates(),
-                                   targets=load_targets(p.split), library_rollouts=snakemake.input.library)
+                                   targets=load_targets(p.split), library_rollouts=p.library)
 elif name == "nonfinite":
     verdict = audits.audit_nonfinite(p.rollout_dirs, snakemake.input.tables)
 elif name == "missing_frames":
@@ -24,9 +25,9 @@ else:
     raise SystemExit(f"unknown audit {name}")
 verdict["audit"] = name
 text = json.dumps(verdict, indent=1)
-Path(snakemake.output[0]).write_text(text)
+write_text(snakemake.output[0], text)
 if not verdict["passed"]:
     failed = Path(snakemake.log[0]).with_suffix(".failed.json")
-    failed.write_text(text)
+    write_text(failed, text)
     print(text, file=sys.stderr)
     raise SystemExit(f"audit {name} failed: {verdict['problems'][:5]} (verdict in {failed})")

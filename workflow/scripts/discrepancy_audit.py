@@ -3,14 +3,15 @@ import json
 import sys
 from pathlib import Path
 
+from knockgs_core._io import write_text
 from knockgs_core.discrepancy import audit_truth_separation
 
 sys.stderr = open(snakemake.log[0], "w")
 verdict = audit_truth_separation(snakemake.input.results, snakemake.input.measured, snakemake.params.truth_dirs, snakemake.params.declared)
 verdict["audit"] = "discrepancy_truth"
 text = json.dumps(verdict, indent=1)
-Path(snakemake.output[0]).write_text(text)
+write_text(snakemake.output[0], text)
 if not verdict["passed"]:
     failed = Path(snakemake.log[0]).with_suffix(".failed.json")
-    failed.write_text(text)
+    write_text(failed, text)
     raise SystemExit(f"audit discrepancy_truth failed: {verdict['problems'][:5]} (verdict in {failed})")

@@ -2,6 +2,7 @@
 import json
 import sys
 
+from knockgs_core._io import write_text
 from knockgs_core.contract import load_targets
 from knockgs_core.experiments import evaluate_method
 from knockgs_core.rollout import theta_tag
@@ -14,4 +15,4 @@ targets = load_targets(p.split, snakemake.input.targets)
 df = evaluate_method(est, targets, lambda probe, th: p.rollouts[f"{probe}/{theta_tag(th)}"], p.probes)
 df.insert(0, "method", snakemake.wildcards.method)
 df.insert(0, "object", snakemake.wildcards.object)
-df.to_csv(snakemake.output.table, index=False, float_format="%.10g")
+write_text(snakemake.output.table, df.to_csv(index=False, float_format="%.10g", lineterminator="\n"))

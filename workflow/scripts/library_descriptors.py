@@ -1,10 +1,10 @@
 """Candidate library table: labels + Probe-A descriptors."""
 import sys
 
+from knockgs_core._io import write_text
 from knockgs_core.contract import load_candidates
 from knockgs_core.experiments import library_table
 
 sys.stderr = open(snakemake.log[0], "w")
-cands = load_candidates()
-rollouts = dict(zip(snakemake.params.cases, snakemake.input.rollouts))
-library_table(cands, rollouts).to_csv(snakemake.output.table, index=False, float_format="%.10g")
+table = library_table(load_candidates(), snakemake.params.rollouts)
+write_text(snakemake.output.table, table.to_csv(index=False, float_format="%.10g", lineterminator="\n"))

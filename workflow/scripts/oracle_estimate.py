@@ -5,6 +5,10 @@ from knockgs_core.contract import load_targets
 from knockgs_core.experiments import oracle_estimate, write_json
 
 sys.stderr = open(snakemake.log[0], "w")
-doc = oracle_estimate(snakemake.input.library, load_targets(snakemake.wildcards.split, snakemake.input.targets), config_hash=snakemake.params.config_hash)
+p = snakemake.params
+if p.options:
+    raise SystemExit(f"method_params.parameter_nearest_oracle: {sorted(p.options)}: "
+                     "knockgs_core.experiments.oracle_estimate takes no options yet")
+doc = oracle_estimate(snakemake.input.library, load_targets(snakemake.wildcards.split, snakemake.input.targets), config_hash=p.config_hash)
 doc["rule_inputs"] = [str(f) for f in snakemake.input]
 write_json(doc, snakemake.output.json)

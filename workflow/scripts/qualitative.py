@@ -7,7 +7,7 @@ from knockgs_core.reporting import comparison_gif, qualitative_figure
 
 sys.stderr = open(snakemake.log[0], "w")
 p = snakemake.params
-frames = [np.load(f) for f in snakemake.input.frames]
+frames = [np.load(f) for f in p.frames]
 names = ["target"] + list(p.methods)
 rgb = [f["rgb"].astype(np.float32) for f in frames]
 alpha = [f["alpha"].astype(np.float32) for f in frames]

@@ -5,21 +5,20 @@ import time
 
 import numpy as np
 
-from knockgs_core.assets import read_ply
+from knockgs_core._io import write_npz
+from knockgs_core.assets import load_scene, read_ply
 from knockgs_core.experiments import camera_from_contract, render_rollout
 from knockgs_core.rollout import read_deformation, read_rollout
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
 p = snakemake.params
-inp = snakemake.input
-scene = np.load(inp.scene)
-gaussians = read_ply(inp.ply)
+gaussians = read_ply(snakemake.input.ply)
+static_mask, gaussian_index = load_scene(snakemake.input.scene, n_gaussians=len(gaussians))
 cam = camera_from_contract(p.camera, width=p.width, height=p.height)
-for rollout, F_path, frames in zip(inp.rollouts, inp.F, snakemake.output.frames):
+for job in p.jobs:
     t0 = time.perf_counter()
-    ro = read_rollout(rollout)
-    F = read_deformation(F_path)
-    rgb, alpha = render_rollout(gaussians, scene["static_mask"], scene["gaussian_index"], ro.positions, F, cam, device=p.device)
-    np.savez_compressed(frames, rgb=rgb.astype(np.float16), alpha=alpha.astype(np.float16))
-    print(f"{frames}: {len(rgb)} frames, {time.perf_counter() - t0:.2f} s", file=log, flush=True)
+    ro = read_rollout(job["rollout"])
+    rgb, alpha = render_rollout(gaussians, static_mask, gaussian_index, ro.positions, read_deformation(job["F"]), cam, device=p.device)
+    write_npz(job["frames"], rgb=rgb.astype(np.float16), alpha=alpha.astype(np.float16))
+    print(f"{job['frames']}: {len(rgb)} frames, {time.perf_counter() - t0:.2f} s", file=log, flush=True)

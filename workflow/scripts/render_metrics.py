@@ -2,6 +2,7 @@
 import json
 import sys
 
+from knockgs_core._io import write_text
 from knockgs_core.contract import load_targets
 from knockgs_core.experiments import render_metrics_rows
 from knockgs_core.rollout import theta_tag
@@ -11,6 +12,6 @@ p = snakemake.params
 with open(snakemake.input.estimate) as fh:
     est = json.load(fh)
 targets = load_targets(snakemake.wildcards.split, snakemake.input.targets)
-df = render_metrics_rows(est, targets, lambda probe, th: f"{p.render_dir}/{probe}/{theta_tag(th)}.npz", p.probes)
+df = render_metrics_rows(est, targets, lambda probe, th: p.frames[f"{probe}/{theta_tag(th)}"], p.probes)
 df.insert(0, "method", snakemake.wildcards.method)
-df.to_csv(snakemake.output.table, index=False, float_format="%.8g")
+write_text(snakemake.output.table, df.to_csv(index=False, float_format="%.8g", lineterminator="\n"))

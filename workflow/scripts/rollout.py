@@ -1,6 +1,8 @@
-"""MPM rollouts of one job: (theta, probe) pairs of one object -> one Parquet file each
-(+ deformation gradients). The contract, particles and Warp kernels are loaded once."""
+"""MPM rollouts of one job: (theta, probe) runs of one object -> one Parquet file each in the
+job's output folder (+ deformation gradients). The contract, particles and Warp kernels are
+loaded once."""
 import sys
+from pathlib import Path
 
 from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
@@ -9,22 +11,25 @@ from knockgs_core.rollout import run_rollout, write_deformation, write_rollout
 log = open(snakemake.log[0], "w")
 sys.stderr = log
 p = snakemake.params
-out = snakemake.output
+folder = Path(snakemake.output.folder)
+for run in p.runs:
+    for key in ("rollout", "F"):
+        if run[key] is not None and Path(run[key]).parent != folder:
+            raise SystemExit(f"rollout job: {run[key]} lies outside the job's output folder {folder}")
+folder.mkdir(parents=True, exist_ok=True)
 contract = load_contract(p.object, p.profile)
 particles = load_particles(snakemake.input.particles)
-runs = p.runs
-if len(out.rollouts) != len(runs):
-    raise SystemExit(f"rollout job: {len(runs)} runs but {len(out.rollouts)} output files")
 
-for i, (theta, probe) in enumerate(runs):
-    tag = f"[{i + 1}/{len(runs)}] theta ({theta[0]:.6f}, {theta[1]:.6f}) probe {probe}"
+for i, run in enumerate(p.runs):
+    theta, probe = run["theta"], run["probe"]
+    tag = f"[{i + 1}/{len(p.runs)}] theta ({theta[0]:.6f}, {theta[1]:.6f}) probe {probe}"
 
     def progress(frame, n_frames, stats, tag=tag):
         if frame % 5 == 0 or frame == n_frames - 1:
             print(f"{tag}: frame {frame}/{n_frames - 1} cfl {stats['cfl']:.3g}", file=log, flush=True)
 
-    ro = run_rollout(contract, theta, probe, particles=particles, device=p.device, export_F=p.export_F, progress=progress)
-    write_rollout(out.rollouts[i], ro)
-    if p.export_F:
-        write_deformation(out.F[i], ro)
+    ro = run_rollout(contract, theta, probe, particles=particles, device=p.device, export_F=run["F"] is not None, progress=progress)
+    write_rollout(run["rollout"], ro)
+    if run["F"] is not None:
+        write_deformation(run["F"], ro)
     print(f"{tag}: done, {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s", file=log, flush=True)
