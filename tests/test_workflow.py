@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -10,17 +11,21 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+import yaml
 
 from knockgs_core.audits import audit_completion, audit_duplicates, audit_leakage
+from knockgs_core.calibration import METHOD_NAMES, METHOD_OPTIONS
 from knockgs_core.contract import load_candidates, load_targets
 
 ROOT = Path(__file__).resolve().parents[1]
 METHODS = ["fixed_default", "response_nearest", "response_knn", "global_ridge", "local_ridge", "parameter_nearest_oracle"]
+CI = "results/ci"  # every output of a ci-profile run lies under it
 
 
 def _snakemake(workdir: Path, *targets: str, extra=()):
     # targets first: --config takes a list of values and would swallow them
-    cmd = [sys.executable, "-m", "snakemake", *targets, "--cores", "2", "--configfile=config/ci.yaml", *extra, "--config", "objects=[pillow]"]
+    cmd = [sys.executable, "-m", "snakemake", *targets, "--cores", "2", "--configfile=config/ci.yaml", *extra,
+           "--config", "objects=[pillow]"]
     return subprocess.run(cmd, cwd=workdir, capture_output=True, text=True)
 
 
@@ -28,73 +33,83 @@ def _snakemake(workdir: Path, *targets: str, extra=()):
 def ci_run(tmp_path_factory):
     """One ci-profile run of the Pillow main table, render table and audits in a scratch copy."""
     work = _scratch_copy(tmp_path_factory.mktemp("wf"))
-    targets = ["results/tables/main_pillow.csv", "results/tables/render_pillow.csv", "results/figures/qualitative_pillow.png",
-               "results/figures/compare_pillow.gif", "results/figures/main_pillow.png", "results/audits/leakage.json",
-               "results/audits/duplicates.json", "results/audits/nonfinite.json", "results/audits/missing_frames.json"]
+    targets = [f"{CI}/tables/main_pillow.csv", f"{CI}/tables/render_pillow.csv", f"{CI}/figures/qualitative_pillow.png",
+               f"{CI}/figures/compare_pillow.gif", f"{CI}/figures/main_pillow.png", f"{CI}/audits/leakage.json",
+               f"{CI}/audits/duplicates.json", f"{CI}/audits/nonfinite.json", f"{CI}/audits/missing_frames.json"]
     out = _snakemake(work, *targets)
     assert out.returncode == 0, out.stderr[-4000:]
     return work
 
 
 @pytest.mark.slow
+def test_ci_run_writes_only_its_profile(ci_run):
+    # the ci command leaves the default profile's tables, figures and audits alone
+    assert sorted(p.name for p in (ci_run / "results").iterdir()) == ["ci"]
+    assert sorted(p.name for p in (ci_run / "logs").iterdir()) == ["ci"]
+
+
+@pytest.mark.slow
 def test_ci_main_table_end_to_end(ci_run):
-    t = pd.read_csv(ci_run / "results/tables/main_pillow.csv")
+    t = pd.read_csv(ci_run / f"{CI}/tables/main_pillow.csv")
     assert list(t["method"]) == METHODS
-    for col in ["joint_error_pct", "joint_error_sd", "traj_rmse_standard_x", "traj_rmse_standard_y", "traj_rmse_strong_x", "curve_rmse_standard_y"]:
+    for col in ["joint_error_pct", "joint_error_sd", "traj_rmse_standard_x", "traj_rmse_standard_y", "traj_rmse_strong_x",
+                "curve_rmse_standard_y"]:
         assert col in t.columns and t[col].notna().all()
     e = t.set_index("method")["joint_error_pct"]
     # the fixed default ignores the evidence: its error is a property of the targets alone
     assert e["fixed_default"] == pytest.approx(27.3126, abs=1e-3)
     assert e["local_ridge"] < e["response_nearest"] < e["fixed_default"]
-    assert (ci_run / "results/tables/main_pillow.md").read_text().startswith("# Main table: pillow")
-    tw = pd.read_csv(ci_run / "results/tables/targetwise_pillow.csv")
+    assert (ci_run / f"{CI}/tables/main_pillow.md").read_text().startswith("# Main table: pillow")
+    tw = pd.read_csv(ci_run / f"{CI}/tables/targetwise_pillow.csv")
     assert len(tw) == 5 * len(METHODS)
 
 
 @pytest.mark.slow
 def test_ci_render_outputs(ci_run):
-    r = pd.read_csv(ci_run / "results/tables/render_pillow.csv")
+    r = pd.read_csv(ci_run / f"{CI}/tables/render_pillow.csv")
     assert list(r["method"]) == METHODS
     assert {"psnr_fg_standard_y", "ssim_crop_standard_y", "psnr_fg_strong_x"} <= set(r.columns)
     p = r.set_index("method")
     for probe in ["standard_x", "standard_y", "strong_x"]:
         assert p.loc["local_ridge", f"psnr_fg_{probe}"] > p.loc["fixed_default", f"psnr_fg_{probe}"]
-    assert (ci_run / "results/figures/compare_pillow.gif").stat().st_size > 1000
+    assert (ci_run / f"{CI}/figures/compare_pillow.gif").stat().st_size > 1000
 
 
 @pytest.mark.slow
 def test_ci_candidate_probe_a_evaluation_is_the_library_rollout(ci_run):
     # response nearest lands on candidates: their Probe-A write-back is the library rollout
     # (simulated once, with F), their Probe-B rollouts are evaluation rollouts
-    P = ci_run / "results/ci"
+    P = ci_run / CI
     est = json.loads((P / "estimates/pillow/main/response_nearest.json").read_text())
     tags = {f"sE{r['E_scale']:.6f}_sR{r['density_scale']:.6f}" for r in est["predictions"]}
     assert tags
+    library = {p.name.removesuffix(".F.parquet") for p in (P / "rollouts/pillow/lib").glob("chunk*/*.F.parquet")}
+    assert len(library) == 54
     for tag in tags:
-        assert (P / f"rollouts/pillow/lib/{tag}.F.parquet").exists()
-        assert not (P / f"rollouts/pillow/eval/standard_x/{tag}.parquet").exists()
-        assert (P / f"rollouts/pillow/eval/standard_y/{tag}.parquet").exists()
-        assert (P / f"renders/pillow/standard_x/{tag}.npz").exists()
+        assert tag in library
+        assert not (P / f"rollouts/pillow/eval/{tag}/standard_x.parquet").exists()
+        assert (P / f"rollouts/pillow/eval/{tag}/standard_y.parquet").exists()
+        assert (P / f"frames/pillow/{tag}/standard_x.npz").exists()
     # a target (never a candidate) has its own Probe-A evaluation rollout
-    assert (P / "rollouts/pillow/eval/standard_x/sE0.950000_sR1.350000.parquet").exists()
+    assert (P / "rollouts/pillow/eval/sE0.950000_sR1.350000/standard_x.parquet").exists()
 
 
 @pytest.mark.slow
 def test_ci_audits_pass_and_rerun_is_a_no_op(ci_run):
     for name in ["leakage", "duplicates", "nonfinite", "missing_frames"]:
-        verdict = json.loads((ci_run / f"results/audits/{name}.json").read_text())
+        verdict = json.loads((ci_run / f"{CI}/audits/{name}.json").read_text())
         assert verdict["passed"], verdict
-    leak = json.loads((ci_run / "results/audits/leakage.json").read_text())
+    leak = json.loads((ci_run / f"{CI}/audits/leakage.json").read_text())
     assert leak["deployable_estimates_checked"] == 5 and leak["library_rollouts_checked"] == 54
-    dry = _snakemake(ci_run, "results/tables/main_pillow.csv", extra=["-n"])
+    dry = _snakemake(ci_run, f"{CI}/tables/main_pillow.csv", extra=["-n"])
     assert dry.returncode == 0 and "Nothing to be done" in dry.stdout + dry.stderr
 
 
 @pytest.mark.slow
 def test_planted_leak_fails_the_audit(ci_run, tmp_path):
-    est_dir = ci_run / "results/ci/estimates/pillow/main"
+    est_dir = ci_run / f"{CI}/estimates/pillow/main"
     good = json.loads((est_dir / "local_ridge.json").read_text())
-    leaked = dict(good, rule_inputs=good["rule_inputs"] + ["results/ci/rollouts/pillow/eval/standard_y/sE0.950000_sR1.350000.parquet"])
+    leaked = dict(good, rule_inputs=good["rule_inputs"] + [f"{CI}/rollouts/pillow/eval/sE0.950000_sR1.350000/standard_y.parquet"])
     f = tmp_path / "estimates/pillow/main/local_ridge.json"
     f.parent.mkdir(parents=True)
     f.write_text(json.dumps(leaked))
@@ -104,7 +119,8 @@ def test_planted_leak_fails_the_audit(ci_run, tmp_path):
     g = tmp_path / "ok/pillow/main/local_ridge.json"
     g.parent.mkdir(parents=True)
     g.write_text(json.dumps(dict(good, rule_inputs=[str(ci_run / x) for x in good["rule_inputs"]])))
-    assert audit_leakage([g], calibration_probes={"pillow": "standard_x"}, candidates=load_candidates(), targets=load_targets())["passed"]
+    ok = audit_leakage([g], calibration_probes={"pillow": "standard_x"}, candidates=load_candidates(), targets=load_targets())
+    assert ok["passed"]
 
 
 def test_leakage_audit_flags_labels_in_queries(tmp_path):
@@ -140,25 +156,88 @@ def _scratch_copy(dest: Path) -> Path:
     return dest
 
 
+def _run(work: Path, *args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "snakemake", *args], cwd=work, capture_output=True, text=True)
+
+
+def _planned_paths(dry_run_stdout: str) -> list[str]:
+    """Every output, log and benchmark file of the jobs a dry run plans."""
+    paths = []
+    for line in dry_run_stdout.splitlines():
+        key, _, rest = line.strip().partition(": ")
+        if key in ("output", "log", "benchmark"):
+            paths += [p.strip() for p in rest.split(",")]
+    return paths
+
+
 def test_workflow_lints_and_dry_runs_for_all_profiles(tmp_path):
     work = _scratch_copy(tmp_path)
-    lint = subprocess.run([sys.executable, "-m", "snakemake", "--lint", "--configfile=config/ci.yaml"], cwd=work, capture_output=True, text=True)
+    lint = _run(work, "--lint", "--configfile=config/ci.yaml")
     assert lint.returncode == 0 and "good condition" in lint.stdout + lint.stderr, lint.stdout[-3000:]
-    for cfg in ["config/config.yaml", "config/ci.yaml", "config/paper.yaml"]:
-        out = subprocess.run([sys.executable, "-m", "snakemake", "-n", "--quiet", "all", f"--configfile={cfg}"], cwd=work, capture_output=True, text=True)
+    for cfg, profile in [("config/config.yaml", "default"), ("config/ci.yaml", "ci"), ("config/paper.yaml", "paper")]:
+        out = _run(work, "-n", "all", f"--configfile={cfg}")
         assert out.returncode == 0, out.stderr[-3000:]
+        # each profile writes only under its own results/ and logs/ folders: the ci command
+        # never overwrites the default run's tables, figures or audits
+        paths = _planned_paths(out.stdout)
+        assert len(paths) > 100 and f"results/{profile}/tables/main_pillow.csv" in paths
+        assert all(p.startswith((f"results/{profile}/", f"logs/{profile}/")) for p in paths), \
+            [p for p in paths if not p.startswith((f"results/{profile}/", f"logs/{profile}/"))][:5]
+
+
+def test_every_rule_is_a_statement(tmp_path):
+    # no rule is generated in a loop: --list-rules names exactly the rule/checkpoint statements
+    work = _scratch_copy(tmp_path)
+    files = [work / "Snakefile", *sorted((work / "workflow/rules").glob("*.smk"))]
+    statements = [m for f in files for m in re.findall(r"^(?:rule|checkpoint) (\w+):", f.read_text(), flags=re.M)]
+    out = _run(work, "--list-rules")
+    assert out.returncode == 0, out.stderr[-3000:]
+    listed = [line.split()[0] for line in out.stdout.splitlines() if line and not line[0].isspace()]
+    assert sorted(listed) == sorted(statements) and len(set(statements)) == len(statements)
+    assert {"rollout_library", "rollout_eval", "render", "discrepancy_library"} <= set(listed)
+
+
+def test_config_schema_method_vocabulary_is_the_registry():
+    schema = yaml.safe_load((ROOT / "workflow/schemas/config.schema.yaml").read_text())["properties"]
+    assert tuple(schema["methods"]["items"]["enum"]) == METHOD_NAMES
+    params = schema["method_params"]["properties"]
+    assert list(params) == list(METHOD_NAMES)
+    for method in METHOD_NAMES:
+        assert tuple(params[method].get("properties", {})) == METHOD_OPTIONS[method], method
+        assert params[method]["additionalProperties"] is False
+    assert list(yaml.safe_load((ROOT / "config/config.yaml").read_text())["methods"]) == list(METHOD_NAMES)
+
+
+def _minimum(option_schema: dict) -> float:
+    numeric = [s for s in option_schema.get("oneOf", [option_schema]) if s.get("type") in ("integer", "number")][0]
+    numeric = numeric.get("items", numeric)
+    return numeric.get("minimum", numeric.get("exclusiveMinimum"))
+
+
+@pytest.mark.parametrize(("method", "option", "cls"), [("response_knn", "k", "ResponseKNN"), ("local_ridge", "k", "LocalRidge"),
+                                                       ("global_ridge", "alpha", "GlobalRidge"),
+                                                       ("local_ridge", "alpha", "LocalRidge")])
+def test_config_schema_minimums_are_the_estimators(method, option, cls):
+    import knockgs_core.calibration as calibration
+
+    schema = yaml.safe_load((ROOT / "workflow/schemas/config.schema.yaml").read_text())
+    low = _minimum(schema["properties"]["method_params"]["properties"][method]["properties"][option])
+    estimator = getattr(calibration, cls)
+    estimator(**{option: low})  # the schema's minimum is accepted by the code
+    with pytest.raises(ValueError):
+        estimator(**{option: low - 1 if option == "k" else -1e-9})
 
 
 def test_bad_config_is_a_clear_error(tmp_path):
     (tmp_path / "w").mkdir()
     bad = tmp_path / "bad.yaml"
     bad.write_text((ROOT / "config/ci.yaml").read_text() + "\nunknown_key: 1\n")
-    out = subprocess.run([sys.executable, "-m", "snakemake", "-n", f"--configfile={bad}", "all"], cwd=_scratch_copy(tmp_path / "w"), capture_output=True, text=True)
+    out = _run(_scratch_copy(tmp_path / "w"), "-n", f"--configfile={bad}", "all")
     assert out.returncode != 0 and "unknown_key" in out.stdout + out.stderr
 
 
 def _planned(work: Path, *args) -> dict:
-    out = subprocess.run([sys.executable, "-m", "snakemake", "-n", *args], cwd=work, capture_output=True, text=True)
+    out = _run(work, "-n", *args)
     assert out.returncode == 0, out.stderr[-3000:]
     counts = {}
     for line in out.stdout.splitlines():
@@ -171,14 +250,11 @@ def _planned(work: Path, *args) -> dict:
 def test_discrepancy_cases_run_at_their_configured_resolution(tmp_path):
     # default profile, cases at the ci resolution: their own asset and library, not the profile's
     work = _scratch_copy(tmp_path)
-    own = _planned(work, "--", "results/tables/discrepancy.csv")
-    def jobs(counts, prefix):  # library rollouts run in chunked rules: prefix_0, prefix_1, ...
-        return sum(n for rule, n in counts.items() if rule.startswith(prefix + "_"))
-
-    assert own.get("discrepancy_asset") == 1 and jobs(own, "discrepancy_library") == 9 and jobs(own, "rollout_library") == 0
+    table = "results/default/tables/discrepancy.csv"
+    own = _planned(work, "--", table)
+    assert own.get("discrepancy_asset") == 1 and own.get("discrepancy_library") == 9 and "rollout_library" not in own
     assert own.get("discrepancy_run") == own.get("discrepancy_case") > 0
-    shared = _planned(work, "--config", "discrepancy={resolution: default}", "--", "results/tables/discrepancy.csv")
-    assert jobs(shared, "discrepancy_library") == 0 and jobs(shared, "rollout_library") == 9 and shared.get("asset") == 1
-    bad = subprocess.run([sys.executable, "-m", "snakemake", "-n", "--config", "discrepancy={resolution: huge}", "--", "results/tables/discrepancy.csv"],
-                         cwd=work, capture_output=True, text=True)
+    shared = _planned(work, "--config", "discrepancy={resolution: default}", "--", table)
+    assert "discrepancy_library" not in shared and shared.get("rollout_library") == 9 and shared.get("asset") == 1
+    bad = _run(work, "-n", "--config", "discrepancy={resolution: huge}", "--", table)
     assert bad.returncode != 0 and "huge" in bad.stdout + bad.stderr

@@ -7,7 +7,8 @@ from knockgs_core._io import write_text
 from knockgs_core.discrepancy import audit_truth_separation
 
 sys.stderr = open(snakemake.log[0], "w")
-verdict = audit_truth_separation(snakemake.input.results, snakemake.input.measured, snakemake.params.truth_dirs, snakemake.params.declared)
+verdict = audit_truth_separation(snakemake.input.results, snakemake.input.measured, snakemake.params.truth_dirs,
+                                 snakemake.params.declared)
 verdict["audit"] = "discrepancy_truth"
 text = json.dumps(verdict, indent=1)
 write_text(snakemake.output[0], text)

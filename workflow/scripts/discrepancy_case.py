@@ -1,5 +1,6 @@
 """Write one planted-effect case: measured files and, apart, its truth."""
 import sys
+from pathlib import Path
 
 from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
@@ -7,6 +8,7 @@ from knockgs_core.discrepancy import default_cases, make_case
 
 sys.stderr = open(snakemake.log[0], "w")
 p = snakemake.params
+out = snakemake.output
 spec = {c.name: c for c in default_cases()}[snakemake.wildcards.case]
 make_case(spec, load_contract(p.object, p.profile), load_particles(snakemake.input.particles),
-          measured_dir=snakemake.output.calib.rsplit("/", 1)[0], truth_dir=snakemake.output.truth.rsplit("/", 1)[0], device=p.device)
+          measured_dir=Path(out.calib).parent, truth_dir=Path(out.truth).parent, device=p.device)

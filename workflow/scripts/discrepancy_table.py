@@ -1,4 +1,4 @@
-"""Collect the evaluated cases into results/tables/discrepancy.csv|md and a figure."""
+"""Collect the evaluated cases into the table of cases (CSV and Markdown) and its figure."""
 import json
 import sys
 

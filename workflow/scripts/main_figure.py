@@ -6,4 +6,5 @@ import pandas as pd
 from knockgs_core.reporting import plot_main
 
 sys.stderr = open(snakemake.log[0], "w")
-plot_main(pd.read_csv(snakemake.input.csv), snakemake.params.probes, snakemake.output[0], title=f"{snakemake.wildcards.object} ({snakemake.params.profile} profile)")
+plot_main(pd.read_csv(snakemake.input.csv), snakemake.params.probes, snakemake.output[0],
+          title=f"{snakemake.wildcards.object} ({snakemake.params.profile} profile)")

@@ -9,6 +9,7 @@ p = snakemake.params
 if p.options:
     raise SystemExit(f"method_params.parameter_nearest_oracle: {sorted(p.options)}: "
                      "knockgs_core.experiments.oracle_estimate takes no options yet")
-doc = oracle_estimate(snakemake.input.library, load_targets(snakemake.wildcards.split, snakemake.input.targets), config_hash=p.config_hash)
+targets = load_targets(snakemake.wildcards.split, snakemake.input.targets)
+doc = oracle_estimate(snakemake.input.library, targets, config_hash=p.config_hash)
 doc["rule_inputs"] = [str(f) for f in snakemake.input]
 write_json(doc, snakemake.output.json)

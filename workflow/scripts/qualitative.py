@@ -11,6 +11,7 @@ frames = [np.load(f) for f in p.frames]
 names = ["target"] + list(p.methods)
 rgb = [f["rgb"].astype(np.float32) for f in frames]
 alpha = [f["alpha"].astype(np.float32) for f in frames]
-qualitative_figure(names, rgb, alpha, snakemake.output.png, title=f"{snakemake.wildcards.object}: {p.target} under held-out {p.probe}")
+title = f"{snakemake.wildcards.object}: {p.target} under held-out {p.probe}"
+qualitative_figure(names, rgb, alpha, snakemake.output.png, title=title)
 pick = [names.index(n) for n in ("target", "local_ridge", "fixed_default") if n in names]
 comparison_gif([names[i] for i in pick], [rgb[i] for i in pick], snakemake.output.gif)

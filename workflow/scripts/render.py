@@ -19,6 +19,7 @@ cam = camera_from_contract(p.camera, width=p.width, height=p.height)
 for job in p.jobs:
     t0 = time.perf_counter()
     ro = read_rollout(job["rollout"])
-    rgb, alpha = render_rollout(gaussians, static_mask, gaussian_index, ro.positions, read_deformation(job["F"]), cam, device=p.device)
+    F = read_deformation(job["F"])
+    rgb, alpha = render_rollout(gaussians, static_mask, gaussian_index, ro.positions, F, cam, device=p.device)
     write_npz(job["frames"], rgb=rgb.astype(np.float16), alpha=alpha.astype(np.float16))
     print(f"{job['frames']}: {len(rgb)} frames, {time.perf_counter() - t0:.2f} s", file=log, flush=True)

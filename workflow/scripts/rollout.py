@@ -28,7 +28,8 @@ for i, run in enumerate(p.runs):
         if frame % 5 == 0 or frame == n_frames - 1:
             print(f"{tag}: frame {frame}/{n_frames - 1} cfl {stats['cfl']:.3g}", file=log, flush=True)
 
-    ro = run_rollout(contract, theta, probe, particles=particles, device=p.device, export_F=run["F"] is not None, progress=progress)
+    ro = run_rollout(contract, theta, probe, particles=particles, device=p.device, export_F=run["F"] is not None,
+                     progress=progress)
     write_rollout(run["rollout"], ro)
     if run["F"] is not None:
         write_deformation(run["F"], ro)
