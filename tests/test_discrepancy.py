@@ -8,7 +8,6 @@ import json
 
 import numpy as np
 import pandas as pd
-import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -59,7 +58,8 @@ def test_measured_round_trip(tmp_path, rng, suffix, identity):
 def test_measured_long_table_rows_in_any_order_and_times(tmp_path, rng):
     T, M = 4, 3
     X = rng.normal(size=(T, M, 3))
-    rows = [{"time": 0.02 * t, "track": 5 + i, "x": X[t, i, 0], "y": X[t, i, 1], "z": X[t, i, 2]} for t in range(T) for i in range(M)]
+    rows = [{"time": 0.02 * t, "track": 5 + i, "x": X[t, i, 0], "y": X[t, i, 1], "z": X[t, i, 2]}
+            for t in range(T) for i in range(M)]
     df = pd.DataFrame(rows).sample(frac=1.0, random_state=1)
     df.to_csv(tmp_path / "m.csv", index=False)
     m = read_measured(tmp_path / "m.csv")
@@ -139,6 +139,49 @@ def test_residual_views_closed_form():
     assert s2["centroid_rmse"] == pytest.approx(0.003 * np.sqrt((T - 1) / T), rel=1e-12)
 
 
+def test_attribution_rows_serialize_in_the_order_their_stage_set_them():
+    from knockgs_core.discrepancy import AttributionRound, AttributionRow
+
+    failed = AttributionRow("poisson", "Poisson-ratio shift", error="unstable", rank=3)
+    assert list(failed.to_dict()) == ["key", "label", "error", "explained_val", "refined", "rank"]
+    screened = AttributionRow("damping", "velocity damping", trial_strength=1.0, coefficient=0.5, strength_estimate=0.5,
+                              parameter="rate", value_estimate=0.5, unit="1/s", screen_explained_fit=0.9,
+                              screen_explained_val=0.8)
+    screened.explained_val = screened.screen_explained_val
+    d = screened.to_dict()
+    assert list(d)[-3:] == ["refined", "explained_val", "rank"] and d["explained_val"] == 0.8
+    screened.refined, screened.theta_estimate, screened.explained_fit, screened.delta_bic = True, [1.0, 1.0], 0.95, -10.0
+    assert list(screened.to_dict())[-6:] == ["refined", "theta_estimate", "explained_fit", "explained_val", "delta_bic", "rank"]
+    rd = AttributionRound([1.0, 1.0], [], 9, 3, 1.0, 1.0, [1.0, 1.0], 1.0, 0.5, 1.0, True, [failed]).to_dict()
+    assert list(rd)[-2:] == ["table", "decision"] and "tried" not in rd and rd["table"][0]["error"] == "unstable"
+
+
+def test_default_cases_cycle_through_the_main_targets():
+    from knockgs_core.contract import load_targets
+    from knockgs_core.discrepancy import default_cases
+
+    main = load_targets("main")
+    targets = sorted(zip(main["E_scale"], main["density_scale"]))
+    thetas = [c.theta for c in default_cases()]
+    assert thetas[:5] == targets and thetas[5:10] == targets
+    assert default_cases([(0.5, 0.5)])[3].theta == (0.5, 0.5)
+
+
+def test_case_table_files(tmp_path):
+    from knockgs_core.discrepancy import case_table, write_table
+    from knockgs_core.discrepancy._tables import TABLE_COLUMNS
+
+    row = {c: 1.0 for c in TABLE_COLUMNS if c not in ("accepted", "note")}
+    row.update(case="null", planted_effect="none", identified_effect="none", first_ranked="damping", unexplained=False,
+               in_catalogue=True, observation="gs_identity", parameter="", planted_value="", estimated_value="")
+    df = case_table([row])
+    write_table(df, tmp_path / "t.csv", tmp_path / "t.md")
+    assert (tmp_path / "t.csv").read_text().splitlines()[0] == ",".join(TABLE_COLUMNS)
+    md = (tmp_path / "t.md").read_text()
+    assert "1 of 1 cases meet the acceptance rule" in md and not md.endswith("\n\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.csv", "t.md"]  # no temporary file left
+
+
 # -------------------------------------------------------------------------------------
 # the loop on the ci pillow
 # -------------------------------------------------------------------------------------
@@ -171,7 +214,8 @@ def cases(pillow, tmp_path_factory):
         mdir, tdir, rdir = root / "cases" / spec.name, root / "truth" / spec.name, root / "runs" / spec.name
         make_case(spec, contract, particles, measured_dir=mdir, truth_dir=tdir)
         result = run_files("pillow", "ci", mdir / "measured_calib.parquet", rdir, particles=root / "particles.npz",
-                           heldout_probes=["standard_y"], heldout_measured={"standard_y": mdir / "measured_heldout.parquet"}, settings=SETTINGS)
+                           heldout_probes=["standard_y"], heldout_measured={"standard_y": mdir / "measured_heldout.parquet"},
+                           settings=SETTINGS)
         row = evaluate_files(rdir, tdir, root / "eval" / f"{spec.name}.json")
         out[spec.name] = {"result": result, "row": row, "dirs": (mdir, tdir, rdir)}
     return out
@@ -220,7 +264,8 @@ def test_truth_audit(cases, tmp_path):
     leaked.write_text(json.dumps(doc))
     table = pq.read_table(measured[0])
     labelled = tmp_path / "labelled.parquet"
-    pq.write_table(table.replace_schema_metadata({b"knockgs_measurement": json.dumps({"probe": "standard_x", "theta_true": [1, 1]}).encode()}), labelled)
+    label = json.dumps({"probe": "standard_x", "theta_true": [1, 1]}).encode()
+    pq.write_table(table.replace_schema_metadata({b"knockgs_measurement": label}), labelled)
     bad = audit_truth_separation([leaked], [labelled], [truth_root])
     assert not bad["passed"] and len(bad["problems"]) >= 2
 
@@ -234,7 +279,9 @@ def test_cli_run_writes_a_report(cases, tmp_path):
     assert rc == 0
     doc = json.loads((tmp_path / "r" / "result.json").read_text())
     assert doc["identified"] == ["damping"] and doc["inputs"] == [str(mdir / "measured_calib.parquet")]
-    assert main(["discrepancy", "run", "--object", "pillow", "--profile", "ci", "--measured", str(tmp_path / "nope.csv"), "-o", str(tmp_path / "x")]) == 2
+    missing = str(tmp_path / "nope.csv")
+    rc = main(["discrepancy", "run", "--object", "pillow", "--profile", "ci", "--measured", missing, "-o", str(tmp_path / "x")])
+    assert rc == 2
 
 
 def test_library_base_calibration_on_a_null_measurement(pillow, rng):

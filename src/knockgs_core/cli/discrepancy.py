@@ -35,29 +35,33 @@ def _common(p) -> None:
 
 def register(subparsers) -> argparse.ArgumentParser:
     """Add ``discrepancy`` and its subcommands to the dispatcher's subparsers."""
-    parser = subparsers.add_parser("discrepancy", help="find, add and report a missing physical effect", description=__doc__.splitlines()[0])
+    parser = subparsers.add_parser("discrepancy", help="find, add and report a missing physical effect",
+                                   description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="discrepancy_command", required=True)
 
     p = sub.add_parser("run", help="run the discrepancy loop on measured trajectories and write a report")
     _common(p)
     p.add_argument("--measured", required=True, metavar="FILE", help="calibration-probe trajectories (.parquet, .csv, .npz)")
     p.add_argument("--probe", help="probe of the measurement (default: its metadata, then the contract's calibration probe)")
-    p.add_argument("--heldout-probe", action="append", default=[], metavar="NAME", help="held-out probe to predict (repeatable; never used in the loop)")
+    p.add_argument("--heldout-probe", action="append", default=[], metavar="NAME",
+                   help="held-out probe to predict (repeatable; never used in the loop)")
     p.add_argument("--heldout-measured", action="append", default=[], metavar="PROBE=FILE",
                    help="measurement of a held-out probe, only to score the predictions (repeatable)")
     p.add_argument("--library-rollout", action="append", default=[], metavar="FILE",
-                   help="candidate-library rollout (.parquet, theta in its metadata; repeatable): base calibration by local ridge "
-                        "instead of Gauss-Newton from (1, 1)")
+                   help="candidate-library rollout (.parquet, theta in its metadata; repeatable): base calibration by "
+                        "local ridge instead of Gauss-Newton from (1, 1)")
     p.add_argument("--catalogue", help="comma-separated catalogue keys to consider (default: all that apply)")
     p.add_argument("--max-effects", type=int, default=2, help="most effects to add (default 2)")
-    p.add_argument("-o", "--output", required=True, metavar="DIR", help="report folder (report.md, result.json, predictions.npz, figures)")
+    p.add_argument("-o", "--output", required=True, metavar="DIR",
+                   help="report folder (report.md, result.json, predictions.npz, figures)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=_run)
 
     p = sub.add_parser("make-case", help="write a synthetic measured case with a planted effect (truth kept apart)")
     _common(p)
     p.add_argument("--case", required=True, help="case name; a standard case (see docs/discrepancy.md) unless --planted is given")
-    p.add_argument("--planted", help="planted effect: none, damping, gravity, plasticity, poisson, stiffness_gradient_z, support_slip, force_pulse, hidden_mass")
+    p.add_argument("--planted", help="planted effect: none, damping, gravity, plasticity, poisson, stiffness_gradient_z, "
+                                     "support_slip, force_pulse, hidden_mass")
     p.add_argument("--level", default="low", help="low (12%% held-out change), high (25%%) or a fraction")
     p.add_argument("--theta", type=_pair, default=(0.8, 1.2), help="true 'SE,SRHO' (default 0.8,1.2)")
     p.add_argument("--noise", type=float, default=0.02, help="noise std as a fraction of the RMS displacement (default 0.02)")
@@ -121,7 +125,7 @@ def _make_case(args) -> int:
 
     contract, particles = _load(args)
     if args.planted is None:
-        std = {c.name: c for c in default_cases()}
+        std = {c.name: c for c in default_cases(targets_path=contract.targets_path)}
         if args.case not in std:
             raise InputError("command line", "--case", f"'{args.case}' is not a standard case ({', '.join(std)}); give --planted")
         spec = std[args.case]
@@ -130,7 +134,8 @@ def _make_case(args) -> int:
         spec = CaseSpec(name=args.case, planted=args.planted, level=level, theta=args.theta, noise_rel=args.noise,
                         observation=args.observation, seed=args.seed)
     truth = make_case(spec, contract, particles, measured_dir=args.measured_dir, truth_dir=args.truth_dir, device=args.device)
-    print(f"case {spec.name}: planted {truth['planted_effect']} -> {args.measured_dir} (truth in {args.truth_dir})", file=sys.stderr)
+    print(f"case {spec.name}: planted {truth['planted_effect']} -> {args.measured_dir} (truth in {args.truth_dir})",
+          file=sys.stderr)
     return 0
 
 

@@ -10,17 +10,23 @@ unexplained. See docs/discrepancy.md.
 * :func:`default_catalogue`: the candidate effects (:mod:`knockgs_core.sim` effects);
 * :func:`write_report`: Markdown report with figures; :func:`run_files`: the loop from
   files to a report folder (the command line's and the workflow's entry point);
-* :func:`make_case` / :func:`evaluate_case` / :func:`case_table`: synthetic cases with a
-  planted effect (the truth side, never used by the loop) and their table;
-  :func:`audit_truth_separation`: verdict that no run read the truth.
+* :func:`make_case` / :func:`default_cases` (case definitions and generation, the truth
+  side, never used by the loop), :func:`evaluate_case` / :func:`acceptance` (scoring
+  against the truth), :func:`case_table` / :func:`write_table` / :func:`table_figure`
+  (the table of cases); :func:`audit_truth_separation`: verdict that no run read the truth.
+* :class:`AttributionRow` / :class:`AttributionRound`: one candidate's line and one round
+  of the attribution (``DiscrepancyResult.rounds`` holds their dicts).
 """
 
-from ._cases import PLANTED_EFFECTS, CaseSpec, acceptance, case_table, default_cases, evaluate_case, make_case, table_figure, write_table
+from ._attribution import AttributionRound, AttributionRow
+from ._cases import PLANTED_EFFECTS, CaseSpec, default_cases, make_case
 from ._catalogue import CATALOGUE_KEYS, Candidate, CatalogueContext, default_catalogue
 from ._files import audit_truth_separation, evaluate_files, run_files
 from ._loop import DiscrepancyResult, LibrarySource, LoopSettings, run_discrepancy
 from ._measured import Correspondence, Measurement, match_points, read_measured, write_measured
 from ._report import write_report, write_result
+from ._scoring import acceptance, evaluate_case
+from ._tables import case_table, table_figure, write_table
 from ._views import residual_views, view_summary
 
 __all__ = [
@@ -35,6 +41,8 @@ __all__ = [
     "default_catalogue",
     "LoopSettings",
     "LibrarySource",
+    "AttributionRow",
+    "AttributionRound",
     "DiscrepancyResult",
     "run_discrepancy",
     "residual_views",

@@ -1,27 +1,37 @@
-"""Synthetic "measured" cases with a planted effect, and their evaluation (private).
+"""Synthetic "measured" cases with a planted effect: their definitions and generation (private).
 
 This is the *truth side*: :func:`make_case` writes the measured files (positions only,
 metadata limited to object, profile and probe) to one directory and the truth (planted
-effect, its magnitude, the true theta, clean rollouts) to another; only
-:func:`evaluate_case` reads the truth back. The loop (:func:`run_discrepancy`) never
-imports this module.
+effect, its magnitude, the true theta, clean rollouts) to another; only the scoring
+(:mod:`._scoring`) reads the truth back. The loop (:func:`run_discrepancy`) never imports
+this module.
 """
 
 from __future__ import annotations
 
-import json
 import math
-import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
+from .._io import write_json, write_npz
 from ..errors import InputError
-from ..sim import BodyForcePulse, Box, Gravity, HiddenMass, PoissonShift, StiffnessGradient, SupportSlip, VelocityDamping, VonMisesPlasticity, with_effects
+from ..sim import (
+    BodyForcePulse,
+    Box,
+    Gravity,
+    HiddenMass,
+    PoissonShift,
+    StiffnessGradient,
+    SupportSlip,
+    VelocityDamping,
+    VonMisesPlasticity,
+    with_effects,
+)
 from ._measured import Measurement, write_measured
 
-__all__ = ["PLANTED_EFFECTS", "CaseSpec", "default_cases", "make_case", "evaluate_case", "case_table", "acceptance", "write_table", "table_figure"]
+__all__ = ["PLANTED_EFFECTS", "LEVELS", "CaseSpec", "default_cases", "make_case"]
 
 
 def _top_box(particles, frac=0.5):
@@ -49,13 +59,15 @@ def _end_box(particles, frac=0.3):
 PLANTED_EFFECTS = {
     "damping": (lambda s, ps, H: VelocityDamping(rate=s), 1.0, True, lambda s: ("rate", s, "1/s")),
     "gravity": (lambda s, ps, H: Gravity(g=s), 0.02, True, lambda s: ("g", s, "m/s^2")),
-    "plasticity": (lambda s, ps, H: VonMisesPlasticity(yield_stress=1.0 / s), 1.0 / 40.0, True, lambda s: ("yield_stress", 1.0 / s, "Pa")),
+    "plasticity": (lambda s, ps, H: VonMisesPlasticity(yield_stress=1.0 / s), 1.0 / 40.0, True,
+                   lambda s: ("yield_stress", 1.0 / s, "Pa")),
     # a shear-dominated response barely sees nu: a 12-25% change needs a large drop
     "poisson": (lambda s, ps, H: PoissonShift(delta_nu=-s), 0.3, True, lambda s: ("delta_nu", -s, "")),
     "stiffness_gradient_z": (lambda s, ps, H: StiffnessGradient(slope=s, axis=2), 1.0, True, lambda s: ("slope", s, "")),
     "support_slip": (lambda s, ps, H: SupportSlip(slip_time=s), 0.005, True, lambda s: ("slip_time", s, "s")),
-    "force_pulse": (lambda s, ps, H: BodyForcePulse(accel=s, direction=(0.0, 1.0, 0.0), box=_top_box(ps), start=0.2 * H, end=0.6 * H), 0.05, False,
-                    lambda s: ("accel", s, "m/s^2")),
+    "force_pulse": (lambda s, ps, H: BodyForcePulse(accel=s, direction=(0.0, 1.0, 0.0), box=_top_box(ps),
+                                                    start=0.2 * H, end=0.6 * H),
+                    0.05, False, lambda s: ("accel", s, "m/s^2")),
     "hidden_mass": (lambda s, ps, H: HiddenMass(fraction=s, box=_end_box(ps)), 0.5, False, lambda s: ("fraction", s, "")),
 }
 
@@ -87,11 +99,17 @@ class CaseSpec:
             raise InputError("case", "observation", "one of gs_identity, gs_tracks, all_identity")
 
 
-def default_cases(targets: list[tuple[float, float]] | None = None) -> list[CaseSpec]:
+def default_cases(targets: list[tuple[float, float]] | None = None, *, targets_path=None) -> list[CaseSpec]:
     """The standard set: every catalogue effect at two levels, a null case and two
-    disturbances outside the catalogue; true thetas cycle through ``targets`` (SPEC's
-    held-out targets by default); every third case is observed without identity."""
-    targets = targets or [(0.60, 1.65), (0.70, 1.20), (0.80, 1.60), (0.95, 1.35), (1.05, 1.10)]
+    disturbances outside the catalogue; true thetas cycle through ``targets``, by default
+    the held-out targets of split ``main`` in ``targets_path`` (default
+    ``config/targets.csv``, :func:`knockgs_core.contract.load_targets`) in increasing
+    order of (s_E, s_rho); every third case is observed without identity."""
+    if not targets:
+        from ..contract import load_targets
+
+        main = load_targets("main", targets_path)
+        targets = sorted(zip(main["E_scale"].astype(float), main["density_scale"].astype(float)))
     names = []
     for eff in ("damping", "gravity", "plasticity", "poisson", "stiffness_gradient_z", "support_slip"):
         for level in ("low", "high"):
@@ -153,7 +171,8 @@ def _find_strength(contract, particles, planted, target, theta, probe, H, device
             s *= 0.5
         c = change(s)
     if lo is None or hi is None:
-        best = min((e for e in log if "change" in e), key=lambda e: abs(math.log(e["change"] / target)) if e["change"] > 0 else math.inf)
+        best = min((e for e in log if "change" in e),
+                   key=lambda e: abs(math.log(e["change"] / target)) if e["change"] > 0 else math.inf)
         return best["strength"], best["change"]
     for _ in range(8):
         if abs(lo[1] / target - 1) <= 0.1:
@@ -183,7 +202,8 @@ def _observe(Y, n_gs, spec: CaseSpec, rng, sigma, frames):
     return idx, P
 
 
-def make_case(spec: CaseSpec, contract, particles, *, measured_dir, truth_dir, calibration_probe=None, heldout_probe=None, device=None) -> dict:
+def make_case(spec: CaseSpec, contract, particles, *, measured_dir, truth_dir, calibration_probe=None, heldout_probe=None,
+              device=None) -> dict:
     """Write the case ``spec``: ``measured_dir/measured_calib.parquet`` and
     ``measured_dir/measured_heldout.parquet`` (what the loop and the report may read), and
     ``truth_dir/truth.json`` plus ``truth_dir/clean.npz`` (clean Gaussian-particle
@@ -199,7 +219,8 @@ def make_case(spec: CaseSpec, contract, particles, *, measured_dir, truth_dir, c
     if spec.planted != "none":
         build, _, in_cat, describe = PLANTED_EFFECTS[spec.planted]
         target = LEVELS[spec.level] if isinstance(spec.level, str) else float(spec.level)
-        strength, achieved = _find_strength(contract, particles, spec.planted, target, spec.theta, heldout_probe, H, device, search)
+        strength, achieved = _find_strength(contract, particles, spec.planted, target, spec.theta, heldout_probe, H, device,
+                                            search)
         effects = (build(strength, particles, H),)
         p, v, u = describe(strength)
         param = {"parameter": p, "value": v, "unit": u}
@@ -244,156 +265,7 @@ def make_case(spec: CaseSpec, contract, particles, *, measured_dir, truth_dir, c
         "measured_files": files,
         "spec": asdict(spec),
     }
-    truth_dir.mkdir(parents=True, exist_ok=True)
-    tmp = truth_dir / f".clean.npz.tmp{os.getpid()}"
-    with open(tmp, "wb") as fh:
-        np.savez_compressed(fh, calib=clean["calib"][:, :n_gs].astype(np.float32), heldout=clean["heldout"][:, :n_gs].astype(np.float32))
-    os.replace(tmp, truth_dir / "clean.npz")
-    _write_json(truth_dir / "truth.json", truth)
+    write_npz(truth_dir / "clean.npz", calib=clean["calib"][:, :n_gs].astype(np.float32),
+              heldout=clean["heldout"][:, :n_gs].astype(np.float32))
+    write_json(truth_dir / "truth.json", truth)
     return truth
-
-
-def _write_json(path, obj):
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(obj, indent=2, default=float) + "\n")
-    os.replace(tmp, path)
-
-
-def evaluate_case(result: dict, predictions: dict, truth_dir) -> dict:
-    """One table row: the loop's ``result`` (its JSON dict) and ``predictions`` (arrays
-    ``{probe}/{stage}`` [T, n_gs, 3]) scored against the truth in ``truth_dir``."""
-    from ..metrics import joint_error_pct, trajectory_rmse
-
-    truth_dir = Path(truth_dir)
-    truth = json.loads((truth_dir / "truth.json").read_text())
-    with np.load(truth_dir / "clean.npz") as z:
-        clean = {"calib": z["calib"], "heldout": z["heldout"]}
-    probes = {"calib": truth["calibration_probe"], "heldout": truth["heldout_probe"]}
-    row = {"case": truth["case"], "planted_effect": truth["planted_effect"], "in_catalogue": truth["in_catalogue"]}
-    rounds = result.get("rounds") or []
-    table0 = rounds[0]["table"] if rounds else []
-    row["identified_effect"] = result["identified_label"]
-    row["first_ranked"] = table0[0]["key"] if table0 else "none"
-    planted_rank = next((r["rank"] for r in table0 if r["key"] == truth["planted_effect"]), None)
-    row["planted_rank"] = planted_rank if planted_rank is not None else ""
-    row["unexplained"] = bool(result["unexplained"])
-    for role in ("heldout", "calib"):
-        for stage in ("before", "after", "refit"):
-            P = predictions[f"{probes[role]}/{stage}"]
-            row[f"{role}_traj_rmse_{stage}"] = trajectory_rmse(P, clean[role])
-    th = tuple(truth["theta_true"])
-    row["theta_true"] = f"({th[0]:.2f}, {th[1]:.2f})"
-    row["theta_before"] = f"({result['theta_base'][0]:.3f}, {result['theta_base'][1]:.3f})"
-    row["theta_after"] = f"({result['theta_final'][0]:.3f}, {result['theta_final'][1]:.3f})"
-    row["theta_error_before_pct"] = joint_error_pct(result["theta_base"], th)
-    row["theta_error_after_pct"] = joint_error_pct(result["theta_final"], th)
-    pp = truth.get("planted_parameter") or {}
-    row["planted_value"] = pp.get("value", "")
-    est = {e["key"]: e for e in result.get("effects", [])}
-    row["estimated_value"] = est[truth["planted_effect"]]["value"] if truth["planted_effect"] in est else ""
-    row["parameter"] = pp.get("parameter", "")
-    row["heldout_change"] = truth["heldout_change"]
-    row["residual_excess_pct"] = 100.0 * result["residual"]["excess_fraction_of_response"]
-    row["observation"] = truth["observation"]
-    row["heldout_improvement"] = row["heldout_traj_rmse_before"] / max(row["heldout_traj_rmse_after"], 1e-30)
-    row["n_simulations"] = result["n_simulations"]
-    return row
-
-
-def acceptance(row: dict) -> tuple[bool, str]:
-    """The acceptance rule of one row: a planted catalogue effect is ranked first,
-    identified, and the held-out RMSE drops at least 2x; the null case finds none; an
-    effect outside the catalogue is not forced onto one and is reported unexplained."""
-    planted = row["planted_effect"]
-    if planted == "none":
-        ok = row["identified_effect"] == "none" and not row["unexplained"]
-        return ok, "none found" if ok else f"found {row['identified_effect']}"
-    if not row["in_catalogue"]:
-        ok = row["identified_effect"] == "none" and row["unexplained"]
-        return ok, "unexplained, not forced" if ok else f"identified {row['identified_effect']}, unexplained={row['unexplained']}"
-    ok1 = row["first_ranked"] == planted
-    ok2 = row["identified_effect"].split("+")[0] == planted
-    ok3 = row["heldout_improvement"] >= 2.0
-    why = []
-    if not ok1:
-        why.append(f"ranked first: {row['first_ranked']}")
-    if not ok2:
-        why.append(f"identified {row['identified_effect']}")
-    if not ok3:
-        why.append(f"held-out drop {row['heldout_improvement']:.2f}x")
-    return ok1 and ok2 and ok3, "; ".join(why) or "ranked first, identified, held-out drop >= 2x"
-
-
-TABLE_COLUMNS = [
-    "case", "planted_effect", "identified_effect", "first_ranked", "heldout_traj_rmse_before", "heldout_traj_rmse_after",
-    "calib_traj_rmse_before", "calib_traj_rmse_after", "theta_error_before_pct", "theta_error_after_pct",
-    "heldout_traj_rmse_refit", "calib_traj_rmse_refit", "heldout_improvement", "planted_rank", "unexplained", "residual_excess_pct",
-    "parameter", "planted_value", "estimated_value", "heldout_change", "theta_true", "theta_before", "theta_after",
-    "observation", "n_simulations", "accepted", "note",
-]
-
-
-def case_table(rows: list[dict]):
-    """The table of cases (one row per case, :data:`TABLE_COLUMNS`), acceptance included."""
-    import pandas as pd
-
-    out = []
-    for row in rows:
-        row = dict(row)
-        row["accepted"], row["note"] = acceptance(row)
-        out.append(row)
-    return pd.DataFrame(out)[TABLE_COLUMNS]
-
-
-def write_table(df, csv_path, md_path, *, title="Discrepancy loop: planted effects found and errors before/after") -> None:
-    """Write the table as CSV and Markdown (with a one-line summary)."""
-    csv_path, md_path = Path(csv_path), Path(md_path)
-    csv_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = csv_path.with_name(f".{csv_path.name}.tmp{os.getpid()}")
-    df.to_csv(tmp, index=False, float_format="%.6g")
-    os.replace(tmp, csv_path)
-    show = ["case", "planted_effect", "identified_effect", "first_ranked", "heldout_traj_rmse_before", "heldout_traj_rmse_after",
-            "calib_traj_rmse_before", "calib_traj_rmse_after", "theta_error_before_pct", "theta_error_after_pct",
-            "planted_value", "estimated_value", "residual_excess_pct", "accepted"]
-    lines = [f"# {title}", "", f"{int(df['accepted'].sum())} of {len(df)} cases meet the acceptance rule.", ""]
-    lines.append("| " + " | ".join(show) + " |")
-    lines.append("|" + "---|" * len(show))
-    for _, r in df.iterrows():
-        cells = []
-        for c in show:
-            v = r[c]
-            if isinstance(v, float):
-                cells.append(f"{v:.3g}" if c not in ("theta_error_before_pct", "theta_error_after_pct", "residual_excess_pct") else f"{v:.2f}")
-            else:
-                cells.append(str(v))
-        lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "RMSE in normalized-domain metres over the Gaussian-associated particles and all frames, against the clean "
-              "(noise-free) truth; theta error = 50 (|dsE|/sE + |dsR|/sR) %. 'before' = base calibration, 'after' = the loop's final model.", ""]
-    tmp = md_path.with_name(f".{md_path.name}.tmp{os.getpid()}")
-    tmp.write_text("\n".join(lines))
-    os.replace(tmp, md_path)
-
-
-def table_figure(df, path) -> None:
-    """Bar chart of the held-out and calibration trajectory RMSE before/after per case."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    x = np.arange(len(df))
-    fig, axes = plt.subplots(1, 2, figsize=(13, 4.5), sharey=True)
-    for ax, role, title in ((axes[0], "heldout", "held-out probe (never used in the loop)"), (axes[1], "calib", "calibration probe")):
-        ax.bar(x - 0.2, df[f"{role}_traj_rmse_before"], 0.4, label="before (base calibration)")
-        ax.bar(x + 0.2, df[f"{role}_traj_rmse_after"], 0.4, label="after (loop)")
-        ax.set_yscale("log")
-        ax.set_xticks(x)
-        ax.set_xticklabels([f"{c}\n-> {i}" for c, i in zip(df["case"], df["identified_effect"])], rotation=70, fontsize=7)
-        ax.set_title(f"trajectory RMSE [m], {title}", fontsize=9)
-    axes[0].legend(fontsize=8)
-    fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)

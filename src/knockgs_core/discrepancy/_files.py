@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
+from .._io import write_json, write_text
 from ..errors import InputError
 from ._loop import DiscrepancyResult, LibrarySource, LoopSettings, run_discrepancy
 from ._measured import MEASUREMENT_META_FIELDS, MEASUREMENT_META_KEY, read_measured
@@ -68,7 +68,8 @@ def run_files(
         from ..rollout import read_rollout_meta
 
         thetas = [read_rollout_meta(p)["theta"] for p in library_rollouts]
-        library = LibrarySource(theta=np.array(thetas, dtype=float), names=tuple(str(p) for p in library_rollouts), rollouts=tuple(str(p) for p in library_rollouts))
+        paths = tuple(str(p) for p in library_rollouts)
+        library = LibrarySource(theta=np.array(thetas, dtype=float), names=paths, rollouts=paths)
         inputs += [str(p) for p in library_rollouts]
     result = run_discrepancy(m, contract, ps, probe=probe, heldout_probes=heldout_probes, heldout_measured=held,
                              library=library, settings=settings, device=device, progress=progress)
@@ -80,26 +81,24 @@ def run_files(
 def evaluate_files(run_dir, truth_dir, output, markdown=None) -> dict:
     """Score a run folder against a case's truth folder; write the row as JSON (and, with
     ``markdown``, a short evaluation page: planted vs found, errors against the truth)."""
-    from ._cases import acceptance, evaluate_case
+    from ._scoring import acceptance, evaluate_case
 
     run_dir = Path(run_dir)
     result = json.loads((run_dir / "result.json").read_text())
     with np.load(run_dir / "predictions.npz") as z:
         preds = {k: z[k] for k in z.files}
     row = evaluate_case(result, preds, truth_dir)
-    out = Path(output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(row, indent=2, default=float) + "\n")
-    os.replace(tmp, out)
+    write_json(output, row)
     if markdown is not None:
         ok, why = acceptance(row)
         g = lambda v: f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
         lines = [
             f"# Evaluation of case {row['case']} against its truth",
             "",
-            f"- planted: {row['planted_effect']}" + (f" ({row['parameter']} = {g(row['planted_value'])})" if row["parameter"] else ""),
-            f"- found: {row['identified_effect']}" + (f" ({row['parameter']} = {g(row['estimated_value'])})" if row["estimated_value"] != "" else "")
+            f"- planted: {row['planted_effect']}"
+            + (f" ({row['parameter']} = {g(row['planted_value'])})" if row["parameter"] else ""),
+            f"- found: {row['identified_effect']}"
+            + (f" ({row['parameter']} = {g(row['estimated_value'])})" if row["estimated_value"] != "" else "")
             + f"; ranked first in round 1: {row['first_ranked']}; residual left unexplained: {row['unexplained']}",
             f"- theta: true {row['theta_true']}, before {row['theta_before']} ({row['theta_error_before_pct']:.2f} % error), "
             f"after {row['theta_after']} ({row['theta_error_after_pct']:.2f} % error)",
@@ -113,15 +112,12 @@ def evaluate_files(run_dir, truth_dir, output, markdown=None) -> dict:
         for role, name in (("calib", "calibration"), ("heldout", "held-out (never used in the loop)")):
             b, r, a = row[f"{role}_traj_rmse_before"], row[f"{role}_traj_rmse_refit"], row[f"{role}_traj_rmse_after"]
             lines.append(f"| {name} | {b:.4g} | {r:.4g} | {a:.4g} | {b / max(a, 1e-30):.3g} |")
-        md = Path(markdown)
-        md.parent.mkdir(parents=True, exist_ok=True)
-        tmp = md.with_name(f".{md.name}.tmp{os.getpid()}")
-        tmp.write_text("\n".join(lines) + "\n")
-        os.replace(tmp, md)
+        write_text(markdown, "\n".join(lines) + "\n")
     return row
 
 
-def audit_truth_separation(results: Sequence, measured_files: Sequence, truth_dirs: Sequence, declared_inputs: dict | None = None) -> dict:
+def audit_truth_separation(results: Sequence, measured_files: Sequence, truth_dirs: Sequence,
+                           declared_inputs: dict | None = None) -> dict:
     """Verdict that the loop never saw the truth: no run read a file under a truth folder
     (``inputs`` recorded in each ``result.json``, and the workflow's declared inputs of the
     run jobs, ``declared_inputs``: case -> files), and no measured file carries metadata
@@ -159,4 +155,5 @@ def audit_truth_separation(results: Sequence, measured_files: Sequence, truth_di
             read_measured(f)
         except InputError as exc:
             problems.append(f"{f}: {exc}")
-    return {"passed": not problems, "problems": problems, "checked": {"results": len(results), "measured_files": len(measured_files), "truth_dirs": [str(t) for t in truth_dirs]}}
+    checked = {"results": len(results), "measured_files": len(measured_files), "truth_dirs": [str(t) for t in truth_dirs]}
+    return {"passed": not problems, "problems": problems, "checked": checked}

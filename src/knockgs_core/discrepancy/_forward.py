@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import math
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import InputError
-from ..sim import FixedCuboid, with_effects
+from ..sim import is_still_sticky, with_effects
 from ._catalogue import Candidate
 
 __all__ = ["ModelSpec", "ForwardModel"]
@@ -43,8 +43,10 @@ class ModelSpec:
 @dataclass
 class ForwardModel:
     """Simulates ``contract`` on ``particles`` at a :class:`ModelSpec`; rollouts are cached
-    by (probe, spec), oldest dropped first beyond ``max_cache`` entries or ``max_cache_bytes``. ``catalogue`` maps effect keys to :class:`Candidate` entries.
-    ``n_simulations`` and ``seconds`` count the simulator calls actually made."""
+    by (probe, spec), oldest dropped first beyond ``max_cache`` entries or
+    ``max_cache_bytes``. ``catalogue`` maps effect keys to :class:`Candidate` entries (given
+    when the model is built, or by :meth:`with_catalogue`). ``n_simulations`` and
+    ``seconds`` count the simulator calls actually made."""
 
     contract: object
     particles: object
@@ -55,6 +57,13 @@ class ForwardModel:
     n_simulations: int = 0
     seconds: float = 0.0
     _cache: dict = field(default_factory=dict, repr=False)
+
+    def with_catalogue(self, catalogue: dict[str, Candidate]) -> ForwardModel:
+        """This model with ``catalogue``, taking over its cache and counters (the rollouts
+        cached so far have no effects, so they stay valid); use it in place of this one."""
+        if any(effects for (_, _, _, effects) in self._cache):
+            raise InputError("model", "catalogue", "the cache holds rollouts with effects of another catalogue")
+        return dataclasses.replace(self, catalogue=dict(catalogue))
 
     def effects(self, spec: ModelSpec) -> tuple:
         out = []
@@ -103,7 +112,8 @@ class ForwardModel:
 
     def probe_export(self, probe: str):
         if probe not in self.contract.probes:
-            raise InputError(f"object {self.contract.name}", "probe", f"unknown probe '{probe}'; known: {sorted(self.contract.probes)}")
+            known = sorted(self.contract.probes)
+            raise InputError(f"object {self.contract.name}", "probe", f"unknown probe '{probe}'; known: {known}")
         return self.contract.probes[probe].export
 
     # contract facts the catalogue needs -----------------------------------------------
@@ -111,10 +121,7 @@ class ForwardModel:
         return any(abs(g) > 0 for g in self.contract.sim.gravity)
 
     def has_still_support(self) -> bool:
-        return any(
-            isinstance(bc, FixedCuboid) and bc.friction is None and not any(bc.velocity) and bc.start_time <= 0 and math.isinf(bc.end_time)
-            for bc in self.contract.sim.boundaries
-        )
+        return any(is_still_sticky(bc) for bc in self.contract.sim.boundaries)
 
     def base_materials(self):
         """Per-particle base (E, nu, rho) at theta = (1, 1), no effects."""

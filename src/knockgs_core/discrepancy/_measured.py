@@ -16,15 +16,16 @@ probe acts) must be present.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from .._io import atomic_write, write_npz, write_parquet
 from ..errors import InputError
 
-__all__ = ["Measurement", "read_measured", "write_measured", "Correspondence", "match_points", "MEASUREMENT_META_KEY", "MEASUREMENT_META_FIELDS"]
+__all__ = ["Measurement", "read_measured", "write_measured", "Correspondence", "match_points", "MEASUREMENT_META_KEY",
+           "MEASUREMENT_META_FIELDS"]
 
 MEASUREMENT_META_KEY = b"knockgs_measurement"
 #: the metadata fields a measurement file may carry (anything else is refused, so no
@@ -117,7 +118,8 @@ class Measurement:
             off = np.abs(self.times - k * frame_dt)
             if np.any(off > 1e-4 * frame_dt + 1e-9):
                 i = int(np.argmax(off))
-                raise InputError(self.source, "time", f"time {self.times[i]:.6g} s is not on the probe's export schedule (every {frame_dt:g} s)")
+                raise InputError(self.source, "time",
+                                 f"time {self.times[i]:.6g} s is not on the probe's export schedule (every {frame_dt:g} s)")
             idx = k
         if idx[-1] >= n_frames:
             raise InputError(self.source, "frame", f"frame {int(idx[-1])} is past the probe's {n_frames} exported frames")
@@ -226,12 +228,10 @@ def read_measured(path) -> Measurement:
 def write_measured(path, measurement: Measurement) -> None:
     """Write a measurement (Parquet with metadata, CSV without, or NPZ), atomically."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     m = measurement
     T, M = m.n_frames, m.n_points
     tname, tvals = ("frame", m.frames) if m.frames is not None else ("time", m.times)
     pname, pvals = ("particle", m.particle) if m.has_identity else ("track", m.track)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}{path.suffix}")
     suffix = path.suffix.lower()
     if suffix in (".parquet", ".csv"):
         import pandas as pd
@@ -244,21 +244,19 @@ def write_measured(path, measurement: Measurement) -> None:
             "z": m.points[:, :, 2].reshape(-1),
         })
         if suffix == ".csv":
-            df.to_csv(tmp, index=False, float_format="%.9g")
+            with atomic_write(path, mode="w") as fh:
+                df.to_csv(fh, index=False, float_format="%.9g")
         else:
             import pyarrow as pa
-            import pyarrow.parquet as pq
 
             table = pa.Table.from_pandas(df, preserve_index=False)
             table = table.replace_schema_metadata({MEASUREMENT_META_KEY: json.dumps(m.meta).encode()})
-            pq.write_table(table, tmp, compression="zstd")
+            write_parquet(path, table, compression="zstd")
     elif suffix == ".npz":
-        arrays = {"positions": m.points, tname + "s" if tname == "frame" else "times": tvals, pname: pvals, "meta": np.array(json.dumps(m.meta))}
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
+        times_key = tname + "s" if tname == "frame" else "times"
+        write_npz(path, positions=m.points, **{times_key: tvals, pname: pvals}, meta=np.array(json.dumps(m.meta)))
     else:
         raise InputError(str(path), "file", f"unknown format '{path.suffix}'; use .parquet, .csv or .npz")
-    os.replace(tmp, path)
 
 
 @dataclass(frozen=True, eq=False)
@@ -296,7 +294,8 @@ def match_points(measurement: Measurement, rest_positions: np.ndarray, n_gs: int
     if measurement.has_identity:
         idx = measurement.particle
         if idx.max() >= len(rest):
-            raise InputError(measurement.source, "particle", f"particle id {int(idx.max())} >= number of simulated particles {len(rest)}")
+            raise InputError(measurement.source, "particle",
+                             f"particle id {int(idx.max())} >= number of simulated particles {len(rest)}")
         return Correspondence(index=idx, identity=True, match_distance=np.linalg.norm(x0 - rest[idx], axis=1))
     from scipy.spatial import cKDTree
 

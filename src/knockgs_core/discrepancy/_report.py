@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import json
-import os
 from pathlib import Path
 
 import numpy as np
 
+from .._io import atomic_write, write_json, write_npz, write_text
 from ._loop import DiscrepancyResult
 from ._views import VIEW_METRICS
 
@@ -16,24 +15,14 @@ __all__ = ["write_report", "write_result"]
 _STAGE_LABEL = {"before": "before (base calibration)", "refit": "theta refit only", "after": "after (final model)"}
 
 
-def _atomic_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def write_result(result: DiscrepancyResult, out_dir) -> dict:
     """Write ``result.json`` (everything but arrays) and ``predictions.npz`` (predicted
     Gaussian-particle positions, keys ``{probe}/{stage}``) into ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    _atomic_text(out / "result.json", json.dumps(result.to_dict(), indent=2) + "\n")
+    write_json(out / "result.json", result.to_dict())
     arrays = {f"{p}/{s}": a for p, stages in result.predictions.items() for s, a in stages.items()}
-    tmp = out / f".predictions.npz.tmp{os.getpid()}"
-    with open(tmp, "wb") as fh:
-        np.savez_compressed(fh, **arrays)
-    os.replace(tmp, out / "predictions.npz")
+    write_npz(out / "predictions.npz", **arrays)
     return {"result": str(out / "result.json"), "predictions": str(out / "predictions.npz")}
 
 
@@ -93,7 +82,8 @@ def _figures(result: DiscrepancyResult, out: Path) -> list[tuple[str, str]]:
         fig.suptitle(f"{result.object} / {probe}")
         fig.tight_layout()
         name = f"residuals_{probe}.png"
-        fig.savefig(out / name, dpi=90)
+        with atomic_write(out / name, mode="wb") as fh:
+            fig.savefig(fh, format="png", dpi=90)
         plt.close(fig)
         figs.append((probe, name))
     return figs
@@ -125,10 +115,13 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
         "",
         f"- base calibration ({result.base_method}): s_E = {tb[0]:.4f}, s_rho = {tb[1]:.4f}",
         f"- theta refit through the simulator: s_E = {tr[0]:.4f}, s_rho = {tr[1]:.4f}",
-        f"- final model: s_E = {tf[0]:.4f}, s_rho = {tf[1]:.4f}" + (f", with {', '.join(result.identified)}" if result.identified else ""),
+        f"- final model: s_E = {tf[0]:.4f}, s_rho = {tf[1]:.4f}"
+        + (f", with {', '.join(result.identified)}" if result.identified else ""),
         f"- observation: {result.observation['points']} points x {result.observation['frames']} frames, "
-        + ("with particle identity" if result.observation["identity"] else "no identity (matched at frame 0 to Gaussian particles)")
-        + f"; fit window {result.observation['fit_frames']} frames, validation window {result.observation['validation_frames']} frames",
+        + ("with particle identity" if result.observation["identity"]
+           else "no identity (matched at frame 0 to Gaussian particles)")
+        + f"; fit window {result.observation['fit_frames']} frames, "
+        f"validation window {result.observation['validation_frames']} frames",
         f"- noise std {result.noise['std']:.3g} m per coordinate ({result.noise['source']})",
         f"- residual at the end: RMS {result.residual['rms_per_point']:.3g} m per point, "
         f"{result.residual['excess_rms_per_point']:.3g} m above the noise "
@@ -149,7 +142,8 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
             L.append(f"| {probe} ({role}) | {_STAGE_LABEL[s]} | " + " | ".join(_fmt(m[k], ".3g") for k in VIEW_METRICS) + " |")
     missing = [p for p in result.heldout_probes if p not in result.metrics]
     if missing:
-        L += ["", f"Held-out probes predicted without a measurement to score against: {', '.join(missing)} (predictions in predictions.npz)."]
+        L += ["", f"Held-out probes predicted without a measurement to score against: {', '.join(missing)} "
+              "(predictions in predictions.npz)."]
     L += ["", "## Attribution rounds", ""]
     for i, rd in enumerate(result.rounds, 1):
         L += [
@@ -160,7 +154,8 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
             f"{1.0 + rd['excess_val']:.3g} x the noise floor ({'significant' if rd['significant'] else 'not significant'}). "
             f"Decision: **{rd['decision']}**.",
             "",
-            "| rank | effect | explained (validation) | explained (fit) | delta BIC (fit) | screen: explained (validation) | estimated parameter |",
+            "| rank | effect | explained (validation) | explained (fit) | delta BIC (fit) | screen: explained (validation) "
+            "| estimated parameter |",
             "|---|---|---|---|---|---|---|",
         ]
         for row in rd["table"]:
@@ -170,7 +165,8 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
             refined = row["refined"]
             L.append(
                 f"| {row['rank']} | {row['label']} (`{row['key']}`) | "
-                + (f"{row['explained_val']:.3f} | {row['explained_fit']:.3f} | {row['delta_bic']:.4g}" if refined else "not refined | | ")
+                + (f"{row['explained_val']:.3f} | {row['explained_fit']:.3f} | {row['delta_bic']:.4g}" if refined
+                   else "not refined | | ")
                 + f" | {row['screen_explained_val']:.3f} | {row['parameter']} = {_fmt(row['value_estimate'])} {row['unit']} |"
             )
         for t in rd.get("tried") or []:
@@ -185,9 +181,10 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
         L += [f"![residual views, {probe}]({name})", ""]
     L += [
         "Panels: residual RMS per frame; RMS-displacement curves; per-axis centroid curves; centroid spectrum; "
-        "decay envelope (largest amplitude still to come) of the dominant centroid axis; per-point residual RMS (before vs after).",
+        "decay envelope (largest amplitude still to come) of the dominant centroid axis; "
+        "per-point residual RMS (before vs after).",
         "",
     ]
     path = out / "report.md"
-    _atomic_text(path, "\n".join(L))
+    write_text(path, "\n".join(L))
     return str(path)

@@ -1,0 +1,282 @@
+"""Attribution: rank the catalogue effects by how much of the residual each explains (private).
+
+One round (module docs of :mod:`knockgs_core.discrepancy._loop`, step 3) at a model
+``spec``: the *screen* fits every candidate's trial signatures jointly with the theta
+sensitivities (linear least squares on the fit window); the *refinement* fits the best
+screened candidates, and every threshold-type one, nonlinearly through the simulator, as
+it fits theta alone; candidates are scored by the share of the theta-only residual they
+remove on the validation window. Each candidate gets an :class:`AttributionRow`; the round
+is an :class:`AttributionRound`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputError, SimulationError
+from ._catalogue import Candidate
+from ._fitting import Problem, lm_fit
+from ._forward import ModelSpec
+from ._settings import LoopSettings
+
+__all__ = ["AttributionRow", "AttributionRound", "attribute", "EXCLUSIVE"]
+
+#: effects that take over the same support cannot be combined
+EXCLUSIVE = ({"support_slip", "support_friction"},)
+
+
+@dataclass
+class AttributionRow:
+    """One candidate's line in the ranked attribution table.
+
+    Screen: the best ``trial_strength`` (strength units of the candidate), its fitted
+    ``coefficient`` and the implied ``strength_estimate`` (``value_estimate`` in the
+    effect's own ``parameter`` and ``unit``), and the shares of the theta-only residual
+    energy removed on the fit and validation windows (``screen_explained_*``, [-]);
+    ``error`` when no trial simulated. Refinement (``refined``): the nonlinear estimate
+    (``strength_estimate``, ``value_estimate``, ``theta_estimate``), ``explained_fit``,
+    ``delta_bic`` (fit window) and the score ``explained_val``; ``refine_error`` when it
+    failed. ``refined_spec``: the refined model, used by the decision, never written.
+    """
+
+    key: str
+    label: str
+    error: str | None = None
+    trial_strength: float = math.nan
+    coefficient: float = math.nan
+    strength_estimate: float = math.nan
+    parameter: str = ""
+    value_estimate: float = math.nan
+    unit: str = ""
+    screen_explained_fit: float = -math.inf
+    screen_explained_val: float = -math.inf
+    refined: bool = False
+    refine_error: str | None = None
+    theta_estimate: list | None = None
+    explained_fit: float = math.nan
+    explained_val: float = -math.inf
+    delta_bic: float = math.nan
+    rank: int = 0
+    refined_spec: ModelSpec | None = field(default=None, repr=False)
+
+    def to_dict(self) -> dict:
+        """The row as written to ``result.json`` and read by the report (only the fields its
+        stage set, in the order they were set)."""
+        if self.error is not None:
+            return {"key": self.key, "label": self.label, "error": self.error, "explained_val": self.explained_val,
+                    "refined": self.refined, "rank": self.rank}
+        d = {
+            "key": self.key,
+            "label": self.label,
+            "trial_strength": self.trial_strength,
+            "coefficient": self.coefficient,
+            "strength_estimate": self.strength_estimate,
+            "parameter": self.parameter,
+            "value_estimate": self.value_estimate,
+            "unit": self.unit,
+            "screen_explained_fit": self.screen_explained_fit,
+            "screen_explained_val": self.screen_explained_val,
+            "refined": self.refined,
+        }
+        if self.refined:
+            d.update({"theta_estimate": self.theta_estimate, "explained_fit": self.explained_fit,
+                      "explained_val": self.explained_val, "delta_bic": self.delta_bic})
+        else:
+            if self.refine_error is not None:
+                d["refine_error"] = self.refine_error
+            d["explained_val"] = self.explained_val
+        d["rank"] = self.rank
+        return d
+
+
+@dataclass
+class AttributionRound:
+    """One round of attribution at the model (``theta``, ``effects``) and its decision.
+
+    ``n_fit``, ``n_val``: residual scalars in the fit and validation windows;
+    ``rss_theta_fit``, ``rss_theta_val`` [m^2]: residual energy after the nonlinear
+    theta-only refit on the fit window (``theta_fit_window``); ``screen_rss_theta_val``:
+    the same after the linearized theta fit; ``noise_floor_val`` [m^2]: the noise's share of
+    the validation energy; ``excess_val``: validation energy over that floor, minus 1;
+    ``significant``: above ``LoopSettings.min_excess``; ``table``: the ranked rows;
+    ``decision``: what the loop did next; ``tried``: the joint recalibrations attempted.
+    """
+
+    theta: list
+    effects: list
+    n_fit: int
+    n_val: int
+    rss_theta_fit: float
+    rss_theta_val: float
+    theta_fit_window: list
+    screen_rss_theta_val: float
+    noise_floor_val: float
+    excess_val: float
+    significant: bool
+    table: list[AttributionRow]
+    decision: str | None = None
+    tried: list[dict] | None = None
+
+    @property
+    def best(self) -> AttributionRow | None:
+        return self.table[0] if self.table else None
+
+    def to_dict(self) -> dict:
+        d = {
+            "theta": self.theta, "effects": self.effects, "n_fit": self.n_fit, "n_val": self.n_val,
+            "rss_theta_fit": self.rss_theta_fit, "rss_theta_val": self.rss_theta_val, "theta_fit_window": self.theta_fit_window,
+            "screen_rss_theta_val": self.screen_rss_theta_val, "noise_floor_val": self.noise_floor_val,
+            "excess_val": self.excess_val, "significant": self.significant,
+            "table": [row.to_dict() for row in self.table], "decision": self.decision,
+        }
+        if self.tried is not None:
+            d["tried"] = self.tried
+        return d
+
+
+@dataclass(frozen=True)
+class _Linearization:
+    """The model ``spec`` linearized in log theta: observed positions ``base`` [T, M, 3],
+    the residual ``r`` (measured minus simulated, flattened), the sensitivities ``J`` to
+    log s_E and log s_rho, the theta-only fit ``a`` on the fit window and its residual
+    energies on the fit and validation windows [m^2]."""
+
+    base: np.ndarray
+    r: np.ndarray
+    J: np.ndarray
+    a: np.ndarray
+    rss_fit: float
+    rss_val: float
+
+
+def _fit_rows(A, r, rows):
+    coef, *_ = np.linalg.lstsq(A[rows], r[rows], rcond=None)
+    return coef
+
+
+def _rss(A, coef, r, rows):
+    e = r[rows] - A[rows] @ coef
+    return float(e @ e)
+
+
+def _linearize(problem: Problem, spec: ModelSpec, settings: LoopSettings) -> _Linearization:
+    base = problem.observe(spec)
+    r = (problem.Y - base)[1:].reshape(-1)  # measured minus simulated: what a change must add
+    h = settings.theta_step
+    J = np.empty((r.size, 2))
+    for j in range(2):
+        th = list(spec.theta)
+        th[j] *= math.exp(h)
+        J[:, j] = (problem.observe(spec.with_theta(th)) - base)[1:].reshape(-1) / h
+    F, V = problem.fit_rows, problem.val_rows
+    a = _fit_rows(J, r, F)
+    return _Linearization(base, r, J, a, _rss(J, a, r, F), _rss(J, a, r, V))
+
+
+def _screen(problem: Problem, spec: ModelSpec, cand: Candidate, lin: _Linearization) -> AttributionRow:
+    """The candidate's best trial signature fitted jointly with the theta sensitivities."""
+    F, V, r, J, a = problem.fit_rows, problem.val_rows, lin.r, lin.J, lin.a
+    best = None
+    for u in cand.trials:
+        try:
+            S = (problem.observe(spec.with_effect(cand.key, u)) - lin.base)[1:].reshape(-1)
+        except (SimulationError, InputError) as exc:
+            best = best or {"trial": u, "error": str(exc)[:200]}
+            continue
+        A = np.column_stack([J, S])
+        coef = _fit_rows(A, r, F)
+        if cand.one_sided and coef[2] < 0:
+            coef = np.array([a[0], a[1], 0.0])
+        rF = _rss(A, coef, r, F)
+        if best is None or "error" in best or rF < best["rss_fit"]:
+            best = {"trial": u, "coef": float(coef[2]), "rss_fit": rF, "rss_val": _rss(A, coef, r, V)}
+    if best is None or "error" in best:
+        return AttributionRow(cand.key, cand.label, error=(best or {}).get("error", "no trial"))
+    u_est = float(np.clip(best["coef"] * best["trial"], *cand.bounds))
+    return AttributionRow(
+        cand.key, cand.label, trial_strength=best["trial"], coefficient=best["coef"], strength_estimate=u_est,
+        parameter=cand.parameter, value_estimate=cand.value(u_est), unit=cand.unit,
+        screen_explained_fit=1.0 - best["rss_fit"] / max(lin.rss_fit, 1e-300),
+        screen_explained_val=1.0 - best["rss_val"] / max(lin.rss_val, 1e-300),
+    )
+
+
+def _refine(problem: Problem, spec: ModelSpec, row: AttributionRow, cand: Candidate, rss_theta: tuple[float, float],
+            settings: LoopSettings, log: list) -> None:
+    """Fit the candidate nonlinearly (theta, the strengths in ``spec`` and its own) on the fit
+    window and score it against the theta-only refit energies ``rss_theta`` (fit,
+    validation); updates ``row`` in place."""
+    F, V = problem.fit_rows, problem.val_rows
+    # start from the better (on the fit window) of the screen's estimate and its trials
+    start, start_cost = None, math.inf
+    for u0 in dict.fromkeys((row.strength_estimate,) + tuple(cand.trials)):
+        if u0 == 0.0:
+            continue
+        trial = spec.with_effect(cand.key, u0)
+        try:
+            rr = problem.residual(trial)[F]
+        except (SimulationError, InputError):
+            continue
+        c0 = float(rr @ rr)
+        if c0 < start_cost:
+            start, start_cost = trial, c0
+    if start is None:
+        row.explained_val = row.screen_explained_val
+        return
+    try:
+        fitted, rr = lm_fit(problem, start, list(spec.effect_keys) + [cand.key], F, settings, settings.refine_iterations, log)
+    except SimulationError as exc:
+        row.refine_error = str(exc)[:200]
+        row.explained_val = row.screen_explained_val
+        return
+    rF, rV = float(rr[F] @ rr[F]), float(rr[V] @ rr[V])
+    u = dict(fitted.effects)[cand.key]
+    row.refined = True
+    row.strength_estimate = u
+    row.value_estimate = cand.value(u)
+    row.theta_estimate = list(fitted.theta)
+    row.explained_fit = 1.0 - rF / max(rss_theta[0], 1e-300)
+    row.explained_val = 1.0 - rV / max(rss_theta[1], 1e-300)
+    row.delta_bic = F.size * math.log(max(rF, 1e-300) / max(rss_theta[0], 1e-300)) + math.log(F.size)
+    row.refined_spec = fitted
+
+
+def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], floor: float, settings: LoopSettings,
+              log: list) -> AttributionRound:
+    """Rank the candidates at ``spec``: screen every candidate not yet in the model (nor
+    excluded by one that is); refine the ``refine_top`` best screened ones and every
+    threshold-type one, unless the theta-only residual is not significant against the noise
+    ``floor`` [m^2 per residual scalar]; rank refined candidates first, by validated share."""
+    F, V = problem.fit_rows, problem.val_rows
+    lin = _linearize(problem, spec, settings)
+    present = set(spec.effect_keys)
+    blocked = set().union(*(g for g in EXCLUSIVE if g & present)) if present else set()
+    by_key = {c.key: c for c in candidates}
+    rows = [_screen(problem, spec, cand, lin) for cand in candidates if cand.key not in present and cand.key not in blocked]
+    rows.sort(key=lambda row: -row.screen_explained_val)
+
+    theta_fit, r_theta = lm_fit(problem, spec, list(spec.effect_keys), F, settings, settings.refine_iterations, log)
+    rss_nl_theta_F, rss_nl_theta_V = float(r_theta[F] @ r_theta[F]), float(r_theta[V] @ r_theta[V])
+    excess = rss_nl_theta_V / (V.size * floor) - 1.0 if floor > 0 else math.inf
+    significant = bool(excess > settings.min_excess)
+    screened = [row.key for row in rows if row.error is None]
+    chosen = screened[: settings.refine_top]
+    chosen += [key for key in screened if by_key[key].threshold and key not in chosen]
+    if not significant:  # nothing to explain: the screen is reported, no refinement is needed
+        chosen = []
+    for row in rows:
+        if row.key in chosen:
+            _refine(problem, spec, row, by_key[row.key], (rss_nl_theta_F, rss_nl_theta_V), settings, log)
+        else:
+            row.explained_val = row.screen_explained_val
+    rows.sort(key=lambda row: (not row.refined, -row.explained_val))
+    for rank, row in enumerate(rows, 1):
+        row.rank = rank
+    return AttributionRound(
+        theta=list(spec.theta), effects=[list(e) for e in spec.effects], n_fit=F.size, n_val=V.size,
+        rss_theta_fit=rss_nl_theta_F, rss_theta_val=rss_nl_theta_V, theta_fit_window=list(theta_fit.theta),
+        screen_rss_theta_val=lin.rss_val, noise_floor_val=V.size * floor, excess_val=excess, significant=significant, table=rows,
+    )

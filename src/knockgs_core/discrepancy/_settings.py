@@ -1,0 +1,57 @@
+"""Settings of the discrepancy loop (private)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..errors import InputError
+from ._catalogue import CATALOGUE_KEYS
+
+__all__ = ["LoopSettings"]
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """Settings of the loop (defaults are the documented ones; none is tuned per case).
+
+    fit_fraction: share of the measured frames after t = 0 in the fit window (the rest is
+        the validation window of the attribution).
+    theta_step, effect_step: forward-difference steps, in log theta and in units of an
+        effect's strength scale.
+    min_excess: the theta-corrected validation residual must exceed the noise floor by this
+        fraction (of the floor's energy) to count as significant.
+    min_explained: an effect must explain this share of the theta-only residual on the
+        validation window to be tried.
+    min_confirm: the joint nonlinear recalibration must remove this share of the residual
+        energy above the noise floor to keep the effect.
+    max_effects: most effects added; max_tries: candidates tried per round.
+    base_iterations, refit_iterations, joint_iterations, refine_iterations: LM iteration
+        budgets (base calibration, theta refit, final joint fit, attribution refinement).
+    refine_top: screened candidates refined nonlinearly (besides the threshold-type ones).
+    theta_bounds: allowed range of each scale.
+    catalogue: catalogue keys to consider (None: all that apply).
+    """
+
+    fit_fraction: float = 2.0 / 3.0
+    theta_step: float = 0.02
+    effect_step: float = 0.05
+    min_excess: float = 0.25
+    min_explained: float = 0.5
+    min_confirm: float = 0.3
+    max_effects: int = 2
+    max_tries: int = 2
+    base_iterations: int = 8
+    refit_iterations: int = 4
+    joint_iterations: int = 8
+    refine_iterations: int = 3
+    refine_top: int = 3
+    theta_bounds: tuple[float, float] = (0.2, 5.0)
+    catalogue: tuple[str, ...] | None = None
+
+    def __post_init__(self):
+        if not (0.2 <= self.fit_fraction <= 0.9):
+            raise InputError("LoopSettings", "fit_fraction", "must be in [0.2, 0.9]")
+        if self.catalogue is not None:
+            bad = set(self.catalogue) - set(CATALOGUE_KEYS)
+            if bad:
+                raise InputError("LoopSettings", "catalogue", f"unknown keys {sorted(bad)}; known: {list(CATALOGUE_KEYS)}")
