@@ -16,23 +16,13 @@ from typing import Callable
 import numpy as np
 import warp as wp
 
-from .._warp import init_warp
+from .._warp import warp_device
 from ..errors import InputError, SimulationError
 from . import _kernels as K
 from ._config import DomainWalls, FixedCuboid, ParticleTranslation, Probe, SimParams
 from ._protocol import Effect
 
 __all__ = ["Model", "State", "MPMSolver", "SimResult", "build_model", "particle_volumes", "default_device", "simulate"]
-
-_WARP_READY = False
-
-
-def _init_warp() -> None:
-    global _WARP_READY
-    if not _WARP_READY:
-        init_warp()  # quiet on a CPU run: knockgs_core._warp
-        _WARP_READY = True
-
 
 def default_device() -> str:
     """The Warp device used when none is given: ``$KNOCKGS_DEVICE`` or ``"cpu"``."""
@@ -176,8 +166,8 @@ def build_model(
     and at most one :class:`ParticleTranslation` may be active at any time.
     """
     _check_params(params)
-    _init_warp()
     device = device or default_device()
+    warp_device(device)  # starts Warp (quiet on a CPU run); one line naming an unavailable device
     x = np.ascontiguousarray(positions, dtype=np.float32)
     if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] == 0:
         raise InputError("positions", "shape", f"expected (N, 3) with N > 0, got {x.shape}")
