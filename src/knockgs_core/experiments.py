@@ -1,9 +1,9 @@
 """The studies behind each table: descriptor tables, frozen estimates, Probe-A/B evaluation.
 
-Workflow scripts call one function here each. Method names in tables follow the paper
-(``fixed_default`` ... ``parameter_nearest_oracle``); :data:`CALIBRATION_METHOD` maps them to
-:mod:`knockgs_core.calibration` method keys. The oracle is evaluation-only: it is built here
-from hidden labels and never reachable from :func:`frozen_estimate` for deployable methods.
+Workflow scripts call one function here each. Method names are the calibration registry's
+(:data:`knockgs_core.calibration.METHOD_NAMES`, the names the paper's tables use). The
+oracle is evaluation-only: it is built here from hidden labels and never reachable from
+:func:`frozen_estimate` for deployable methods.
 """
 
 from __future__ import annotations
@@ -21,9 +21,6 @@ from .metrics import curve_metrics, joint_error_pct, trajectory_rmse
 from .rollout import read_rollout, theta_tag
 
 __all__ = [
-    "TABLE_METHODS",
-    "DEPLOYABLE_METHODS",
-    "CALIBRATION_METHOD",
     "library_table",
     "query_table",
     "frozen_estimate",
@@ -32,19 +29,6 @@ __all__ = [
     "file_sha256",
     "theta_tag",
 ]
-
-#: table method name -> calibration method key (None: evaluation-only oracle)
-CALIBRATION_METHOD: dict[str, str | None] = {
-    "fixed_default": "default",
-    "response_nearest": "nearest",
-    "response_knn": "knn",
-    "global_ridge": "global_ridge",
-    "local_ridge": "local_ridge",
-    "parameter_nearest_oracle": None,
-}
-TABLE_METHODS = tuple(CALIBRATION_METHOD)
-DEPLOYABLE_METHODS = tuple(m for m, k in CALIBRATION_METHOD.items() if k is not None)
-
 
 def file_sha256(path) -> str:
     h = hashlib.sha256()
