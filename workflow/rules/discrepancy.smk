@@ -102,6 +102,7 @@ rule discrepancy_case:
         "../envs/knockgs.yaml"
     input:
         particles=DISCREPANCY_PARTICLES,
+        targets="config/targets.csv",
     output:
         calib=f"{D}/cases/{{case}}/measured_calib.parquet",
         heldout=f"{D}/cases/{{case}}/measured_heldout.parquet",

@@ -9,6 +9,6 @@ from knockgs_core.discrepancy import default_cases, make_case
 sys.stderr = open(snakemake.log[0], "w")
 p = snakemake.params
 out = snakemake.output
-spec = {c.name: c for c in default_cases()}[snakemake.wildcards.case]
+spec = {c.name: c for c in default_cases(targets_path=snakemake.input.targets)}[snakemake.wildcards.case]
 make_case(spec, load_contract(p.object, p.profile), load_particles(snakemake.input.particles),
           measured_dir=Path(out.calib).parent, truth_dir=Path(out.truth).parent, device=p.device)
