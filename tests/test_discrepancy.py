@@ -1,6 +1,6 @@
 """The discrepancy loop: measured-data I/O, correspondence, residual views, and the loop on
 planted-effect cases of the ci pillow (a reduced catalogue keeps the run short; the full
-catalogue and every effect run in the workflow, results/tables/discrepancy.md)."""
+catalogue and every effect run in the workflow, results/<profile>/tables/discrepancy.md)."""
 
 from __future__ import annotations
 
