@@ -137,3 +137,22 @@ def test_frozen_estimate_rejects_the_oracle_and_unknown_names(experiments, bad, 
     with pytest.raises(InputError) as err:
         experiments.frozen_estimate(bad, FICUS / "library.csv", FICUS / "queries.csv")
     assert err.value.field == "method" and message in str(err.value)
+
+
+def test_oracle_estimate_takes_its_registry_options():
+    """The oracle's options (METHOD_OPTIONS) reach the estimator; an unknown one is refused."""
+    import pandas as pd
+
+    from knockgs_core.experiments import oracle_estimate
+
+    truth = pd.read_csv(FICUS / "ground_truth.csv")
+    lib = FICUS / "library.csv"
+    plain = oracle_estimate(lib, truth)
+    std = oracle_estimate(lib, truth, {"metric": "standardized"})
+    assert plain["params"] == {} and std["params"] == {"metric": "standardized"}
+    assert [p["case_name"] for p in std["predictions"]] == list(truth["case_name"])
+    assert all(p["details"]["metric"] == "standardized" for p in std["predictions"])
+    with pytest.raises(InputError, match="method_params.parameter_nearest_oracle"):
+        oracle_estimate(lib, truth, {"k": 3})
+    with pytest.raises(InputError, match="metric"):
+        oracle_estimate(lib, truth, {"metric": "cosine"})

@@ -84,18 +84,32 @@ def frozen_estimate(method: str, library_csv, queries_csv, params: Mapping | Non
     return out
 
 
-def oracle_estimate(library_csv, targets: pd.DataFrame, *, config_hash: str = "") -> dict:
-    """Parameter-nearest oracle (reads the hidden targets; a diagnostic, never deployable)."""
+def oracle_estimate(library_csv, targets: pd.DataFrame, params: Mapping | None = None, *, config_hash: str = "") -> dict:
+    """Parameter-nearest oracle (reads the hidden targets; a diagnostic, never deployable).
+
+    ``params``: the oracle's options (:data:`knockgs_core.calibration.METHOD_OPTIONS`, e.g.
+    ``{"metric": "standardized"}``); an unknown option is an :class:`InputError`.
+    """
+    from .calibration import METHOD_OPTIONS, ORACLE_METHOD
     from .calibration.oracle import ParameterNearestOracle
 
+    params = dict(params or {})
+    for key in params:
+        if key not in METHOD_OPTIONS[ORACLE_METHOD]:
+            allowed = ", ".join(METHOD_OPTIONS[ORACLE_METHOD]) or "none"
+            raise InputError(f"method_params.{ORACLE_METHOD}", key, f"unknown option; allowed: {allowed}")
+    try:
+        oracle = ParameterNearestOracle(**params)
+    except ValueError as exc:
+        raise InputError(f"method_params.{ORACLE_METHOD}", "metric", str(exc)) from None
     lib = pd.read_csv(library_csv)
-    oracle = ParameterNearestOracle().fit(None, lib[["E_scale", "density_scale"]].to_numpy(), lib["case_name"].tolist())
+    oracle = oracle.fit(None, lib[["E_scale", "density_scale"]].to_numpy(), lib["case_name"].tolist())
     est = oracle.predict(targets[["E_scale", "density_scale"]].to_numpy(), names=targets["case_name"].tolist())
     return {
         "method": "parameter_nearest_oracle",
         "table_method": "parameter_nearest_oracle",
         "deployable": False,
-        "params": {},
+        "params": params,
         "predictions": [e.to_dict() for e in est],
         "inputs": {"library": str(library_csv), "targets": "hidden target labels"},
         "input_sha256": {"library": file_sha256(library_csv)},
