@@ -1,4 +1,4 @@
-"""The studies behind each table: descriptor tables, frozen estimates, Probe-A/B evaluation.
+"""The main benchmark: descriptor tables, frozen estimates, Probe-A/B evaluation, renders.
 
 Workflow scripts call one function here each. Method names are the calibration registry's
 (:data:`knockgs_core.calibration.METHOD_NAMES`, the names the paper's tables use). The
@@ -14,11 +14,11 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from . import _io
-from .descriptors import FEATURE_NAMES, descriptor
-from .errors import InputError
-from .metrics import curve_metrics, joint_error_pct, trajectory_rmse
-from .rollout import read_rollout, theta_tag
+from .. import _io
+from ..descriptors import FEATURE_NAMES, descriptor
+from ..errors import InputError
+from ..metrics import curve_metrics, joint_error_pct, trajectory_rmse
+from ..rollout import read_rollout, theta_tag
 
 __all__ = [
     "library_table",
@@ -26,8 +26,13 @@ __all__ = [
     "frozen_estimate",
     "oracle_estimate",
     "evaluate_method",
+    "estimate_thetas",
     "file_sha256",
     "theta_tag",
+    "write_json",
+    "camera_from_contract",
+    "render_rollout",
+    "render_metrics_rows",
 ]
 
 def file_sha256(path) -> str:
@@ -66,7 +71,7 @@ def frozen_estimate(method: str, library_csv, queries_csv, params: Mapping | Non
 
     ``method`` is a canonical name of :data:`knockgs_core.calibration.DEPLOYABLE_METHODS` or
     one of its aliases; the document's ``method`` and ``table_method`` hold the canonical name."""
-    from . import calibration
+    from .. import calibration
 
     try:
         name = calibration.canonical_method(method)
@@ -90,8 +95,8 @@ def oracle_estimate(library_csv, targets: pd.DataFrame, params: Mapping | None =
     ``params``: the oracle's options (:data:`knockgs_core.calibration.METHOD_OPTIONS`, e.g.
     ``{"metric": "standardized"}``); an unknown option is an :class:`InputError`.
     """
-    from .calibration import METHOD_OPTIONS, ORACLE_METHOD
-    from .calibration.oracle import ParameterNearestOracle
+    from ..calibration import METHOD_OPTIONS, ORACLE_METHOD
+    from ..calibration.oracle import ParameterNearestOracle
 
     params = dict(params or {})
     for key in params:
@@ -178,7 +183,7 @@ def write_json(obj, path) -> None:
 # ------------------------------------------------------------------------------------
 def camera_from_contract(camera: Mapping, *, width: int | None = None, height: int | None = None):
     """The contract's look-at camera, optionally at another image size (same field of view)."""
-    from .render import Camera
+    from ..render import Camera
 
     return Camera.look_at(camera["eye"], camera["target"], camera["up"], fov_deg=camera["fov_deg"],
                           width=int(width or camera["width"]), height=int(height or camera["height"]))
@@ -194,7 +199,7 @@ def render_rollout(gaussians, static_mask, gaussian_index, positions, F, camera,
     (the first ``n_gs`` rows are GS particles), ``F`` (T, n_gs, 3, 3).
     Returns ``rgb`` (T, H, W, 3) and ``alpha`` (T, H, W), float32.
     """
-    from .render import deformed_scene, render
+    from ..render import deformed_scene, render
 
     means0 = np.asarray(gaussians.means, dtype=np.float64)
     cov0 = np.asarray(gaussians.covariances(), dtype=np.float64)
@@ -219,7 +224,7 @@ def render_rollout(gaussians, static_mask, gaussian_index, positions, F, camera,
 def render_metrics_rows(estimate: Mapping, targets: pd.DataFrame, render_path, probes: Sequence[str]) -> pd.DataFrame:
     """Foreground PSNR and object-crop SSIM of each target x probe (prediction vs truth,
     same renderer and camera). ``render_path(probe, theta)`` locates a render ``.npz``."""
-    from .metrics import crop_ssim, foreground_psnr
+    from ..metrics import crop_ssim, foreground_psnr
 
     thetas = estimate_thetas(estimate)
     rows = []

@@ -1,0 +1,35 @@
+"""The studies behind each table, one module per study.
+
+Workflow scripts call one function here each. :mod:`._main` is the main benchmark
+(descriptor tables, frozen estimates, Probe-A/B write-back evaluation, rendered frames).
+"""
+
+from ._main import (
+    camera_from_contract,
+    estimate_thetas,
+    evaluate_method,
+    file_sha256,
+    frozen_estimate,
+    library_table,
+    oracle_estimate,
+    query_table,
+    render_metrics_rows,
+    render_rollout,
+    theta_tag,
+    write_json,
+)
+
+__all__ = [
+    "library_table",
+    "query_table",
+    "frozen_estimate",
+    "oracle_estimate",
+    "evaluate_method",
+    "estimate_thetas",
+    "file_sha256",
+    "theta_tag",
+    "write_json",
+    "camera_from_contract",
+    "render_rollout",
+    "render_metrics_rows",
+]
