@@ -576,7 +576,9 @@ def _build(data: dict, path: Path, cfg: Path, profile: str) -> ObjectContract:
         raise InputError(path, "fill.box", "required when fill.enabled is true")
 
     s = data["sim"]
-    sim_kw = _kwargs(s, ("grid_lim", "grid_v_damping_scale", "cfl_limit", "guard_every"))
+    sim_kw = _kwargs(s, ("grid_lim", "grid_v_damping_scale", "cfl_limit", "guard_every", "transfer"))
+    if s.get("pic_relaxation_time") is not None:
+        sim_kw["pic_relaxation_time"] = float(s["pic_relaxation_time"])
     if "gravity" in s:
         sim_kw["gravity"] = _vec(s["gravity"])
     if "boundaries" in s:

@@ -23,7 +23,11 @@ __all__ = [
     "ExportSchedule",
     "Material",
     "SimParams",
+    "TRANSFERS",
 ]
+
+TRANSFERS = ("apic", "affine_flip")
+"""The particle-grid transfers :class:`SimParams` accepts."""
 
 Vec3 = tuple[float, float, float]
 
@@ -186,6 +190,13 @@ class SimParams:
     another dt the per-substep factor is ``scale ** (dt / damping_dt_ref)``, so the damping
     per unit time, a property of the contract, does not change with the resolution profile;
     ``boundaries`` are applied in order after the grid update.
+    ``transfer`` is the particle-grid transfer: ``"apic"`` (the paper's; it replaces particle
+    velocities by the grid's at every substep, a numerical damping per substep that grows as
+    dt shrinks) or ``"affine_flip"`` (particle velocity and affine matrix take the grid
+    increment, relaxed towards APIC with time constant ``pic_relaxation_time`` [s]; ``inf``
+    is pure affine FLIP: no transfer damping, first order in dt). The relaxation time is in
+    seconds, not in cells or substeps, so the contract's physics does not change with the
+    resolution profile (see :mod:`knockgs_core.sim._kernels`).
     ``cfl_limit`` bounds ``max|v| dt / dx`` (the guard stops the run above it);
     ``elastic_cfl_limit`` bounds ``c_p dt / dx`` with the fastest dilatational wave speed
     ``c_p`` of the materials (checked before the first substep: above it explicit MPM is
@@ -202,11 +213,28 @@ class SimParams:
     cfl_limit: float = 1.0
     elastic_cfl_limit: float = 1.0
     guard_every: int = 50
+    transfer: Literal["apic", "affine_flip"] = "affine_flip"
+    pic_relaxation_time: float = math.inf
     effects: tuple[Effect, ...] = ()
     """Optional extra physics, in the order their hooks run: :class:`~knockgs_core.sim.Effect`
     instances (the protocol is in :mod:`knockgs_core.sim._protocol`), switched on with
     :func:`~knockgs_core.sim.with_effects`."""
 
+    def __post_init__(self):
+        if self.transfer not in TRANSFERS:
+            raise ValueError(f"SimParams.transfer must be one of {', '.join(TRANSFERS)}, got {self.transfer!r}")
+        if not (self.pic_relaxation_time > 0):  # also rejects NaN
+            raise ValueError(f"SimParams.pic_relaxation_time must be > 0 [s] (inf: pure affine FLIP), "
+                             f"got {self.pic_relaxation_time!r}")
+
     @property
     def dx(self) -> float:
         return self.grid_lim / self.n_grid
+
+    @property
+    def flip_weight(self) -> float:
+        """Weight ``exp(-dt / pic_relaxation_time)`` of the affine-FLIP increment per substep
+        (0 under APIC)."""
+        if self.transfer == "apic":
+            return 0.0
+        return math.exp(-self.dt / self.pic_relaxation_time)

@@ -1,4 +1,5 @@
-"""Warp kernels of the MLS-MPM / APIC solver (quadratic B-splines, fixed-corotated elasticity).
+"""Warp kernels of the MLS-MPM solver (quadratic B-splines, fixed-corotated elasticity) with an
+APIC or an affine-FLIP particle-grid transfer.
 
 One thread per particle or per grid node; inputs before outputs. The same kernels run on
 the CPU and on CUDA. Grid kernels run over the *active box* only (the grid region that the
@@ -6,6 +7,18 @@ particles' stencils can reach), given as an offset ``lo`` and the launch dimensi
 
 Conventions: ``n_grid`` nodes per axis at positions ``i * dx``; a particle at ``x`` scatters
 to the 3x3x3 nodes starting at ``base = int(x / dx - 0.5)``.
+
+Transfers (``affine_flip`` flag of :func:`p2g`, :func:`grid_zero`, :func:`grid_update`,
+:func:`g2p`): APIC (Jiang et al. 2015) replaces a particle's velocity ``v`` and affine
+matrix ``C`` by the grid's, so the part of the particle velocity field that the grid cannot
+hold is lost at every transfer, a numerical damping per substep. Affine FLIP (the AFLIP
+family of Fei et al. 2021) adds the grid's *increment* instead: P2G also scatters the
+momentum without this substep's stress (``grid_mv_old``), and G2P takes
+``v <- a (v + sum w du) + (1 - a) v_pic`` and
+``C <- a (C + sum w (4/dx^2) du (x_i - x_p)^T) + (1 - a) C_pic`` with the node increment
+``du = u_new - u_old`` and ``a = exp(-dt / tau)`` (``tau`` a relaxation time towards PIC, so
+the remaining dissipation is per second, not per substep). Positions advect with the grid
+(PIC) velocity and ``F`` updates with the grid gradient ``C_pic`` in both transfers.
 """
 
 from __future__ import annotations
@@ -88,13 +101,22 @@ def fixed_corotated_kirchhoff(F: wp.mat33, R: wp.mat33, mu: float, lam: float) -
 # grid kernels (launched over the active box)
 # --------------------------------------------------------------------------------------
 @wp.kernel
-def grid_zero(lo: wp.vec3i, grid_mv: wp.array3d(dtype=wp.vec3), grid_m: wp.array3d(dtype=float)):
+def grid_zero(
+    lo: wp.vec3i,
+    affine_flip: int,
+    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_m: wp.array3d(dtype=float),
+    grid_mv_old: wp.array3d(dtype=wp.vec3),
+):
+    """Zero the grid momentum and mass (and the stress-free momentum when ``affine_flip = 1``)."""
     i, j, k = wp.tid()
     gi = i + lo[0]
     gj = j + lo[1]
     gk = k + lo[2]
     grid_mv[gi, gj, gk] = wp.vec3(0.0)
     grid_m[gi, gj, gk] = 0.0
+    if affine_flip == 1:
+        grid_mv_old[gi, gj, gk] = wp.vec3(0.0)
 
 
 @wp.func
@@ -125,12 +147,15 @@ def grid_update(
     n_grid: int,
     padding: int,
     sticky: int,
+    affine_flip: int,
     grid_m: wp.array3d(dtype=float),
     grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_mv_old: wp.array3d(dtype=wp.vec3),
 ):
     """Momentum -> velocity, gravity, velocity damping (scale per substep); in place. With
     ``walls = 1`` the domain walls follow in the same pass (as :func:`grid_bc_walls` would:
-    one pass over the box instead of two)."""
+    one pass over the box instead of two). With ``affine_flip = 1`` the stress-free momentum
+    ``grid_mv_old`` becomes the old node velocity ``u_old`` [m/s] in the same pass."""
     i, j, k = wp.tid()
     gi = i + lo[0]
     gj = j + lo[1]
@@ -139,6 +164,11 @@ def grid_update(
     v = wp.vec3(0.0)
     if m > 1.0e-15:
         v = (grid_mv[gi, gj, gk] / m + dt * gravity) * damping
+    if affine_flip == 1:
+        v_old = wp.vec3(0.0)
+        if m > 1.0e-15:
+            v_old = grid_mv_old[gi, gj, gk] / m
+        grid_mv_old[gi, gj, gk] = v_old
     if walls == 1:
         v = wall_velocity(wp.vec3i(gi, gj, gk), v, n_grid, padding, sticky)
     grid_mv[gi, gj, gk] = v
@@ -244,13 +274,17 @@ def p2g(
     polar_iters: int,
     lo: wp.vec3i,
     hi: wp.vec3i,
+    affine_flip: int,
     v: wp.array(dtype=wp.vec3),
     rot: wp.array(dtype=wp.quat),
     grid_mv: wp.array3d(dtype=wp.vec3),
     grid_m: wp.array3d(dtype=float),
+    grid_mv_old: wp.array3d(dtype=wp.vec3),
     overrun: wp.array(dtype=wp.int32),
 ):
-    """Probe impulse (``v += f / m dt``), fixed-corotated stress, APIC scatter to the grid."""
+    """Probe impulse (``v += f / m dt``), fixed-corotated stress, affine scatter to the grid;
+    with ``affine_flip = 1`` also the momentum without the stress term into ``grid_mv_old``
+    (the probe impulse is in both: it is the particle's velocity, not a grid force)."""
     p = wp.tid()
     m = mass[p]
     vp = v[p]
@@ -263,7 +297,8 @@ def p2g(
     rot[p] = q
     tau = fixed_corotated_kirchhoff(Fp, wp.quat_to_matrix(q), mu[p], lam[p])
     dx = 1.0 / inv_dx
-    affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + m * C[p]
+    mC = m * C[p]
+    affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + mC
 
     gx = (x0[p] + u[p]) * inv_dx
     base = stencil_base(gx)
@@ -283,6 +318,8 @@ def p2g(
                 gk = base[2] + k
                 wp.atomic_add(grid_mv, gi, gj, gk, weight * (mv + affine * dpos))
                 wp.atomic_add(grid_m, gi, gj, gk, weight * m)
+                if affine_flip == 1:
+                    wp.atomic_add(grid_mv_old, gi, gj, gk, weight * (mv + mC * dpos))
 
 
 @wp.kernel
@@ -296,13 +333,18 @@ def g2p(
     lo: wp.vec3i,
     hi: wp.vec3i,
     x0: wp.array(dtype=wp.vec3),
+    affine_flip: int,
+    flip_weight: float,
+    grid_v_old: wp.array3d(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     C: wp.array(dtype=wp.mat33),
     F: wp.array(dtype=wp.mat33),
     overrun: wp.array(dtype=wp.int32),
 ):
-    """APIC gather: new velocity and affine matrix, F <- (I + dt C) F, advect.
+    """Gather: new velocity and affine matrix (APIC, or with ``affine_flip = 1`` the affine
+    FLIP update of weight ``flip_weight = exp(-dt / tau)`` with the old node velocities
+    ``grid_v_old`` [m/s]), F <- (I + dt C_pic) F, advect with the grid velocity ``v_pic``.
 
     Positions are rest position ``x0`` plus displacement ``u``; advecting the (small)
     displacement keeps sub-ulp motion that ``x += dt v`` in float32 near x = 1 would round
@@ -317,6 +359,8 @@ def g2p(
     w = bspline_weights(fx)
     new_v = wp.vec3(0.0)
     new_C = wp.mat33(0.0)
+    dv = wp.vec3(0.0)
+    dC = wp.mat33(0.0)
     for i in range(3):
         for j in range(3):
             for k in range(3):
@@ -325,13 +369,22 @@ def g2p(
                 gv = grid_v[base[0] + i, base[1] + j, base[2] + k]
                 new_v = new_v + weight * gv
                 new_C = new_C + (4.0 * inv_dx * weight) * wp.outer(gv, dpos)
-    if trans_on == 1 and trans_mask[p] != 0:
+                if affine_flip == 1:
+                    du = gv - grid_v_old[base[0] + i, base[1] + j, base[2] + k]
+                    dv = dv + weight * du
+                    dC = dC + (4.0 * inv_dx * weight) * wp.outer(du, dpos)
+    held = trans_on == 1 and trans_mask[p] != 0
+    if held:  # a prescribed motion: v and C take it exactly, under either transfer
         new_v = trans_velocity
         new_C = wp.mat33(0.0)
     F[p] = (wp.identity(n=3, dtype=float) + dt * new_C) * F[p]
-    C[p] = new_C
-    v[p] = new_v
     u[p] = u[p] + dt * new_v
+    if affine_flip == 1 and not held:
+        v[p] = flip_weight * (v[p] + dv) + (1.0 - flip_weight) * new_v
+        C[p] = flip_weight * (C[p] + dC) + (1.0 - flip_weight) * new_C
+    else:
+        v[p] = new_v
+        C[p] = new_C
 
 
 @wp.kernel

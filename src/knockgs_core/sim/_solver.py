@@ -86,8 +86,12 @@ class State:
     particle_x0 rest positions [m] (particle_count, 3) and particle_u displacements [m]
     (positions are x0 + u: small displacements keep their float32 precision); particle_v [m/s]; particle_F deformation gradient
     (particle_count, 3, 3); particle_C APIC affine velocity [1/s]; particle_rot warm-start
-    rotation of F's polar decomposition (quaternion xyzw); grid_mv grid momentum, then
-    velocity (n_grid^3, 3); grid_m grid mass [kg]. ``step`` counts substeps taken.
+    rotation of F's polar decomposition (quaternion xyzw); grid_mv grid momentum [kg m/s],
+    then velocity [m/s] (n_grid, n_grid, n_grid) of vec3; grid_m grid mass [kg]
+    (n_grid, n_grid, n_grid); grid_mv_old (affine-FLIP transfer only) the grid momentum
+    without this substep's stress [kg m/s], then the old node velocity ``u_old`` [m/s]
+    (n_grid, n_grid, n_grid) of vec3, whose difference to grid_mv is what G2P adds to the
+    particles; a (1, 1, 1) placeholder under APIC. ``step`` counts substeps taken.
     """
 
     particle_x0: wp.array
@@ -98,6 +102,7 @@ class State:
     particle_rot: wp.array
     grid_mv: wp.array
     grid_m: wp.array
+    grid_mv_old: wp.array
     step: int = 0
 
     def positions(self) -> np.ndarray:
@@ -235,6 +240,7 @@ def build_model(
 def make_state(model: Model, positions: np.ndarray, velocities: np.ndarray | None = None) -> State:
     """Initial state: given positions [m] (N, 3), velocities [m/s] (default 0), F = I, C = 0."""
     n, dev, g = model.particle_count, model.device, model.params.n_grid
+    g_old = g if model.params.transfer == "affine_flip" else 1
     x = np.ascontiguousarray(positions, dtype=np.float32)
     v = np.zeros_like(x) if velocities is None else np.ascontiguousarray(velocities, dtype=np.float32)
     eye = np.tile(np.eye(3, dtype=np.float32), (n, 1, 1))
@@ -248,6 +254,7 @@ def make_state(model: Model, positions: np.ndarray, velocities: np.ndarray | Non
         particle_rot=wp.array(rot, dtype=wp.quat, device=dev),
         grid_mv=wp.zeros((g, g, g), dtype=wp.vec3, device=dev),
         grid_m=wp.zeros((g, g, g), dtype=float, device=dev),
+        grid_mv_old=wp.zeros((g_old, g_old, g_old), dtype=wp.vec3, device=dev),
     )
 
 
@@ -347,23 +354,25 @@ class MPMSolver:
         hi = wp.vec3i(*self._hi)
         dims = tuple(h - low for low, h in zip(self._lo, self._hi))
         rec = dict(device=dev, record_cmd=True)
+        flip = int(p.transfer == "affine_flip")
         cmds = {}
-        cmds["zero"] = wp.launch(K.grid_zero, dim=dims, inputs=[lo], outputs=[state.grid_mv, state.grid_m], **rec)
+        cmds["zero"] = wp.launch(K.grid_zero, dim=dims, inputs=[lo, flip],
+                                 outputs=[state.grid_mv, state.grid_m, state.grid_mv_old], **rec)
         cmds["p2g"] = wp.launch(
             K.p2g,
             dim=m.particle_count,
             inputs=[state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
                     m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
-                    m.probe_mask, wp.vec3(*m.probe_force), 0, self._inv_dx, dt, self.polar_iters, lo, hi],
-            outputs=[state.particle_v, state.particle_rot, state.grid_mv, state.grid_m, self._overrun],
+                    m.probe_mask, wp.vec3(*m.probe_force), 0, self._inv_dx, dt, self.polar_iters, lo, hi, flip],
+            outputs=[state.particle_v, state.particle_rot, state.grid_mv, state.grid_m, state.grid_mv_old, self._overrun],
             **rec,
         )
         damping = p.grid_v_damping_scale ** (dt / p.damping_dt_ref) if p.grid_v_damping_scale < 1.0 else 1.0
         # domain walls listed first are applied in the update pass (same order, one pass less)
         fused = p.boundaries[0] if p.boundaries and isinstance(p.boundaries[0], DomainWalls) else None
         wall_args = [1, p.n_grid, fused.padding, int(fused.mode == "sticky")] if fused else [0, p.n_grid, 0, 0]
-        update_args = [lo, dt, wp.vec3(*p.gravity), damping, *wall_args, state.grid_m]
-        cmds["update"] = wp.launch(K.grid_update, dim=dims, inputs=update_args, outputs=[state.grid_mv], **rec)
+        update_args = [lo, dt, wp.vec3(*p.gravity), damping, *wall_args, flip, state.grid_m]
+        cmds["update"] = wp.launch(K.grid_update, dim=dims, inputs=update_args, outputs=[state.grid_mv, state.grid_mv_old], **rec)
         bcs = []
         for bc in p.boundaries:
             if bc is fused:
@@ -379,7 +388,8 @@ class MPMSolver:
         cmds["g2p"] = wp.launch(
             K.g2p,
             dim=m.particle_count,
-            inputs=[state.grid_mv, self._inv_dx, dt, self._zero_mask, wp.vec3(0.0), 0, lo, hi, state.particle_x0],
+            inputs=[state.grid_mv, self._inv_dx, dt, self._zero_mask, wp.vec3(0.0), 0, lo, hi, state.particle_x0,
+                    flip, p.flip_weight, state.grid_mv_old],
             outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, self._overrun],
             **rec,
         )
