@@ -22,10 +22,11 @@
 #                                                         per render job
 #   P/render_metrics/{object}/{split}/{method}.csv        image metrics of the rendered frames
 #   P/tables/{name}.csv, P/tables/{name}.md               reported tables: main_{object}, targetwise_{object},
-#                                                         render_{object}, objects, discrepancy
+#                                                         render_{object}, objects, discrepancy,
+#                                                         convergence_{object} (Probe-A dt and n_grid study)
 #   P/figures/{name}.png|gif                              reported figures: main_{object}, fill_{object},
 #                                                         qualitative_{object}, compare_{object} (gif),
-#                                                         objects, discrepancy
+#                                                         objects, discrepancy, convergence_{object}
 #   P/audits/{name}.json                                  audit verdicts ({"passed": bool, ...})
 #   P/discrepancy/...                                     discrepancy cases, runs and reports (grammar at
 #                                                         the top of workflow/rules/discrepancy.smk)
@@ -52,6 +53,7 @@ include: "workflow/rules/render.smk"
 include: "workflow/rules/report.smk"
 include: "workflow/rules/discrepancy.smk"
 include: "workflow/rules/audit.smk"
+include: "workflow/rules/convergence.smk"
 
 
 rule all:
@@ -61,3 +63,4 @@ rule all:
         RENDER_OUTPUTS,
         DISCREPANCY_OUTPUTS,
         AUDIT_OUTPUTS,
+        CONVERGENCE_IN_ALL,

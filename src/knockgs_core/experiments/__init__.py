@@ -1,9 +1,11 @@
 """The studies behind each table, one module per study.
 
 Workflow scripts call one function here each. :mod:`._main` is the main benchmark
-(descriptor tables, frozen estimates, Probe-A/B write-back evaluation, rendered frames).
+(descriptor tables, frozen estimates, Probe-A/B write-back evaluation, rendered frames);
+:mod:`._convergence` the discretization study of the Probe-A response (time and space).
 """
 
+from ._convergence import NOT_ASYMPTOTIC, convergence_note, convergence_study, observed_order, plot_convergence
 from ._main import (
     camera_from_contract,
     estimate_thetas,
@@ -32,4 +34,9 @@ __all__ = [
     "camera_from_contract",
     "render_rollout",
     "render_metrics_rows",
+    "convergence_study",
+    "convergence_note",
+    "observed_order",
+    "plot_convergence",
+    "NOT_ASYMPTOTIC",
 ]
