@@ -23,17 +23,23 @@
 #   P/render_metrics/{object}/{split}/{method}.csv        image metrics of the rendered frames
 #   P/tables/{name}.csv, P/tables/{name}.md               reported tables: main_{object}, targetwise_{object},
 #                                                         render_{object}, objects, discrepancy,
-#                                                         convergence_{object} (Probe-A dt and n_grid study)
+#                                                         convergence_{object} (Probe-A dt and n_grid study),
+#                                                         boundaries_{object}, loo_object (library boundaries)
 #   P/figures/{name}.png|gif                              reported figures: main_{object}, fill_{object},
 #                                                         qualitative_{object}, compare_{object} (gif),
-#                                                         objects, discrepancy, convergence_{object}
+#                                                         objects, discrepancy, convergence_{object},
+#                                                         boundaries_{object}
 #   P/audits/{name}.json                                  audit verdicts ({"passed": bool, ...})
 #   P/discrepancy/...                                     discrepancy cases, runs and reports (grammar at
 #                                                         the top of workflow/rules/discrepancy.smk)
+#   P/boundaries/...                                      boundary conditions' assets, rollouts, estimates and
+#                                                         metrics, leave-one-object-out (grammar at the top of
+#                                                         workflow/rules/boundaries.smk)
 #   P/benchmarks/...                                      time and memory of the expensive jobs (.tsv)
 #
 # Wildcards: object, probe, split, case (names), theta (above), method (knockgs_core.calibration
-# METHOD_NAMES), chunk (library job index), res (a profile: the discrepancy cases' resolution).
+# METHOD_NAMES), chunk (library job index), res (a profile: the discrepancy cases' resolution),
+# condition, library (boundaries.smk).
 
 from snakemake.utils import min_version
 
@@ -54,6 +60,7 @@ include: "workflow/rules/report.smk"
 include: "workflow/rules/discrepancy.smk"
 include: "workflow/rules/audit.smk"
 include: "workflow/rules/convergence.smk"
+include: "workflow/rules/boundaries.smk"
 
 
 rule all:
@@ -64,3 +71,4 @@ rule all:
         DISCREPANCY_OUTPUTS,
         AUDIT_OUTPUTS,
         CONVERGENCE_IN_ALL,
+        BOUNDARIES_IN_ALL,

@@ -24,6 +24,7 @@ __all__ = [
     "to_markdown",
     "plot_main",
     "plot_objects",
+    "plot_boundaries",
     "qualitative_figure",
     "comparison_gif",
     "save_figure",
@@ -181,6 +182,36 @@ def plot_objects(table: pd.DataFrame, path) -> None:
         ax.set_ylabel(lab)
     axes[1].set_yscale("log")
     axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=120)
+    plt.close(fig)
+
+
+def plot_boundaries(table: pd.DataFrame, path, *, title: str = "") -> None:
+    """Calibration boundaries (the paper's bar style): one bar per (condition, library) row of
+    a boundaries table, the mean joint error over targets [%] with the target maximum as a
+    tick; red where the library contract is violated, green where it is preserved or rebuilt."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.85 * len(table) + 2), 4))
+    x = np.arange(len(table))
+    ok = table["contract_preserved"].astype(bool).to_numpy()
+    mean = table["joint_error_mean_pct"].to_numpy(dtype=float)
+    ax.bar(x, mean, color=np.where(ok, "tab:green", "tab:red"))
+    ax.plot(x, table["joint_error_max_pct"], "k_", markersize=14, label="max over targets")
+    for xi, v in zip(x, mean):
+        ax.annotate(f"{v:.2f}", (xi, v), ha="center", va="bottom", fontsize=7, xytext=(0, 2), textcoords="offset points")
+    labels = [f"{c}\n({lib})" for c, lib in zip(table["condition"], table["library"])]
+    ax.set_xticks(x, labels, rotation=35, ha="right", fontsize=8)
+    ax.set_ylabel("joint parameter error [%]")
+    handles = [plt.Rectangle((0, 0), 1, 1, color="tab:red"), plt.Rectangle((0, 0), 1, 1, color="tab:green"),
+               ax.get_lines()[0]]
+    ax.legend(handles, ["violates the library contract", "preserves or rebuilds it", "max over targets"], fontsize=7)
+    if title:
+        ax.set_title(title)
     fig.tight_layout()
     save_figure(fig, path, dpi=120)
     plt.close(fig)

@@ -2,9 +2,25 @@
 
 Workflow scripts call one function here each. :mod:`._main` is the main benchmark
 (descriptor tables, frozen estimates, Probe-A/B write-back evaluation, rendered frames);
-:mod:`._convergence` the discretization study of the Probe-A response (time and space).
+:mod:`._convergence` the discretization study of the Probe-A response (time and space);
+:mod:`._boundaries` the library's discretization and object boundaries (leave-one-object-out).
 """
 
+from ._boundaries import (
+    BOUNDARY_KINDS,
+    BOUNDARY_LIBRARIES,
+    BoundaryCondition,
+    BoundarySettings,
+    ConditionWorld,
+    boundary_condition,
+    boundary_conditions,
+    boundary_note,
+    boundary_table,
+    condition_contract,
+    condition_world,
+    loo_table,
+    shared_library,
+)
 from ._convergence import NOT_ASYMPTOTIC, convergence_note, convergence_study, observed_order, plot_convergence
 from ._main import (
     camera_from_contract,
@@ -39,4 +55,17 @@ __all__ = [
     "observed_order",
     "plot_convergence",
     "NOT_ASYMPTOTIC",
+    "BOUNDARY_KINDS",
+    "BOUNDARY_LIBRARIES",
+    "BoundarySettings",
+    "BoundaryCondition",
+    "ConditionWorld",
+    "boundary_condition",
+    "boundary_conditions",
+    "condition_contract",
+    "condition_world",
+    "boundary_table",
+    "boundary_note",
+    "shared_library",
+    "loo_table",
 ]

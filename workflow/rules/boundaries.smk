@@ -1,0 +1,382 @@
+# Discretization and object boundaries of a frozen library (knockgs_core.experiments._boundaries;
+# paper Sec. "Discretization, object and identifiability boundaries"). Per object, one contract
+# component is changed at a time (config boundaries.conditions); the five targets are
+# re-simulated under the changed specification, and local ridge estimates them from Probe A with
+# the ORIGINAL (main) library and, for the kinds in boundaries.rebuild, with a REBUILT library
+# (the candidates re-simulated under the changed specification). Leave-one-object-out: a shared
+# library of the other objects' candidates estimates the held-out object's targets.
+#
+# Paths (B = P/boundaries; the rollout folders follow the main library and evaluation jobs):
+#   B/{object}/{condition}/asset.particles.npz, asset.json    the condition's particles, counts, force factors
+#   B/{object}/{condition}/lib/chunk{chunk}/{theta}.parquet   rebuilt library rollouts (Probe A)
+#   B/{object}/{condition}/eval/{theta}/{probe}.parquet       a target's (Probe A and B) or an estimate's
+#                                                             (Probe B) rollouts under the condition
+#   B/{object}/{condition}/descriptors/library.csv, queries.csv
+#   B/{object}/{condition}/estimates/{library}.json            frozen local-ridge estimates (checkpoint)
+#   B/{object}/{condition}/metrics/{library}.csv               write-back evaluation rows (Probe B)
+#   B/loo/{object}/library.csv, estimate.json, metrics.csv    leave-one-object-out
+#   P/tables/boundaries_{object}.csv|md, P/figures/boundaries_{object}.png, P/tables/loo_object.csv|md
+# Wildcards: condition (reference, fill_density, fill_density_equal_force, fill_seed{k}, grid),
+# library (original, rebuilt). `snakemake boundaries` makes every table and figure; `all`
+# includes them when config boundaries.enabled is true.
+
+from knockgs_core.experiments import BOUNDARY_LIBRARIES, BoundarySettings, boundary_condition, boundary_conditions
+
+BOUNDARIES = config["boundaries"]
+BOUNDARY_SETTINGS = BoundarySettings.from_config(BOUNDARIES)
+BOUNDARY_METHOD = "local_ridge"
+BB = f"{P}/boundaries"
+
+
+def boundary_condition_names(obj):
+    """The conditions that apply to the object, in table order."""
+    return boundary_conditions(contract(obj), BOUNDARY_SETTINGS)
+
+
+def boundary_libraries(obj, cond):
+    """original, then rebuilt where the condition's kind is rebuilt."""
+    return ["original"] + (["rebuilt"] if boundary_condition(contract(obj), cond, BOUNDARY_SETTINGS).rebuild else [])
+
+
+def boundary_probe_b(obj):
+    """The held-out probe the boundary tables report: the object's first Probe B."""
+    return heldout_probes(obj)[0]
+
+
+def boundary_library_root(obj, cond):
+    return f"{BB}/{obj}/{cond}/lib"
+
+
+def boundary_eval_rollout(obj, cond, probe, theta):
+    return f"{BB}/{obj}/{cond}/eval/{theta_tag(theta)}/{probe}.parquet"
+
+
+def boundary_eval_runs(wc):
+    """A target's theta under Probe A (its query) and Probe B (its truth); an estimate's under Probe B."""
+    theta = parse_theta(wc.theta)
+    is_target = wc.theta in {theta_tag(th) for th in target_thetas().values()}
+    probes = ([calibration_probe(wc.object)] if is_target else []) + [boundary_probe_b(wc.object)]
+    return [{"theta": theta, "probe": pr, "rollout": boundary_eval_rollout(wc.object, wc.condition, pr, theta), "F": None}
+            for pr in probes]
+
+
+def boundary_query_rollouts(wc):
+    return [boundary_eval_rollout(wc.object, wc.condition, calibration_probe(wc.object), th) for th in target_thetas().values()]
+
+
+def boundary_library_csv(wc):
+    if wc.library == "original":
+        return f"{P}/descriptors/{wc.object}/library.csv"
+    return f"{BB}/{wc.object}/{wc.condition}/descriptors/library.csv"
+
+
+def _estimate_thetas(path):
+    with open(path) as fh:
+        return [(p["E_scale"], p["density_scale"]) for p in json.load(fh)["predictions"]]
+
+
+def boundary_writeback_rollouts(wc):
+    """{"probe/theta": rollout}: Probe B of the frozen estimates and of the targets, under the condition."""
+    est = checkpoints.boundary_estimate.get(object=wc.object, condition=wc.condition, library=wc.library).output.json
+    probe = boundary_probe_b(wc.object)
+    ths = _estimate_thetas(est) + list(target_thetas().values())
+    return {f"{probe}/{theta_tag(th)}": boundary_eval_rollout(wc.object, wc.condition, probe, th) for th in ths}
+
+
+def boundary_metrics(obj):
+    return [f"{BB}/{obj}/{c}/metrics/{lib}.csv" for c in boundary_condition_names(obj) for lib in boundary_libraries(obj, c)]
+
+
+def loo_objects():
+    """Objects of the leave-one-object-out table: all of them, given at least two."""
+    return OBJECTS if BOUNDARIES["loo"] and len(OBJECTS) >= 2 else []
+
+
+def loo_writeback_rollouts(wc):
+    """{"probe/theta": rollout}: the main evaluation rollouts (Probe B) of the shared estimator's
+    estimates and of the targets."""
+    est = checkpoints.loo_estimate.get(object=wc.object).output.json
+    probe = boundary_probe_b(wc.object)
+    ths = _estimate_thetas(est) + list(target_thetas().values())
+    return {f"{probe}/{theta_tag(th)}": eval_rollout(wc.object, probe, th) for th in ths}
+
+
+BOUNDARY_OUTPUTS = [
+    path for o in OBJECTS
+    for path in (f"{P}/tables/boundaries_{o}.csv", f"{P}/tables/boundaries_{o}.md", f"{P}/figures/boundaries_{o}.png")
+] + ([f"{P}/tables/loo_object.csv", f"{P}/tables/loo_object.md"] if loo_objects() else [])
+BOUNDARIES_IN_ALL = BOUNDARY_OUTPUTS if BOUNDARIES["enabled"] else []
+
+
+wildcard_constraints:
+    condition="reference|fill_density|fill_density_equal_force|fill_seed[0-9]+|grid",
+    library="|".join(BOUNDARY_LIBRARIES),
+
+
+rule boundary_asset:
+    """The condition's particles (the changed contract's asset), counts and probe force factors."""
+    conda:
+        "../envs/knockgs.yaml"
+    output:
+        particles=f"{BB}/{{object}}/{{condition}}/asset.particles.npz",
+        summary=f"{BB}/{{object}}/{{condition}}/asset.json",
+    log:
+        f"logs/{PROFILE}/boundaries/{{object}}/{{condition}}/asset.log",
+    params:
+        profile=PROFILE,
+        object=lambda wc: wc.object,
+        condition=lambda wc: wc.condition,
+        settings=BOUNDARIES,
+    resources:
+        mem_mb=8000 if PROFILE == "paper" else 2000,
+        runtime=30,
+    threads: 1
+    script:
+        "../scripts/boundaries_asset.py"
+
+
+rule boundary_rollout_library:
+    """Probe-A rollouts of one chunk of candidates under the condition (a rebuilt library)."""
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        particles=f"{BB}/{{object}}/{{condition}}/asset.particles.npz",
+        summary=f"{BB}/{{object}}/{{condition}}/asset.json",
+    output:
+        folder=directory(f"{BB}/{{object}}/{{condition}}/lib/chunk{{chunk}}"),
+    log:
+        f"logs/{PROFILE}/boundaries/{{object}}/{{condition}}/lib/chunk{{chunk}}.log",
+    benchmark:
+        f"{P}/benchmarks/boundaries/{{object}}/{{condition}}/lib/chunk{{chunk}}.tsv"
+    params:
+        profile=PROFILE,
+        object=lambda wc: wc.object,
+        condition=lambda wc: wc.condition,
+        settings=BOUNDARIES,
+        runs=lambda wc: library_runs(wc.chunk, calibration_probe(wc.object), boundary_library_root(wc.object, wc.condition),
+                                     export_F=False),
+        device=DEVICE,
+    resources:
+        mem_mb=16000 if PROFILE == "paper" else 2000,
+        runtime=60 * LIBRARY_CHUNK if PROFILE == "paper" else 20 * LIBRARY_CHUNK,
+        gpu=1 if ON_GPU else 0,
+    threads: 1
+    script:
+        "../scripts/boundaries_rollout.py"
+
+
+rule boundary_rollout_eval:
+    """Rollouts of one theta (a target or a frozen estimate) under the condition."""
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        particles=f"{BB}/{{object}}/{{condition}}/asset.particles.npz",
+        summary=f"{BB}/{{object}}/{{condition}}/asset.json",
+    output:
+        folder=directory(f"{BB}/{{object}}/{{condition}}/eval/{{theta}}"),
+    log:
+        f"logs/{PROFILE}/boundaries/{{object}}/{{condition}}/eval/{{theta}}.log",
+    benchmark:
+        f"{P}/benchmarks/boundaries/{{object}}/{{condition}}/eval/{{theta}}.tsv"
+    params:
+        profile=PROFILE,
+        object=lambda wc: wc.object,
+        condition=lambda wc: wc.condition,
+        settings=BOUNDARIES,
+        runs=boundary_eval_runs,
+        device=DEVICE,
+    resources:
+        mem_mb=16000 if PROFILE == "paper" else 2000,
+        runtime=lambda wc: (60 if PROFILE == "paper" else 20) * len(boundary_eval_runs(wc)),
+        gpu=1 if ON_GPU else 0,
+    threads: 1
+    script:
+        "../scripts/boundaries_rollout.py"
+
+
+rule boundary_library_descriptors:
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        rollouts=lambda wc: folders(
+            library_rollout(boundary_library_root(wc.object, wc.condition), c) for c in CANDIDATES.case_name
+        ),
+    output:
+        table=f"{BB}/{{object}}/{{condition}}/descriptors/library.csv",
+    log:
+        f"logs/{PROFILE}/boundaries/{{object}}/{{condition}}/descriptors/library.log",
+    params:
+        rollouts=lambda wc: {c: library_rollout(boundary_library_root(wc.object, wc.condition), c) for c in CANDIDATES.case_name},
+    script:
+        "../scripts/library_descriptors.py"
+
+
+rule boundary_query_descriptors:
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        rollouts=lambda wc: folders(boundary_query_rollouts(wc)),
+    output:
+        table=f"{BB}/{{object}}/{{condition}}/descriptors/queries.csv",
+    log:
+        f"logs/{PROFILE}/boundaries/{{object}}/{{condition}}/descriptors/queries.log",
+    params:
+        names=lambda wc: list(target_thetas()),
+        rollouts=boundary_query_rollouts,
+    script:
+        "../scripts/query_descriptors.py"
+
+
+checkpoint boundary_estimate:
+    """Local ridge from Probe A: the condition's queries against the original or the rebuilt library."""
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        library=boundary_library_csv,
+        queries=f"{BB}/{{object}}/{{condition}}/descriptors/queries.csv",
+    output:
+        json=f"{BB}/{{object}}/{{condition}}/estimates/{{library}}.json",
+    log:
+        f"logs/{PROFILE}/boundaries/{{object}}/{{condition}}/estimates/{{library}}.log",
+    params:
+        method=BOUNDARY_METHOD,
+        options=config["method_params"].get(BOUNDARY_METHOD, {}),
+        config_hash=config_hash(),
+    script:
+        "../scripts/estimate.py"
+
+
+rule boundary_evaluate:
+    """Joint error and Probe-B write-back trajectory RMSE of the frozen estimates, under the condition."""
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        estimate=f"{BB}/{{object}}/{{condition}}/estimates/{{library}}.json",
+        targets="config/targets.csv",
+        rollouts=lambda wc: folders(boundary_writeback_rollouts(wc).values()),
+    output:
+        table=f"{BB}/{{object}}/{{condition}}/metrics/{{library}}.csv",
+    log:
+        f"logs/{PROFILE}/boundaries/{{object}}/{{condition}}/metrics/{{library}}.log",
+    params:
+        split=SPLIT,
+        probes=lambda wc: [boundary_probe_b(wc.object)],
+        rollouts=boundary_writeback_rollouts,
+        labels=lambda wc: {"object": wc.object, "condition": wc.condition, "library": wc.library},
+    script:
+        "../scripts/boundaries_evaluate.py"
+
+
+rule boundary_table:
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        metrics=lambda wc: boundary_metrics(wc.object),
+        summaries=lambda wc: [f"{BB}/{wc.object}/{c}/asset.json" for c in boundary_condition_names(wc.object)],
+    output:
+        csv=report(f"{P}/tables/boundaries_{{object}}.csv", caption="../report/boundaries.rst", category="Tables", subcategory="{object}"),
+        md=f"{P}/tables/boundaries_{{object}}.md",
+    log:
+        f"logs/{PROFILE}/tables/boundaries_{{object}}.log",
+    params:
+        profile=PROFILE,
+        probe_a=lambda wc: calibration_probe(wc.object),
+        probe_b=boundary_probe_b,
+    script:
+        "../scripts/boundaries_table.py"
+
+
+rule boundary_figure:
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        csv=f"{P}/tables/boundaries_{{object}}.csv",
+    output:
+        report(f"{P}/figures/boundaries_{{object}}.png", caption="../report/boundaries_figure.rst", category="Figures", subcategory="{object}"),
+    log:
+        f"logs/{PROFILE}/figures/boundaries_{{object}}.log",
+    params:
+        profile=PROFILE,
+    script:
+        "../scripts/boundaries_figure.py"
+
+
+rule loo_library:
+    """The shared library of every other object's candidates."""
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        libraries=lambda wc: [f"{P}/descriptors/{o}/library.csv" for o in OBJECTS if o != wc.object],
+    output:
+        table=f"{BB}/loo/{{object}}/library.csv",
+    log:
+        f"logs/{PROFILE}/boundaries/loo/{{object}}/library.log",
+    params:
+        objects=lambda wc: [o for o in OBJECTS if o != wc.object],
+    script:
+        "../scripts/boundaries_loo_library.py"
+
+
+checkpoint loo_estimate:
+    """Local ridge from Probe A: the held-out object's queries against the shared library."""
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        library=f"{BB}/loo/{{object}}/library.csv",
+        queries=f"{P}/descriptors/{{object}}/queries_{SPLIT}.csv",
+    output:
+        json=f"{BB}/loo/{{object}}/estimate.json",
+    log:
+        f"logs/{PROFILE}/boundaries/loo/{{object}}/estimate.log",
+    params:
+        method=BOUNDARY_METHOD,
+        options=config["method_params"].get(BOUNDARY_METHOD, {}),
+        config_hash=config_hash(),
+    script:
+        "../scripts/estimate.py"
+
+
+rule loo_evaluate:
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        estimate=f"{BB}/loo/{{object}}/estimate.json",
+        targets="config/targets.csv",
+        rollouts=lambda wc: folders(loo_writeback_rollouts(wc).values()),
+    output:
+        table=f"{BB}/loo/{{object}}/metrics.csv",
+    log:
+        f"logs/{PROFILE}/boundaries/loo/{{object}}/metrics.log",
+    params:
+        split=SPLIT,
+        probes=lambda wc: [boundary_probe_b(wc.object)],
+        rollouts=loo_writeback_rollouts,
+        labels=lambda wc: {"object": wc.object, "condition": "leave_one_object_out", "library": "shared"},
+    script:
+        "../scripts/boundaries_evaluate.py"
+
+
+rule loo_table:
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        metrics=[f"{BB}/loo/{o}/metrics.csv" for o in loo_objects()],
+        own=[f"{P}/metrics/{o}/{SPLIT}/{BOUNDARY_METHOD}.csv" for o in loo_objects()],
+    output:
+        csv=report(f"{P}/tables/loo_object.csv", caption="../report/boundaries_loo.rst", category="Tables"),
+        md=f"{P}/tables/loo_object.md",
+    log:
+        f"logs/{PROFILE}/tables/loo_object.log",
+    params:
+        profile=PROFILE,
+        objects=loo_objects(),
+        probes={o: boundary_probe_b(o) for o in loo_objects()},
+        trained_on={o: [x for x in OBJECTS if x != o] for o in loo_objects()},
+    script:
+        "../scripts/boundaries_loo_table.py"
+
+
+rule boundaries:
+    """Named target: every object's boundaries table and figure, and the leave-one-object-out table."""
+    input:
+        BOUNDARY_OUTPUTS,
