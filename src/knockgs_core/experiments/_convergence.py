@@ -221,7 +221,7 @@ def convergence_study(
             cost = time.process_time() - t0
             x = np.asarray(ro.positions[:, :n_gs], dtype=np.float64)
             cache[key] = (x - x[0], cost)
-            say(f"{contract.name}: dt {key[0]:.6g} s, n_grid {key[1]}: {ro.meta['stats'].get('steps', '?')} substeps, "
+            say(f"{contract.name}: dt {key[0]:.10g} s, n_grid {key[1]}: {ro.meta['stats'].get('steps', '?')} substeps, "
                 f"{cost:.2f} CPU s")
         return cache[key]
 
