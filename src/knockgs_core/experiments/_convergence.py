@@ -239,7 +239,8 @@ def convergence_study(
             order, rich = NOT_ASYMPTOTIC, NOT_ASYMPTOTIC
         else:
             limit = richardson_limit(u2, u3, h2=h[1], h3=h[2], p=p)
-            order, rich = float(p), 100.0 * relative_change(u1, limit, reference=limit)
+            # 8 significant digits, as write_table prints floats (these cells may hold text, so it cannot)
+            order, rich = float(f"{p:.8g}"), float(f"{100.0 * relative_change(u1, limit, reference=limit):.8g}")
         key = "dt" if refinement == "dt" else "n_grid"
         rows.append({
             "object": contract.name,
