@@ -29,8 +29,9 @@ def rms_disp(positions):
 # -------------------------------------------------------------------------------------
 # 1. free body with uniform velocity: momentum conserved, motion rigid
 # -------------------------------------------------------------------------------------
-def test_free_body_momentum_and_rigid_motion(rng):
-    params = SimParams(n_grid=32, dt=1e-3, boundaries=())
+@pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
+def test_free_body_momentum_and_rigid_motion(rng, transfer):
+    params = SimParams(n_grid=32, dt=1e-3, boundaries=(), transfer=transfer)
     X = block((0.8, 0.8, 0.8), (1.2, 1.1, 1.2), 1 / 32, jitter=0.3, rng=rng)
     v0 = np.array([0.3, -0.2, 0.1], dtype=np.float32)
     model = build_model(X, E=1e4, nu=0.3, rho=1000.0, params=params)
@@ -52,9 +53,10 @@ def test_free_body_momentum_and_rigid_motion(rng):
 # -------------------------------------------------------------------------------------
 # 2. rest stays at rest
 # -------------------------------------------------------------------------------------
-def test_rest_stays_at_rest(rng):
+@pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
+def test_rest_stays_at_rest(rng, transfer):
     support = FixedCuboid(Box((1.0, 1.0, 0.78), (0.3, 0.3, 0.05)))
-    params = SimParams(n_grid=32, dt=1e-3, boundaries=(DomainWalls(), support))
+    params = SimParams(n_grid=32, dt=1e-3, boundaries=(DomainWalls(), support), transfer=transfer)
     X = block((0.8, 0.8, 0.8), (1.2, 1.2, 1.1), 1 / 32, jitter=0.3, rng=rng)
     model = build_model(X, E=1e4, nu=0.3, rho=2000.0, params=params)
     state = make_state(model, X)
@@ -66,7 +68,8 @@ def test_rest_stays_at_rest(rng):
 # -------------------------------------------------------------------------------------
 # 3. analytic oscillation: free-free bar, first longitudinal mode, period 2L/c
 # -------------------------------------------------------------------------------------
-def test_bar_longitudinal_period():
+@pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
+def test_bar_longitudinal_period(transfer):
     """A free-free bar (nu = 0, so the bar speed c = sqrt(E/rho) is exact in 3D) started in
     its first longitudinal mode v(s) = v0 cos(pi s / L) oscillates with period 2L/c.
     A free-free bar avoids any ambiguity about where a clamp sits on the grid."""
@@ -78,7 +81,7 @@ def test_bar_longitudinal_period():
     s = X[:, 0] - (1.0 - L / 2)
     v = np.zeros_like(X)
     v[:, 0] = 0.01 * np.cos(np.pi * s / L)
-    params = SimParams(n_grid=n_grid, dt=5e-4, boundaries=())
+    params = SimParams(n_grid=n_grid, dt=5e-4, boundaries=(), transfer=transfer)
     model = build_model(X, E=E, nu=0.0, rho=rho, params=params)
     state = make_state(model, X, v)
     T = 2 * L / c
@@ -157,8 +160,9 @@ def test_free_fall():
 # -------------------------------------------------------------------------------------
 # 6. probes
 # -------------------------------------------------------------------------------------
-def test_probe_delivers_its_momentum_and_box_selects_exactly(rng):
-    params = SimParams(n_grid=32, dt=1e-3, boundaries=())
+@pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
+def test_probe_delivers_its_momentum_and_box_selects_exactly(rng, transfer):
+    params = SimParams(n_grid=32, dt=1e-3, boundaries=(), transfer=transfer)
     X = block((0.8, 0.8, 0.8), (1.2, 1.2, 1.2), 1 / 32, jitter=0.4, rng=rng)
     box = Box((1.0, 1.05, 1.1), (0.08, 0.1, 0.06))
     inside = np.all(np.abs(X - np.array(box.center)) <= np.array(box.half_size), axis=1)
@@ -294,3 +298,29 @@ def test_floor_walls_in_the_update_pass_match_the_separate_kernel(mode):
     drop = float(runs[0][0, :, 2].mean() - runs[0][-1, :, 2].mean())
     assert drop < 0.25 * 0.5 * 9.8 * 0.3**2  # free fall would drop 0.44 m
     assert runs[0][:, :, 2].min() > 2 * params.dx  # stopped above the wall nodes' guard band
+
+
+def test_transfer_settings_are_validated():
+    with pytest.raises(ValueError, match="apic, affine_flip"):
+        SimParams(transfer="flip")
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="pic_relaxation_time"):
+            SimParams(pic_relaxation_time=bad)
+    assert SimParams(transfer="apic").flip_weight == 0.0
+    assert SimParams().flip_weight == 1.0                       # inf: pure affine FLIP
+    assert SimParams(dt=1e-3, pic_relaxation_time=1e-2).flip_weight == pytest.approx(math.exp(-0.1))
+
+
+def test_pic_relaxation_time_damps_towards_apic():
+    """A finite relaxation time blends in APIC's dissipation: the response of a knocked block
+    lies between pure affine FLIP and APIC, closer to APIC for a shorter time."""
+    def run(**kw):
+        params = SimParams(n_grid=32, dt=1e-3, boundaries=(), **kw)
+        X = block((0.85, 0.85, 0.8), (1.15, 1.15, 1.2), 1 / 32)
+        probe = Probe("knock", (-0.6, 0.0, 0.0), dt_ref=1e-3, box=Box((1.0, 1.0, 1.15), (0.2, 0.2, 0.05)))
+        model = build_model(X, E=1e4, nu=0.3, rho=1000.0, params=params, probe=probe)
+        out = simulate(model, make_state(model, X), frame_dt=0.02, n_frames=16)
+        return out.positions.astype(np.float64) - X
+    flip, apic = run(), run(transfer="apic")
+    gap = [np.linalg.norm(run(pic_relaxation_time=tau) - apic) for tau in (0.3, 0.03)]
+    assert np.linalg.norm(flip - apic) > gap[0] > gap[1] > 0.0
