@@ -2,7 +2,8 @@
 
 Body: a block of jelly (E = 1e4 Pa, nu = 0.3, rho = 2000 kg/m^3) with 8 particles per cell,
 centred in the [0, 2]^3 domain, knocked by a one-step global probe (as the Pillow contract),
-dt = 1e-4 s. Each case runs ``--steps`` substeps after a warm-up and reports the median of
+dt = 1e-4 s, with the contracts' affine-FLIP transfer (``--transfer apic`` for the paper's,
+``both`` for the two in one run). Each case runs ``--steps`` substeps after a warm-up and reports the median of
 ``--repeats`` timings. ``--cold`` measures the cold kernel compile in an empty cache.
 
     python3 benchmarks/sim_bench.py --device cpu
@@ -36,13 +37,13 @@ def block(n_particles: int, n_grid: int, grid_lim: float = 2.0, ppc: int = 8) ->
     return X.astype(np.float32)
 
 
-def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: str) -> dict:
+def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: str, *, transfer: str = "affine_flip") -> dict:
     import warp as wp
 
     from knockgs_core.sim import MPMSolver, Probe, SimParams, build_model, make_state
 
     X = block(n_particles, n_grid)
-    params = SimParams(n_grid=n_grid, dt=1e-4)
+    params = SimParams(n_grid=n_grid, dt=1e-4, transfer=transfer)
     model = build_model(X, E=1e4, nu=0.3, rho=2000.0, params=params, probe=Probe("standard_x", (-0.18, 0.0, 0.0)), device=device)
     state = make_state(model, X)
     solver = MPMSolver(model)
@@ -64,6 +65,7 @@ def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: st
     return {
         "particles": len(X),
         "n_grid": n_grid,
+        "transfer": transfer,
         "steps": steps,
         "median_s": med,
         "particle_substeps_per_s": rate,
@@ -95,19 +97,22 @@ def main() -> None:
                     default=["5000:32", "5000:64", "5000:100", "20000:32", "20000:64", "100000:64", "100000:100"])
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--transfer", choices=["affine_flip", "apic", "both"], default="affine_flip")
     ap.add_argument("--cold", action="store_true", help="also measure a cold compile")
     ap.add_argument("--json", help="write results here")
     args = ap.parse_args()
     rows = []
     print(f"# device {args.device}, {platform.processor() or platform.machine()}, python {platform.python_version()}")
-    print("| particles | n_grid | particle-substeps/s | ms/substep | s per 6000-substep rollout |")
-    print("|---:|---:|---:|---:|---:|")
+    transfers = ["affine_flip", "apic"] if args.transfer == "both" else [args.transfer]
+    print("| particles | n_grid | transfer | particle-substeps/s | ms/substep | s per 6000-substep rollout |")
+    print("|---:|---:|---|---:|---:|---:|")
     for case in args.cases:
         n, g = (int(v) for v in case.split(":"))
-        r = run_case(n, g, args.steps, args.repeats, args.device)
-        rows.append(r)
-        print(f"| {r['particles']:,} | {g} | {r['particle_substeps_per_s']:.3g} | {r['ms_per_substep']:.3f} "
-              f"| {r['s_per_6000_substeps']:.2f} |", flush=True)
+        for transfer in transfers:
+            r = run_case(n, g, args.steps, args.repeats, args.device, transfer=transfer)
+            rows.append(r)
+            print(f"| {r['particles']:,} | {g} | {transfer} | {r['particle_substeps_per_s']:.3g} | {r['ms_per_substep']:.3f} "
+                  f"| {r['s_per_6000_substeps']:.2f} |", flush=True)
     out = {"device": args.device, "rows": rows}
     if args.cold:
         out["cold_compile_s"] = cold_compile_seconds()
