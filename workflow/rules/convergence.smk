@@ -1,8 +1,11 @@
-# The discretization study of the Probe-A response: per object, dt -> dt/2 -> dt/4 at the
-# profile's grid and n_grid -> 1.5x -> 2x with the same particles (knockgs_core.experiments
-# convergence_study). One job per object runs its six rollouts (levels shared between the two
-# refinements are simulated once). `snakemake convergence` makes every object's table and figure;
-# `all` includes them when config convergence.enabled is true.
+# The discretization study of the Probe-A response (knockgs_core.experiments convergence_study):
+# per object, dt -> dt/2 -> dt/4 at the profile's grid; n_grid -> 1.5x -> 2x with the same
+# particles (the "grid resolution changed" condition: particles per cell thin out); and, for
+# objects with an interior fill, n_grid+fill: grid and fill resolution refined together, the
+# Gaussian-associated particles fixed and the fill rebuilt per grid (the spatial discretization
+# error). One job per object runs its rollouts (six, eight with a fill: the space rows share
+# level 1). `snakemake convergence` makes every object's table and figure; `all` includes them
+# when config convergence.enabled is true.
 
 CONVERGENCE = config["convergence"]
 CONVERGENCE_OUTPUTS = [
@@ -14,9 +17,10 @@ CONVERGENCE_IN_ALL = CONVERGENCE_OUTPUTS if CONVERGENCE["enabled"] else []
 
 
 rule convergence_study:
-    """Time and space convergence of one object's Probe-A response at one fixed theta: the
-    change between successive levels, the observed order and the Richardson-extrapolated error
-    of the profile's setting."""
+    """Time and space convergence of one object's Probe-A response at one fixed theta (rows dt,
+    n_grid with the particles fixed, n_grid+fill with the fill rebuilt per grid): the change
+    between successive levels, the observed order and the Richardson-extrapolated error of the
+    profile's setting."""
     conda:
         "../envs/knockgs.yaml"
     input:

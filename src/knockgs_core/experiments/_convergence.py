@@ -1,17 +1,31 @@
 """Discretization error of the Probe-A response: a three-level convergence study per object.
 
 One object, one fixed ``theta`` (by default the library's stiffest, lightest candidate, the
-fastest response), its calibration probe (Probe A), and two refinements of the contract's
-resolution profile:
+fastest response), its calibration probe (Probe A), and three refinements of the contract's
+resolution profile (:data:`REFINEMENTS`):
 
-- time: ``dt -> dt/2 -> dt/4`` at the profile's grid;
-- space: ``n_grid -> 1.5 n_grid -> 2 n_grid`` with the same particle set (positions, rest
-  volumes, Gaussian-associated and fill particles fixed), every level at one substep that
-  satisfies the CFL bound of the finest grid (and is never longer than the profile's), so
-  the time error does not change between the space levels.
+- ``dt``, time: ``dt -> dt/2 -> dt/4`` at the profile's grid, the same particles;
+- ``n_grid``, grid with the particles fixed: ``n_grid -> 1.5 n_grid -> 2 n_grid`` with the same
+  particle set (positions, rest volumes, Gaussian-associated and fill particles fixed). This is
+  the boundary study's "grid resolution changed" condition, not a discretization-error
+  estimate: the particles per cell fall with the grid (to about one per cell at 2x), so the
+  changes measure the particle sampling thinning out and are not expected to decrease;
+- ``n_grid+fill``, grid and fill together: ``n_grid`` and the fill resolution both scaled by
+  1.5 and 2, the Gaussian-associated particles fixed and the interior fill rebuilt for each grid
+  by the asset build (:func:`~knockgs_core.assets.build_asset`) with the same specification per
+  cell (density threshold, particles per cell, seed); rest volumes ``dx^3 / (particles in the
+  cell)`` at each level's grid. The particles per cell stay as the profile's, so this is the
+  spatial discretization error. Defined only for objects with an interior fill (without one,
+  the particles are the Gaussians, which no level may change).
+
+Both space refinements run every level at one substep that satisfies the CFL bound of the
+finest grid (and is never longer than the profile's), so the time error does not change
+between the space levels; their level 1 is the profile's grid and particles at that substep
+(one rollout shared by the two).
 
 The quantity is the displacement trajectory ``u = x(t) - x(0)`` of the Gaussian-associated
-particles at every exported frame, shape (frames, n_gs, 3) [m]. For levels 1 (coarsest, the
+particles at every exported frame, shape (frames, n_gs, 3) [m]: the same particles at every
+level of every refinement. For levels 1 (coarsest, the
 profile's setting), 2, 3 (finest) with step sizes ``h1 > h2 > h3`` (``dt``, or ``dx =
 grid_lim / n_grid``):
 
@@ -41,6 +55,7 @@ from ..reporting import save_figure
 
 __all__ = [
     "NOT_ASYMPTOTIC",
+    "FIXED",
     "REFINEMENTS",
     "SPACE_FACTORS",
     "TIME_FACTORS",
@@ -48,18 +63,26 @@ __all__ = [
     "relative_change",
     "richardson_limit",
     "convergence_levels",
+    "particles_per_cell",
+    "refined_particles",
     "convergence_study",
     "convergence_note",
     "plot_convergence",
 ]
 
 NOT_ASYMPTOTIC = "not in the asymptotic range"
-REFINEMENTS: tuple[str, ...] = ("dt", "n_grid")
+REFINEMENTS: tuple[str, ...] = ("dt", "n_grid", "n_grid+fill")
 TIME_FACTORS = (1.0, 0.5, 0.25)      # dt multipliers, coarsest first
 SPACE_FACTORS = (1.0, 1.5, 2.0)      # n_grid multipliers, coarsest first
 P_MAX = 20.0                         # orders above this are not resolved (treated as no asymptotic range)
 
-Refinement = Literal["dt", "n_grid"]
+Refinement = Literal["dt", "n_grid", "n_grid+fill"]
+#: what each refinement holds fixed (the table's ``fixed`` column)
+FIXED: dict[str, str] = {
+    "dt": "n_grid; particles (positions, rest volumes)",
+    "n_grid": "particles (positions, rest volumes); dt",
+    "n_grid+fill": "Gaussian-associated particles; fill specification per cell; dt",
+}
 
 
 # --------------------------------------------------------------------------- order and extrapolation
@@ -140,19 +163,56 @@ def _space_dt(contract, n_grid_finest: int, frame_dt: float) -> float:
 
 def convergence_levels(contract, *, frame_dt: float) -> dict[str, list[dict]]:
     """The simulator settings of each refinement's three levels, coarsest first:
-    ``{"dt": [{"dt": .., "n_grid": ..}, ...], "n_grid": [...]}`` (``frame_dt`` [s]: the probe's
-    export interval, which every substep divides)."""
+    ``{"dt": [{"dt": .., "n_grid": .., "fill_resolution": None}, ...], "n_grid": [...],
+    "n_grid+fill": [...]}`` (``frame_dt`` [s]: the probe's export interval, which every substep
+    divides). ``fill_resolution`` is ``None`` where the profile's particles are used unchanged,
+    else the fill cells per axis the level's particles are rebuilt with (the profile's, scaled as
+    ``n_grid``); ``"n_grid+fill"`` is present only when the contract has an interior fill."""
     dt0, n0 = float(contract.sim.dt), int(contract.sim.n_grid)
     grids = [int(round(n0 * f)) for f in SPACE_FACTORS]
     dt_space = _space_dt(contract, grids[-1], frame_dt)
-    return {
-        "dt": [{"dt": dt0 * f, "n_grid": n0} for f in TIME_FACTORS],
-        "n_grid": [{"dt": dt_space, "n_grid": n} for n in grids],
+    levels = {
+        "dt": [{"dt": dt0 * f, "n_grid": n0, "fill_resolution": None} for f in TIME_FACTORS],
+        "n_grid": [{"dt": dt_space, "n_grid": n, "fill_resolution": None} for n in grids],
     }
+    if contract.fill.enabled:
+        r0 = int(contract.fill.resolution)
+        # level 1 is the profile's own particle set (the same rollout as the n_grid study's level 1)
+        levels["n_grid+fill"] = [{"dt": dt_space, "n_grid": n, "fill_resolution": None if f == 1.0 else int(round(r0 * f))}
+                                 for n, f in zip(grids, SPACE_FACTORS)]
+    return levels
 
 
 def _step_size(refinement: str, level: dict, grid_lim: float) -> float:
     return level["dt"] if refinement == "dt" else grid_lim / level["n_grid"]
+
+
+def particles_per_cell(positions: np.ndarray, *, dx: float) -> float:
+    """Mean particles per occupied grid cell of ``positions`` [m], shape (particle_count, 3), on a
+    grid of spacing ``dx`` [m]: how densely the particles sample the grid."""
+    cells = np.floor(np.asarray(positions, dtype=np.float64) / float(dx)).astype(np.int64)
+    return len(cells) / len(np.unique(cells, axis=0))
+
+
+def refined_particles(contract, particles, *, n_grid: int, fill_resolution: int):
+    """The particle set of an ``n_grid+fill`` level: the contract's asset rebuilt with the fill
+    at ``fill_resolution`` cells per axis (same box, density threshold, particles per cell and
+    seed) and rest volumes at the grid ``n_grid`` (``dx^3 / (particles in the cell)``); returns
+    ``(contract variant, ParticleSet)``. The Gaussian-associated particles (the first ``n_gs``)
+    must equal those of ``particles`` [m], shape (n_gs, 3): they are what the levels compare.
+    """
+    from ..assets import build_asset
+
+    replace = dataclasses.replace
+    variant = replace(contract, fill=replace(contract.fill, resolution=int(fill_resolution)),
+                      sim=replace(contract.sim, n_grid=int(n_grid)))
+    rebuilt = build_asset(variant).particles
+    n_gs = int(particles.n_gs)
+    if rebuilt.n_gs != n_gs or not np.array_equal(rebuilt.positions[:n_gs], np.asarray(particles.positions)[:n_gs]):
+        raise InputError(f"object {contract.name}", "particles",
+                         "the Gaussian-associated particles differ from the contract's asset build; the n_grid+fill "
+                         "study rebuilds the fill around them and needs the particles of the same contract and profile")
+    return variant, _fixed_volumes(variant, rebuilt)
 
 
 # --------------------------------------------------------------------------- the study
@@ -179,24 +239,29 @@ def convergence_study(
 ) -> pd.DataFrame:
     """Three-level time and space convergence of the Probe-A response of one object.
 
-    ``contract``: an object contract at its resolution profile (level 1 of both refinements
-    is its setting, the space study at the space substep); ``particles``: its particle set
-    (a :class:`~knockgs_core.assets.ParticleSet`, fixed for every level); ``theta = (s_E,
-    s_rho)``; ``n_frames``: the first exported frames used (``None``: all of the probe's).
-    Returns one row per refinement: ``object, profile, s_E, s_rho, refinement, level_1..3``
-    (dt [s] or n_grid), ``dt`` (the substep of the space levels; the profile's for the time
-    study), ``n_grid`` (the grid of the time levels), ``n_frames``, ``rms_displacement_m``
+    ``contract``: an object contract at its resolution profile (level 1 of every refinement
+    is its setting, the space studies at the space substep); ``particles``: its particle set
+    (a :class:`~knockgs_core.assets.ParticleSet`, the asset build of ``contract``: fixed for
+    the ``dt`` and ``n_grid`` levels, its Gaussian-associated particles fixed for the
+    ``n_grid+fill`` levels); ``theta = (s_E, s_rho)``; ``n_frames``: the first exported frames
+    used (``None``: all of the probe's); ``refinements``: a subset of :data:`REFINEMENTS`
+    (``n_grid+fill`` is skipped, with a log line, for an object without an interior fill).
+    Returns one row per refinement: ``object, profile, s_E, s_rho, refinement, fixed`` (what the
+    refinement holds fixed), ``level_1..3`` (dt [s] or n_grid), ``dt`` (the substep of the space
+    levels; the profile's for the time study), ``n_grid`` (the grid of the time levels),
+    ``n_frames``, ``particles_1..3`` (simulated particles of each level), ``particles_per_cell_1..3``
+    (:func:`particles_per_cell` at each level's grid, 4 significant digits), ``rms_displacement_m``
     (finest level), ``change_1_2``, ``change_2_3`` (fractions of the finest level's RMS
     displacement), ``observed_order``, ``richardson_error_pct`` (numbers, or
-    :data:`NOT_ASYMPTOTIC`), ``asymptotic`` (bool), ``cost_s_1..3`` (CPU seconds of each
-    level's rollout).
+    :data:`NOT_ASYMPTOTIC`), ``asymptotic`` (bool), ``cost_s_1..3`` (CPU seconds of each level's
+    rollout; a level shared by two refinements is simulated once and its cost shown in both).
     """
     from ..rollout import run_rollout
     from ..sim import ExportSchedule
 
     unknown = [r for r in refinements if r not in REFINEMENTS]
-    if unknown or not refinements:
-        raise ValueError(f"refinements must be a non-empty subset of {REFINEMENTS}, got {list(refinements)}")
+    if unknown or not refinements or len(set(refinements)) != len(refinements):
+        raise ValueError(f"refinements must be a non-empty subset of {REFINEMENTS} without repeats, got {list(refinements)}")
     probe_name = contract.roles["calibration"]
     probe = contract.resolve_probes(particles)[probe_name]
     total = probe.export.n_frames
@@ -205,29 +270,41 @@ def convergence_study(
     if not (isinstance(n_frames, (int, np.integer)) and 2 <= n_frames <= total):
         raise InputError(f"object {contract.name}", "convergence.n_frames",
                          f"must be an integer in [2, {total}] (the probe's exported frames), got {n_frames!r}")
-    probe = dataclasses.replace(probe, export=ExportSchedule(probe.export.frame_dt, int(n_frames)))
+    export = ExportSchedule(probe.export.frame_dt, int(n_frames))
     particles = _fixed_volumes(contract, particles)
     n_gs = int(particles.n_gs)
     say = log or (lambda _msg: None)
 
-    cache: dict[tuple[float, int], tuple[np.ndarray, float]] = {}
+    cache: dict[tuple[float, int, int | None], tuple[np.ndarray, float, int, float]] = {}
 
-    def simulate(level: dict) -> tuple[np.ndarray, float]:
-        key = (float(level["dt"]), int(level["n_grid"]))
+    def simulate(level: dict) -> tuple[np.ndarray, float, int, float]:
+        key = (float(level["dt"]), int(level["n_grid"]), level["fill_resolution"])
         if key not in cache:
+            variant, ps = contract, particles
+            if key[2] is not None:
+                t0 = time.process_time()
+                variant, ps = refined_particles(contract, particles, n_grid=key[1], fill_resolution=key[2])
+                say(f"{contract.name}: fill rebuilt at {key[2]} cells per axis for n_grid {key[1]}: {ps.n_fill} fill "
+                    f"particles, {time.process_time() - t0:.2f} CPU s")
+            # the probe resolved against the level's particles (a matched total force stays matched)
+            pr = dataclasses.replace(variant.resolve_probes(ps)[probe_name], export=export)
             t0 = time.process_time()
-            ro = run_rollout(contract, theta, probe_name, particles=particles, probe=probe, device=device,
+            ro = run_rollout(variant, theta, probe_name, particles=ps, probe=pr, device=device,
                              sim_overrides={"dt": key[0], "n_grid": key[1]})
             cost = time.process_time() - t0
             x = np.asarray(ro.positions[:, :n_gs], dtype=np.float64)
-            cache[key] = (x - x[0], cost)
-            say(f"{contract.name}: dt {key[0]:.10g} s, n_grid {key[1]}: {ro.meta['stats'].get('steps', '?')} substeps, "
-                f"{cost:.2f} CPU s")
+            cache[key] = (x - x[0], cost, len(ps.positions), particles_per_cell(ps.positions, dx=variant.sim.grid_lim / key[1]))
+            fill = "" if key[2] is None else f", fill {key[2]}"
+            say(f"{contract.name}: dt {key[0]:.10g} s, n_grid {key[1]}{fill}: {len(ps.positions)} particles, "
+                f"{ro.meta['stats'].get('steps', '?')} substeps, {cost:.2f} CPU s")
         return cache[key]
 
-    levels = convergence_levels(contract, frame_dt=probe.export.frame_dt)
+    levels = convergence_levels(contract, frame_dt=export.frame_dt)
     rows = []
     for refinement in refinements:
+        if refinement not in levels:
+            say(f"{contract.name}: no interior fill, so no {refinement} study (the particles are the Gaussians)")
+            continue
         lv = levels[refinement]
         runs = [simulate(level) for level in lv]
         u1, u2, u3 = (r[0] for r in runs)
@@ -248,10 +325,13 @@ def convergence_study(
             "s_E": float(theta[0]),
             "s_rho": float(theta[1]),
             "refinement": refinement,
+            "fixed": FIXED[refinement],
             **{f"level_{k + 1}": level[key] for k, level in enumerate(lv)},
             "dt": lv[0]["dt"],
             "n_grid": lv[0]["n_grid"],
             "n_frames": int(n_frames),
+            **{f"particles_{k + 1}": r[2] for k, r in enumerate(runs)},
+            **{f"particles_per_cell_{k + 1}": float(f"{r[3]:.4g}") for k, r in enumerate(runs)},
             "rms_displacement_m": float(np.sqrt(np.mean(np.sum(u3**2, axis=-1)))),
             "change_1_2": d12,
             "change_2_3": d23,
@@ -276,14 +356,41 @@ def convergence_note(table: pd.DataFrame) -> str:
         f"the Richardson-extrapolated limit, in % of its RMS displacement; '{NOT_ASYMPTOTIC}' where the changes do not "
         "decrease as a positive order predicts; cost_s_k: CPU seconds of level k's rollout.",
     ]
-    space = table[table["refinement"] == "n_grid"]
-    if len(space):
-        row = space.iloc[0]
+    rows = {r["refinement"]: r for _, r in table.iterrows()}
+    if "dt" in rows:
+        parts.append("Row dt: the time step refined at the profile's grid, the same particles.")
+    for name in ("n_grid", "n_grid+fill"):
+        if name in rows:
+            row = rows[name]
+            grids = f"grids {int(row['level_1'])}, {int(row['level_2'])}, {int(row['level_3'])}"
+            break
+    else:
+        return " ".join(parts)
+    if "n_grid" in rows:
+        row = rows["n_grid"]
         parts.append(
-            f"Space levels: the same particles (positions and rest volumes fixed) on grids {int(row['level_1'])}, "
-            f"{int(row['level_2'])}, {int(row['level_3'])}, all at dt = {row['dt']:.6g} s, within the CFL bound of the "
-            "finest grid, so the time error does not change between them (level 1 of the space study is the profile's "
-            "grid at that dt, not the profile's dt).")
+            f"Row n_grid (particles fixed): the same {int(row['particles_1'])} particles (positions and rest volumes) on "
+            f"{grids}: the boundary study's 'grid resolution changed' condition. It is not expected to converge: the "
+            f"particles per occupied cell fall with the grid ({row['particles_per_cell_1']:.3g}, "
+            f"{row['particles_per_cell_2']:.3g}, {row['particles_per_cell_3']:.3g}), so its changes measure the particle "
+            "sampling thinning out, not the discretization error.")
+    if "n_grid+fill" in rows:
+        row = rows["n_grid+fill"]
+        parts.append(
+            f"Row n_grid+fill (grid and fill refined together): {grids} with the interior fill rebuilt for each by the "
+            "asset build at the fill resolution scaled as the grid, the same specification per cell (density threshold, "
+            "particles per cell, seed) and rest volumes at each level's grid (particles simulated: "
+            f"{int(row['particles_1'])}, {int(row['particles_2'])}, {int(row['particles_3'])}; per occupied cell: "
+            f"{row['particles_per_cell_1']:.3g}, {row['particles_per_cell_2']:.3g}, {row['particles_per_cell_3']:.3g}); "
+            "the Gaussian-associated particles, which the changes compare, are the same at every level. This row is the "
+            "spatial discretization error.")
+    elif "n_grid" in rows:
+        parts.append("No n_grid+fill row: the object has no interior fill (its particles are the Gaussians, which no "
+                     "level may change).")
+    parts.append(
+        f"The space rows run every level at dt = {row['dt']:.6g} s, within the CFL bound of the finest grid, so the "
+        "time error does not change between their levels (their level 1 is the profile's grid and particles at that dt, "
+        "not the profile's dt).")
     return " ".join(parts)
 
 
