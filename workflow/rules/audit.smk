@@ -13,6 +13,17 @@ REPORTED_TABLES = (
 LIBRARY_ROLLOUTS = [path for o in OBJECTS for path in library_rollouts(o).values()]
 
 
+def convergence_in_all(wildcards):
+    """The convergence outputs that `all` makes (convergence.smk is included after this file)."""
+    return CONVERGENCE_IN_ALL
+
+
+def nonfinite_tables(wildcards):
+    """The reported tables and the convergence tables that `all` makes (their cells "not in the
+    asymptotic range" are words by design; every number in them is checked)."""
+    return REPORTED_TABLES + [path for path in CONVERGENCE_IN_ALL if path.endswith(".csv")]
+
+
 rule audit_leakage:
     conda:
         "../envs/knockgs.yaml"
@@ -35,7 +46,7 @@ rule audit_nonfinite:
     conda:
         "../envs/knockgs.yaml"
     input:
-        tables=REPORTED_TABLES,
+        tables=nonfinite_tables,
     output:
         f"{P}/audits/nonfinite.json",
     log:
@@ -81,12 +92,14 @@ rule audit_completion:
         "../envs/knockgs.yaml"
     input:
         tables=REPORTED_TABLES,
+        convergence=convergence_in_all,
     output:
         f"{P}/audits/completion.json",
     log:
         f"logs/{PROFILE}/audits/completion.log",
     params:
-        expected=[path for path in REPORT_OUTPUTS + RENDER_OUTPUTS + DISCREPANCY_OUTPUTS if not path.startswith(f"{P}/audits/")],
+        expected=lambda wc: [path for path in REPORT_OUTPUTS + RENDER_OUTPUTS + DISCREPANCY_OUTPUTS + CONVERGENCE_IN_ALL
+                             if not path.startswith(f"{P}/audits/")],
         methods=METHODS,
         mains=[f"{P}/tables/main_{o}.csv" for o in OBJECTS],
     script:
