@@ -2,8 +2,9 @@
 
 The order solver and the Richardson extrapolation are checked against analytic sequences
 ``u_h = u* + C h^p``; the study itself runs through the workflow on the ci profile (one
-object) and is checked for structure: three levels per refinement, each simulated, and an
-observed order that follows from the table's own level values and changes.
+object) and is checked for structure: three levels per refinement (dt, n_grid with the particles
+fixed, n_grid+fill with the fill rebuilt per grid), each simulated, and an observed order that
+follows from the table's own level values and changes.
 """
 
 from __future__ import annotations
@@ -23,7 +24,13 @@ import yaml
 from knockgs_core.contract import cfl_dt, load_candidates, load_contract, load_targets
 from knockgs_core.errors import InputError
 from knockgs_core.experiments import NOT_ASYMPTOTIC, convergence_study, observed_order
-from knockgs_core.experiments._convergence import convergence_levels, relative_change, richardson_limit
+from knockgs_core.experiments._convergence import (
+    convergence_levels,
+    particles_per_cell,
+    refined_particles,
+    relative_change,
+    richardson_limit,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 CI = "results/ci"
@@ -125,6 +132,52 @@ def test_levels_refine_one_thing_at_a_time(name, profile):
     assert dt <= c.sim.dt and dt <= cfl_dt(c.materials, n_grid=2 * c.sim.n_grid, grid_lim=c.sim.grid_lim) * (1 + 1e-12)
     k = frame_dt / dt
     assert abs(k - round(k)) < 1e-6       # the substep divides the export interval
+    assert {x["fill_resolution"] for x in lv["dt"] + lv["n_grid"]} == {None}     # the profile's particles
+    if not c.fill.enabled:
+        assert "n_grid+fill" not in lv    # no fill to refine: the particles are the Gaussians
+        return
+    both = lv["n_grid+fill"]
+    assert [x["n_grid"] for x in both] == [x["n_grid"] for x in lv["n_grid"]]
+    assert {x["dt"] for x in both} == {dt}
+    r0 = c.fill.resolution
+    assert [x["fill_resolution"] for x in both] == [None, round(1.5 * r0), 2 * r0]
+
+
+def test_particles_per_cell_counts_occupied_cells_only():
+    # 3 particles in cell (0,0,0), 1 in cell (1,0,0); the empty cells do not count
+    x = np.array([[0.1, 0.1, 0.1], [0.2, 0.3, 0.4], [0.45, 0.05, 0.2], [0.7, 0.2, 0.2]])
+    assert particles_per_cell(x, dx=0.5) == 2.0
+    assert particles_per_cell(x, dx=0.25) == 1.0     # every particle alone in its cell
+    assert particles_per_cell(x, dx=1.0) == 4.0
+
+
+def test_refined_particles_keep_the_gaussians_and_rebuild_the_fill_per_cell():
+    from knockgs_core.assets import build_asset
+
+    c = load_contract("pillow", "ci")
+    ps = build_asset(c).particles
+    n, r = 2 * c.sim.n_grid, 2 * c.fill.resolution
+    variant, fine = refined_particles(c, ps, n_grid=n, fill_resolution=r)
+    assert variant.sim.n_grid == n and variant.fill.resolution == r
+    assert variant.fill.max_particles_per_cell == c.fill.max_particles_per_cell and variant.fill.seed == c.fill.seed
+    assert fine.n_gs == ps.n_gs
+    np.testing.assert_array_equal(fine.positions[:ps.n_gs], ps.positions[:ps.n_gs])
+    # the fill follows the cell: many more fill particles, about as many per occupied cell as the profile's
+    assert fine.n_fill > 4 * ps.n_fill
+    ppc0 = particles_per_cell(ps.positions, dx=c.sim.dx)
+    assert 0.75 * ppc0 < particles_per_cell(fine.positions, dx=variant.sim.dx) < 1.25 * ppc0
+    # rest volumes at the level's grid: dx^3 / (particles in the cell), so they fill the occupied cells
+    cells = np.unique(np.floor(fine.positions.astype(np.float64) / variant.sim.dx), axis=0)
+    assert float(np.sum(fine.volumes, dtype=np.float64)) == pytest.approx(len(cells) * variant.sim.dx**3, rel=1e-5)
+
+
+def test_refined_particles_refuse_another_objects_particles():
+    from knockgs_core.assets import build_asset
+
+    c = load_contract("pillow", "ci")
+    other = build_asset(load_contract("pillow", "default")).particles
+    with pytest.raises(InputError, match="Gaussian-associated particles differ"):
+        refined_particles(c, other, n_grid=48, fill_resolution=48)
 
 
 def test_a_bad_frame_count_is_one_clear_error():
@@ -168,16 +221,32 @@ def ci_study(tmp_path_factory):
 def test_ci_convergence_table_structure(ci_study):
     c = load_contract("pillow", "ci")
     t = pd.read_csv(ci_study / f"{CI}/tables/convergence_pillow.csv")
-    assert list(t["refinement"]) == ["dt", "n_grid"]
-    assert {"object", "profile", "level_1", "level_2", "level_3", "change_1_2", "change_2_3", "observed_order",
+    assert list(t["refinement"]) == ["dt", "n_grid", "n_grid+fill"]
+    assert {"object", "profile", "fixed", "level_1", "level_2", "level_3", "particles_1", "particles_2", "particles_3",
+            "particles_per_cell_1", "particles_per_cell_3", "change_1_2", "change_2_3", "observed_order",
             "richardson_error_pct", "asymptotic", "cost_s_1", "cost_s_2", "cost_s_3"} <= set(t.columns)
     assert (t["object"] == "pillow").all() and (t["profile"] == "ci").all()
     assert int(t["n_frames"].iloc[0]) == c.calibration_probe.export.n_frames
-    dt_row, grid_row = t.iloc[0], t.iloc[1]
+    dt_row, grid_row, fill_row = t.iloc[0], t.iloc[1], t.iloc[2]
     assert dt_row[["level_1", "level_2", "level_3"]].tolist() == pytest.approx([c.sim.dt, c.sim.dt / 2, c.sim.dt / 4])
-    assert grid_row[["level_1", "level_2", "level_3"]].tolist() == [c.sim.n_grid, 1.5 * c.sim.n_grid, 2 * c.sim.n_grid]
-    for col in ["change_1_2", "change_2_3", "rms_displacement_m", "cost_s_1", "cost_s_2", "cost_s_3"]:
+    grids = [c.sim.n_grid, 1.5 * c.sim.n_grid, 2 * c.sim.n_grid]
+    assert grid_row[["level_1", "level_2", "level_3"]].tolist() == grids
+    assert fill_row[["level_1", "level_2", "level_3"]].tolist() == grids and fill_row["dt"] == grid_row["dt"]
+    for col in ["change_1_2", "change_2_3", "rms_displacement_m", "cost_s_1", "cost_s_2", "cost_s_3",
+                "particles_per_cell_1", "particles_per_cell_2", "particles_per_cell_3"]:
         assert np.isfinite(t[col]).all() and (t[col] > 0).all(), col
+    # every row starts from the profile's particles; only n_grid+fill changes them, and it adds fill particles
+    n0 = int(dt_row["particles_1"])
+    assert (t["particles_1"] == n0).all()
+    assert dt_row[["particles_2", "particles_3"]].tolist() == [n0, n0] == grid_row[["particles_2", "particles_3"]].tolist()
+    assert n0 < fill_row["particles_2"] < fill_row["particles_3"]
+    # particles fixed: the particles per cell thin out with the grid; grid and fill together: they stay
+    ppc = [f"particles_per_cell_{k}" for k in (1, 2, 3)]
+    assert grid_row[ppc[2]] < 0.5 * grid_row[ppc[0]]
+    assert all(0.75 * fill_row[ppc[0]] < fill_row[q] < 1.25 * fill_row[ppc[0]] for q in ppc[1:])
+    note = (ci_study / f"{CI}/tables/convergence_pillow.md").read_text()
+    assert "Row n_grid (particles fixed)" in note and "not expected to converge" in note
+    assert "Row n_grid+fill (grid and fill refined together)" in note
     assert (ci_study / f"{CI}/tables/convergence_pillow.md").read_text().startswith("# Probe-A convergence: pillow")
     assert (ci_study / f"{CI}/figures/convergence_pillow.png").stat().st_size > 1000
     assert (ci_study / f"{CI}/benchmarks/convergence/pillow.tsv").exists()
@@ -189,18 +258,24 @@ def test_ci_observed_order_follows_from_three_simulated_levels(ci_study):
     t = pd.read_csv(ci_study / f"{CI}/tables/convergence_pillow.csv", dtype={"observed_order": str,
                                                                               "richardson_error_pct": str})
     log = (ci_study / "logs/ci/tables/convergence_pillow.log").read_text()
-    simulated = {(float(dt), int(n)) for dt, n in re.findall(r"dt ([0-9.e+-]+) s, n_grid (\d+):", log)}
+    # every rollout: its dt, grid, fill resolution (levels with a rebuilt fill) and particle count
+    simulated = {(float(dt), int(n), int(r) if r else None, int(m))
+                 for dt, n, r, m in re.findall(r"dt ([0-9.e+-]+) s, n_grid (\d+)(?:, fill (\d+))?: (\d+) particles", log)}
+    assert len(simulated) == 8           # 3 dt + 3 n_grid + 2 n_grid+fill (level 1 shared with n_grid)
     for row in t.itertuples(index=False):
         levels = [row.level_1, row.level_2, row.level_3]
         assert len(set(levels)) == 3     # three distinct resolutions
+        counts = [row.particles_1, row.particles_2, row.particles_3]
         if row.refinement == "dt":
             h = levels
-            runs = {(dt, c.sim.n_grid) for dt in levels}
+            runs = [(dt, c.sim.n_grid, None, m) for dt, m in zip(levels, counts)]
         else:
             h = [c.sim.grid_lim / n for n in levels]
-            runs = {(row.dt, int(n)) for n in levels}
-        # each level was simulated (the log names every rollout's dt and grid)
-        assert all(any(abs(dt - a) <= 1e-6 * a and n == b for a, b in simulated) for dt, n in runs), (runs, simulated)
+            fills = [None, None, None] if row.refinement == "n_grid" else [None, 1.5 * c.fill.resolution, 2 * c.fill.resolution]
+            runs = [(row.dt, int(n), r, m) for n, r, m in zip(levels, fills, counts)]
+        # each level was simulated (the log names every rollout's dt, grid, fill and particles)
+        assert all(any(abs(dt - a) <= 1e-6 * a and (n, r, m) == (b, q, k) for a, b, q, k in simulated)
+                   for dt, n, r, m in runs), (runs, simulated)
         p = observed_order(h, row.change_1_2, row.change_2_3)
         assert bool(row.asymptotic) == (p is not None)
         if p is None:
