@@ -12,16 +12,8 @@ REPORTED_TABLES = (
 )
 LIBRARY_ROLLOUTS = [path for o in OBJECTS for path in library_rollouts(o).values()]
 
-
-def convergence_in_all(wildcards):
-    """The convergence outputs that `all` makes (convergence.smk is included after this file)."""
-    return CONVERGENCE_IN_ALL
-
-
-def nonfinite_tables(wildcards):
-    """The reported tables and the convergence tables that `all` makes (their cells "not in the
-    asymptotic range" are words by design; every number in them is checked)."""
-    return REPORTED_TABLES + [path for path in CONVERGENCE_IN_ALL if path.endswith(".csv")]
+# CONVERGENCE_IN_ALL (convergence.smk, included after this file) is read when the DAG is built,
+# hence the lambdas. The convergence tables' cells "not in the asymptotic range" are words by design.
 
 
 rule audit_leakage:
@@ -46,7 +38,7 @@ rule audit_nonfinite:
     conda:
         "../envs/knockgs.yaml"
     input:
-        tables=nonfinite_tables,
+        tables=lambda wc: REPORTED_TABLES + [path for path in CONVERGENCE_IN_ALL if path.endswith(".csv")],
     output:
         f"{P}/audits/nonfinite.json",
     log:
@@ -92,7 +84,7 @@ rule audit_completion:
         "../envs/knockgs.yaml"
     input:
         tables=REPORTED_TABLES,
-        convergence=convergence_in_all,
+        convergence=lambda wc: CONVERGENCE_IN_ALL,
     output:
         f"{P}/audits/completion.json",
     log:
