@@ -407,7 +407,9 @@ def plot_convergence(table: pd.DataFrame, path, *, grid_lim: float = 2.0, title:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, len(table), figsize=(5.2 * len(table), 4.0), squeeze=False)
+    labels = {"n_grid": "n_grid, particles fixed", "n_grid+fill": "n_grid + fill"}
     for ax, row in zip(axes[0], table.itertuples(index=False)):
+        label = labels.get(row.refinement, row.refinement)
         levels = np.array([row.level_1, row.level_2, row.level_3], dtype=np.float64)
         h = levels if row.refinement == "dt" else grid_lim / levels
         changes = np.array([row.change_1_2, row.change_2_3])
@@ -419,9 +421,9 @@ def plot_convergence(table: pd.DataFrame, path, *, grid_lim: float = 2.0, title:
             c = changes[1] / (h[1] ** p - h[2] ** p)
             err = 100 * c * h**p
             ax.loglog(h, err, "s--", mfc="none", color="tab:red", label="estimated error (Richardson)")
-            ax.set_title(f"{row.refinement}: observed order p = {p:.2f} (ratios {r12:.3g}, {r23:.3g})", fontsize=9)
+            ax.set_title(f"{label}: observed order p = {p:.2f} (ratios {r12:.3g}, {r23:.3g})", fontsize=9)
         else:
-            ax.set_title(f"{row.refinement}: {NOT_ASYMPTOTIC}", fontsize=9)
+            ax.set_title(f"{label}: {NOT_ASYMPTOTIC}", fontsize=9)
         ax.set_xlabel("dt [s]" if row.refinement == "dt" else "dx [m]")
         ax.set_ylabel("% of the RMS displacement")
         ax.grid(True, which="both", alpha=0.3)
