@@ -121,6 +121,14 @@ def audit_nonfinite(rollout_dirs: Sequence, tables: Iterable) -> dict:
         if bad.any():
             cols = sorted({num.columns[j] for j in np.nonzero(bad)[1]})
             problems.append(f"{f}: NaN in {cols}")
+        # text columns may mix numbers and words (e.g. "not in the asymptotic range"): an
+        # empty cell or a "-inf" there is still a missing or broken number
+        text = df.select_dtypes(exclude=[np.number, "bool"])
+        as_number = text.apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float)
+        bad = text.isna().to_numpy() | np.isneginf(as_number)
+        if bad.any():
+            cols = sorted({text.columns[j] for j in np.nonzero(bad)[1]})
+            problems.append(f"{f}: NaN or empty cells in {cols}")
     return {"passed": not problems, "rollouts_checked": len(files), "tables_checked": n_tables, "problems": problems}
 
 
