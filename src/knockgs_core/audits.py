@@ -125,7 +125,7 @@ def audit_nonfinite(rollout_dirs: Sequence, tables: Iterable) -> dict:
         # empty cell or a "-inf" there is still a missing or broken number
         text = df.select_dtypes(exclude=[np.number, "bool"])
         as_number = text.apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float)
-        bad = text.isna().to_numpy() | np.isneginf(as_number)
+        bad = text.isna().to_numpy(dtype=bool) | np.isneginf(as_number)
         if bad.any():
             cols = sorted({text.columns[j] for j in np.nonzero(bad)[1]})
             problems.append(f"{f}: NaN or empty cells in {cols}")
