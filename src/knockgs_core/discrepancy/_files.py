@@ -65,11 +65,18 @@ def run_files(
         inputs.append(str(path))
     library = None
     if library_rollouts:
-        from ..rollout import read_rollout_meta
+        from ..errors import InputError
+        from ..rollout import read_rollout_meta, theta_tag
 
         thetas = [read_rollout_meta(p)["theta"] for p in library_rollouts]
+        # members are named by their theta, not their path: the estimators' tie-breaks and
+        # fit order then do not depend on where the workflow keeps the files
+        names = tuple(theta_tag(t) for t in thetas)
+        if len(set(names)) != len(names):
+            dup = sorted({n for n in names if names.count(n) > 1})
+            raise InputError("library_rollouts", "theta", f"two library rollouts share theta {dup[0]}")
         paths = tuple(str(p) for p in library_rollouts)
-        library = LibrarySource(theta=np.array(thetas, dtype=float), names=paths, rollouts=paths)
+        library = LibrarySource(theta=np.array(thetas, dtype=float), names=names, rollouts=paths)
         inputs += [str(p) for p in library_rollouts]
     result = run_discrepancy(m, contract, ps, probe=probe, heldout_probes=heldout_probes, heldout_measured=held,
                              library=library, settings=settings, device=device, progress=progress)
