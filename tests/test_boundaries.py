@@ -7,15 +7,14 @@ the main local-ridge result exactly."""
 from __future__ import annotations
 
 import dataclasses
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 import yaml
+
+from _workflow import scratch_copy, snakemake
 
 from knockgs_core.assets import build_asset
 from knockgs_core.calibration import calibrate
@@ -242,20 +241,9 @@ def test_loo_table(rng):
 # ------------------------------------------------------------------------------ workflow (ci profile)
 
 
-def _scratch_copy(dest: Path) -> Path:
-    shutil.copy(ROOT / "Snakefile", dest)
-    shutil.copytree(ROOT / "workflow", dest / "workflow")
-    shutil.copytree(ROOT / "config", dest / "config")
-    return dest
-
-
-def _snakemake(work: Path, *args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "snakemake", *args], cwd=work, capture_output=True, text=True)
-
-
 def test_boundaries_target_plans_every_object_and_the_loo_table(tmp_path):
-    work = _scratch_copy(tmp_path)
-    out = _snakemake(work, "-n", "boundaries", "--configfile=config/ci.yaml")
+    work = scratch_copy(tmp_path)
+    out = snakemake(work, "-n", "boundaries", "--configfile=config/ci.yaml")
     assert out.returncode == 0, out.stderr[-3000:]
     planned = out.stdout
     for o in ("pillow", "ficus", "vasedeck"):
@@ -271,10 +259,10 @@ def test_boundaries_target_plans_every_object_and_the_loo_table(tmp_path):
 def ci_boundaries(tmp_path_factory):
     """The ci-profile Pillow boundaries table at the unchanged specification, rebuilt, beside the
     main local-ridge evaluation."""
-    work = _scratch_copy(tmp_path_factory.mktemp("bwf"))
+    work = scratch_copy(tmp_path_factory.mktemp("bwf"))
     targets = [f"{CI}/tables/boundaries_pillow.csv", f"{CI}/figures/boundaries_pillow.png",
                f"{CI}/metrics/pillow/main/local_ridge.csv"]
-    out = _snakemake(work, *targets, "--cores", "2", "--configfile=config/ci.yaml", "--config", "objects=[pillow]",
+    out = snakemake(work, *targets, "--cores", "2", "--configfile=config/ci.yaml", "--config", "objects=[pillow]",
                      "boundaries={conditions: [reference], rebuild: [reference]}")
     assert out.returncode == 0, out.stderr[-4000:]
     return work
@@ -304,6 +292,6 @@ def test_a_rebuilt_library_at_the_unchanged_contract_reproduces_the_main_result(
 
 @pytest.mark.slow
 def test_boundaries_rerun_is_a_no_op(ci_boundaries):
-    out = _snakemake(ci_boundaries, f"{CI}/tables/boundaries_pillow.csv", "-n", "--configfile=config/ci.yaml",
+    out = snakemake(ci_boundaries, f"{CI}/tables/boundaries_pillow.csv", "-n", "--configfile=config/ci.yaml",
                      "--config", "objects=[pillow]", "boundaries={conditions: [reference], rebuild: [reference]}")
     assert out.returncode == 0 and "Nothing to be done" in out.stdout + out.stderr, out.stdout[-2000:]

@@ -11,9 +11,6 @@ from __future__ import annotations
 
 import math
 import re
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +20,8 @@ import yaml
 
 from knockgs_core.contract import cfl_dt, load_candidates, load_contract, load_targets
 from knockgs_core.errors import InputError
+from _workflow import scratch_copy, snakemake
+
 from knockgs_core.experiments import NOT_ASYMPTOTIC, convergence_study, observed_order
 from knockgs_core.experiments._convergence import (
     convergence_levels,
@@ -206,13 +205,9 @@ def test_the_configured_theta_is_a_candidate_and_no_target():
 @pytest.fixture(scope="module")
 def ci_study(tmp_path_factory):
     """The Pillow convergence table of the ci profile, made by the workflow in a scratch copy."""
-    work = tmp_path_factory.mktemp("conv")
-    shutil.copy(ROOT / "Snakefile", work)
-    shutil.copytree(ROOT / "workflow", work / "workflow")
-    shutil.copytree(ROOT / "config", work / "config")
-    cmd = [sys.executable, "-m", "snakemake", f"{CI}/tables/convergence_pillow.csv", "--cores", "2",
-           "--configfile=config/ci.yaml", "--config", "objects=[pillow]"]
-    out = subprocess.run(cmd, cwd=work, capture_output=True, text=True)
+    work = scratch_copy(tmp_path_factory.mktemp("conv"))
+    out = snakemake(work, f"{CI}/tables/convergence_pillow.csv", "--cores", "2", "--configfile=config/ci.yaml",
+                    "--config", "objects=[pillow]")
     assert out.returncode == 0, out.stderr[-4000:]
     return work
 

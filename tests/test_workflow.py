@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import json
 import re
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pandas as pd
 import pytest
 import yaml
+
+from _workflow import scratch_copy, snakemake
 
 from knockgs_core.audits import audit_completion, audit_duplicates, audit_leakage
 from knockgs_core.calibration import METHOD_NAMES, METHOD_OPTIONS
@@ -24,15 +23,13 @@ CI = "results/ci"  # every output of a ci-profile run lies under it
 
 def _snakemake(workdir: Path, *targets: str, extra=()):
     # targets first: --config takes a list of values and would swallow them
-    cmd = [sys.executable, "-m", "snakemake", *targets, "--cores", "2", "--configfile=config/ci.yaml", *extra,
-           "--config", "objects=[pillow]"]
-    return subprocess.run(cmd, cwd=workdir, capture_output=True, text=True)
+    return snakemake(workdir, *targets, "--cores", "2", "--configfile=config/ci.yaml", *extra, "--config", "objects=[pillow]")
 
 
 @pytest.fixture(scope="module")
 def ci_run(tmp_path_factory):
     """One ci-profile run of the Pillow main table, render table and audits in a scratch copy."""
-    work = _scratch_copy(tmp_path_factory.mktemp("wf"))
+    work = scratch_copy(tmp_path_factory.mktemp("wf"))
     targets = [f"{CI}/tables/main_pillow.csv", f"{CI}/tables/render_pillow.csv", f"{CI}/figures/qualitative_pillow.png",
                f"{CI}/figures/compare_pillow.gif", f"{CI}/figures/main_pillow.png", f"{CI}/audits/leakage.json",
                f"{CI}/audits/duplicates.json", f"{CI}/audits/nonfinite.json", f"{CI}/audits/missing_frames.json"]
@@ -149,17 +146,6 @@ def test_duplicates_and_completion_audits(tmp_path):
     assert not audit_completion([tmp_path / "nope.csv"])["passed"]
 
 
-def _scratch_copy(dest: Path) -> Path:
-    shutil.copy(ROOT / "Snakefile", dest)
-    shutil.copytree(ROOT / "workflow", dest / "workflow")
-    shutil.copytree(ROOT / "config", dest / "config")
-    return dest
-
-
-def _run(work: Path, *args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "snakemake", *args], cwd=work, capture_output=True, text=True)
-
-
 def _planned_paths(dry_run_stdout: str) -> list[str]:
     """Every output, log and benchmark file of the jobs a dry run plans."""
     paths = []
@@ -171,11 +157,11 @@ def _planned_paths(dry_run_stdout: str) -> list[str]:
 
 
 def test_workflow_lints_and_dry_runs_for_all_profiles(tmp_path):
-    work = _scratch_copy(tmp_path)
-    lint = _run(work, "--lint", "--configfile=config/ci.yaml")
+    work = scratch_copy(tmp_path)
+    lint = snakemake(work, "--lint", "--configfile=config/ci.yaml")
     assert lint.returncode == 0 and "good condition" in lint.stdout + lint.stderr, lint.stdout[-3000:]
     for cfg, profile in [("config/config.yaml", "default"), ("config/ci.yaml", "ci"), ("config/paper.yaml", "paper")]:
-        out = _run(work, "-n", "all", f"--configfile={cfg}")
+        out = snakemake(work, "-n", "all", f"--configfile={cfg}")
         assert out.returncode == 0, out.stderr[-3000:]
         # each profile writes only under its own results/ and logs/ folders: the ci command
         # never overwrites the default run's tables, figures or audits
@@ -187,10 +173,10 @@ def test_workflow_lints_and_dry_runs_for_all_profiles(tmp_path):
 
 def test_every_rule_is_a_statement(tmp_path):
     # no rule is generated in a loop: --list-rules names exactly the rule/checkpoint statements
-    work = _scratch_copy(tmp_path)
+    work = scratch_copy(tmp_path)
     files = [work / "Snakefile", *sorted((work / "workflow/rules").glob("*.smk"))]
     statements = [m for f in files for m in re.findall(r"^(?:rule|checkpoint) (\w+):", f.read_text(), flags=re.M)]
-    out = _run(work, "--list-rules")
+    out = snakemake(work, "--list-rules")
     assert out.returncode == 0, out.stderr[-3000:]
     listed = [line.split()[0] for line in out.stdout.splitlines() if line and not line[0].isspace()]
     assert sorted(listed) == sorted(statements) and len(set(statements)) == len(statements)
@@ -232,12 +218,12 @@ def test_bad_config_is_a_clear_error(tmp_path):
     (tmp_path / "w").mkdir()
     bad = tmp_path / "bad.yaml"
     bad.write_text((ROOT / "config/ci.yaml").read_text() + "\nunknown_key: 1\n")
-    out = _run(_scratch_copy(tmp_path / "w"), "-n", f"--configfile={bad}", "all")
+    out = snakemake(scratch_copy(tmp_path / "w"), "-n", f"--configfile={bad}", "all")
     assert out.returncode != 0 and "unknown_key" in out.stdout + out.stderr
 
 
 def _planned(work: Path, *args) -> dict:
-    out = _run(work, "-n", *args)
+    out = snakemake(work, "-n", *args)
     assert out.returncode == 0, out.stderr[-3000:]
     counts = {}
     for line in out.stdout.splitlines():
@@ -249,12 +235,12 @@ def _planned(work: Path, *args) -> dict:
 
 def test_discrepancy_cases_run_at_their_configured_resolution(tmp_path):
     # default profile, cases at the ci resolution: their own asset and library, not the profile's
-    work = _scratch_copy(tmp_path)
+    work = scratch_copy(tmp_path)
     table = "results/default/tables/discrepancy.csv"
     own = _planned(work, "--", table)
     assert own.get("discrepancy_asset") == 1 and own.get("discrepancy_library") == 9 and "rollout_library" not in own
     assert own.get("discrepancy_run") == own.get("discrepancy_case") > 0
     shared = _planned(work, "--config", "discrepancy={resolution: default}", "--", table)
     assert "discrepancy_library" not in shared and shared.get("rollout_library") == 9 and shared.get("asset") == 1
-    bad = _run(work, "-n", "--config", "discrepancy={resolution: huge}", "--", table)
+    bad = snakemake(work, "-n", "--config", "discrepancy={resolution: huge}", "--", table)
     assert bad.returncode != 0 and "huge" in bad.stdout + bad.stderr
