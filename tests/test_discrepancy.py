@@ -304,3 +304,23 @@ def test_library_base_calibration_on_a_null_measurement(pillow, rng):
     assert err(res.theta_base) < 15.0 and err(res.theta_refit) < 1.0
     assert res.verdict == "no missing effect found" and res.identified_label == "none"
     assert res.noise["std"] == pytest.approx(5e-5, rel=0.05)
+
+
+def test_library_members_are_named_by_theta_and_one_theta_is_refused(tmp_path):
+    """The base-calibration library names its members by theta tag (not by path); two files
+    with the same theta are refused, naming the file and the field."""
+    from knockgs_core.discrepancy._files import library_source
+    from knockgs_core.rollout import Rollout, write_rollout
+
+    X = np.zeros((2, 3, 3), dtype=np.float32)
+    paths = []
+    for i, theta in enumerate([(1.15, 0.75), (0.5, 1.75), (1.15, 0.75)]):
+        path = tmp_path / f"deep{i}" / "any_name.parquet"
+        write_rollout(path, Rollout(positions=X, F=None, meta={"theta": list(theta)}))
+        paths.append(path)
+    lib = library_source(paths[:2])
+    assert lib.names == ("sE1.150000_sR0.750000", "sE0.500000_sR1.750000")
+    assert lib.rollouts == tuple(str(p) for p in paths[:2])
+    np.testing.assert_array_equal(lib.theta, [[1.15, 0.75], [0.5, 1.75]])
+    with pytest.raises(InputError, match="metadata.knockgs.theta.*also the theta of"):
+        library_source(paths)

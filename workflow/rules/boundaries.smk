@@ -185,7 +185,7 @@ rule boundary_evaluate:
         rollouts=boundary_writeback_rollouts,
         labels=lambda wc: {"object": wc.object, "condition": wc.condition, "library": wc.library},
     script:
-        "../scripts/boundaries_evaluate.py"
+        "../scripts/evaluate.py"
 
 
 rule boundary_table:
@@ -274,7 +274,7 @@ rule loo_evaluate:
         rollouts=loo_writeback_rollouts,
         labels=lambda wc: {"object": wc.object, "condition": "leave_one_object_out", "library": "shared"},
     script:
-        "../scripts/boundaries_evaluate.py"
+        "../scripts/evaluate.py"
 
 
 rule loo_table:

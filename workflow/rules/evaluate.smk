@@ -15,5 +15,6 @@ rule evaluate:
         probes=lambda wc: eval_probes(wc.object),
         split=lambda wc: wc.split,
         rollouts=evaluation_rollouts,
+        labels=lambda wc: {"object": wc.object, "method": wc.method},
     script:
         "../scripts/evaluate.py"

@@ -1,4 +1,5 @@
-"""Write-back evaluation of one method's frozen estimates under Probe A and each Probe B."""
+"""Write-back evaluation of one set of frozen estimates under Probe A and each Probe B (the main
+benchmark and the boundaries study); ``params.labels`` become the first columns."""
 import json
 import sys
 
@@ -13,6 +14,6 @@ with open(snakemake.input.estimate) as fh:
     est = json.load(fh)
 targets = load_targets(p.split, snakemake.input.targets)
 df = evaluate_method(est, targets, lambda probe, th: p.rollouts[f"{probe}/{theta_tag(th)}"], p.probes)
-df.insert(0, "method", snakemake.wildcards.method)
-df.insert(0, "object", snakemake.wildcards.object)
+for i, (key, value) in enumerate(p.labels.items()):
+    df.insert(i, key, value)
 write_text(snakemake.output.table, df.to_csv(index=False, float_format="%.10g", lineterminator="\n"))

@@ -25,6 +25,26 @@ def _inside(path, folder) -> bool:
         return False
 
 
+def library_source(rollouts: Sequence) -> LibrarySource:
+    """The candidate library of the base calibration from its Probe-A rollout files.
+
+    Members are named by their theta tag (``sE..._sR...``), not by their path, so the
+    estimators' tie-breaks and fit order do not depend on where the files are kept; two
+    files with one theta are an :class:`~knockgs_core.errors.InputError`.
+    """
+    from ..rollout import read_rollout_meta, theta_tag
+
+    thetas = [read_rollout_meta(p)["theta"] for p in rollouts]
+    names = tuple(theta_tag(t) for t in thetas)
+    seen: dict[str, str] = {}
+    for name, path in zip(names, rollouts):
+        if name in seen:
+            raise InputError(path, "metadata.knockgs.theta", f"theta {name} is also the theta of {seen[name]}")
+        seen[name] = str(path)
+    paths = tuple(str(p) for p in rollouts)
+    return LibrarySource(theta=np.array(thetas, dtype=float), names=names, rollouts=paths)
+
+
 def run_files(
     object_name: str,
     profile: str,
@@ -63,21 +83,8 @@ def run_files(
     for name, path in (heldout_measured or {}).items():
         held[name] = read_measured(path)
         inputs.append(str(path))
-    library = None
-    if library_rollouts:
-        from ..errors import InputError
-        from ..rollout import read_rollout_meta, theta_tag
-
-        thetas = [read_rollout_meta(p)["theta"] for p in library_rollouts]
-        # members are named by their theta, not their path: the estimators' tie-breaks and
-        # fit order then do not depend on where the workflow keeps the files
-        names = tuple(theta_tag(t) for t in thetas)
-        if len(set(names)) != len(names):
-            dup = sorted({n for n in names if names.count(n) > 1})
-            raise InputError("library_rollouts", "theta", f"two library rollouts share theta {dup[0]}")
-        paths = tuple(str(p) for p in library_rollouts)
-        library = LibrarySource(theta=np.array(thetas, dtype=float), names=names, rollouts=paths)
-        inputs += [str(p) for p in library_rollouts]
+    library = library_source(library_rollouts) if library_rollouts else None
+    inputs += [str(p) for p in library_rollouts]
     result = run_discrepancy(m, contract, ps, probe=probe, heldout_probes=heldout_probes, heldout_measured=held,
                              library=library, settings=settings, device=device, progress=progress)
     result.inputs = inputs
