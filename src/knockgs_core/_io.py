@@ -6,6 +6,12 @@ replaces the target only once it is complete. On any failure (an exception, a fu
 an interrupt) the temporary file is removed and the previous file, if any, is left as it
 was. A target that exists but is not a regular file (a directory, a device node, a FIFO) is
 refused before anything is written.
+
+Commands check all their output paths at once, before any work, with
+:func:`check_outputs`: an output is never one of the command's inputs or another of its
+outputs, never an existing non-regular file (nor an existing file where a folder is
+expected), and its folder is writable. :func:`check_output` is the per-path part of that
+check, the one :func:`atomic_write` applies to every file it writes.
 """
 
 from __future__ import annotations
@@ -15,7 +21,7 @@ import dataclasses
 import json
 import math
 import os
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -25,6 +31,8 @@ from .errors import InputError
 
 __all__ = [
     "atomic_write",
+    "check_output",
+    "check_outputs",
     "json_safe",
     "write_bytes",
     "write_json",
@@ -65,10 +73,97 @@ def json_safe(obj: Any) -> Any:
     return obj
 
 
-def _check_target(path: Path) -> None:
-    if path.exists() and not path.is_file():
-        kind = "a directory" if path.is_dir() else "not a regular file"
-        raise InputError(path, "output", f"the output path is {kind}; refusing to replace it")
+def _nearest_existing(path: Path) -> Path:
+    p = path
+    while not os.path.lexists(p) and p != p.parent:
+        p = p.parent
+    return p
+
+
+def check_output(path, field: str = "output", *, directory: bool = False) -> None:
+    """Refuse an output path that cannot be written without destroying something else.
+
+    ``path`` may not exist yet. If it exists it must be a regular file (``directory=True``:
+    a folder); an existing directory, device node, FIFO or socket is never replaced. The
+    nearest existing ancestor must be a writable folder (missing folders are created by the
+    writer). Raises :class:`~knockgs_core.errors.InputError` naming the path and ``field``.
+    """
+    path = Path(path)
+    if os.path.lexists(path) and not os.path.exists(path):
+        raise InputError(path, field, "is a broken symbolic link; refusing to write through it")
+    if path.exists():
+        if directory:
+            if not path.is_dir():
+                raise InputError(path, field, "exists and is not a folder (a folder is written here)")
+        elif path.is_dir():
+            raise InputError(path, field, "the output path is a directory; refusing to replace it")
+        elif not path.is_file():
+            raise InputError(path, field, "the output path is not a regular file (a device, FIFO or socket); "
+                                          "refusing to replace it")
+    parent = _nearest_existing(path.parent if not (directory and path.is_dir()) else path)
+    if not parent.is_dir():
+        raise InputError(path, field, f"'{parent}' is not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(path, field, f"folder '{parent}' is not writable")
+
+
+def _same(a: Path, b: Path) -> bool:
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_outputs(
+    outputs: Mapping[str, Any],
+    inputs: Mapping[str, Any] = {},  # noqa: B006 (read only)
+    *,
+    directories: Mapping[str, Sequence[str]] = {},  # noqa: B006 (read only)
+) -> None:
+    """Check a command's output paths before it does any work.
+
+    Parameters
+    ----------
+    outputs:
+        field (e.g. ``"--output"``) -> output path (None entries are skipped). Fields named
+        in ``directories`` are folders; the others files.
+    inputs:
+        field -> input path, or a list of paths (None entries skipped): no output may be
+        one of them (same path, a symbolic or hard link to it).
+    directories:
+        folder field -> the file-name patterns the command writes inside it (glob syntax);
+        an input inside the folder matching one of them is refused too.
+
+    Every output passes :func:`check_output`, no two outputs are the same file and no
+    output is an input. Raises :class:`~knockgs_core.errors.InputError` naming the path
+    and the field.
+    """
+    import fnmatch
+
+    def flat(mapping):
+        for field, value in mapping.items():
+            if value is None:
+                continue
+            for v in (value if isinstance(value, (list, tuple)) else [value]):
+                if v is not None:
+                    yield field, Path(v)
+
+    outs = list(flat(outputs))
+    ins = list(flat(inputs))
+    for i, (field, path) in enumerate(outs):
+        is_dir = field in directories
+        for other_field, other in outs[:i]:
+            if _same(path, other):
+                raise InputError(path, field, f"is also the {other_field} output of the command")
+        for in_field, src in ins:
+            if _same(path, src):
+                raise InputError(path, field, f"would overwrite the {in_field} input of the command")
+            if is_dir and _same(src.parent, path) and any(fnmatch.fnmatch(src.name, pat) for pat in directories[field]):
+                raise InputError(path, field, f"writing {src.name} in this folder would overwrite the "
+                                              f"{in_field} input of the command")
+        check_output(path, field, directory=is_dir)
 
 
 @contextlib.contextmanager
@@ -91,7 +186,7 @@ def atomic_write(path, *, mode: str = "wb", suffix: str | None = None) -> Iterat
     if mode not in ("wb", "w"):
         raise ValueError(f"mode must be 'wb' or 'w', got {mode!r}")
     path = Path(path)
-    _check_target(path)
+    check_output(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}{path.suffix if suffix is None else suffix}")
     try:

@@ -10,6 +10,7 @@ This module imports neither Warp nor the simulator, so descriptors and audits ca
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Iterable, Sequence
 from typing import Union
@@ -18,7 +19,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["POSITION_COLUMNS", "read_long_values", "read_positions", "read_metadata"]
+__all__ = ["POSITION_COLUMNS", "read_long_values", "read_positions", "read_metadata", "check_rollout_meta", "theta_tag"]
 
 PathLike = Union[str, os.PathLike]
 
@@ -31,6 +32,8 @@ def read_metadata(path: PathLike, key: bytes) -> dict | None:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
+    if os.path.isdir(path):
+        raise InputError(os.fspath(path), "file", "is a folder, not a Parquet file")
     try:
         md = pq.read_schema(os.fspath(path)).metadata or {}
     except (OSError, pa.ArrowInvalid) as exc:
@@ -41,6 +44,67 @@ def read_metadata(path: PathLike, key: bytes) -> dict | None:
         return json.loads(md[key])
     except ValueError as exc:
         raise InputError(os.fspath(path), f"metadata.{key.decode()}", f"not valid JSON ({exc})") from None
+
+
+def theta_tag(theta: tuple[float, float]) -> str:
+    """A file-name tag for a parameter pair, exact to 1e-6: ``sE0.950000_sR1.350000``."""
+    return f"sE{theta[0]:.6f}_sR{theta[1]:.6f}"
+
+
+def _meta_field(path, meta: dict, key: str):
+    """One compared field of rollout metadata, checked for its type."""
+    try:
+        if key == "probe":
+            value = meta["probe"]["name"]
+            ok = isinstance(value, str)
+        elif key == "n_frames":
+            value = meta["probe"]["export"]["n_frames"]
+            ok = isinstance(value, int)
+        elif key == "n_particles":
+            value = meta["n_gs"] + meta["n_fill"]
+            ok = isinstance(meta["n_gs"], int) and isinstance(meta["n_fill"], int)
+        elif key == "theta":
+            value = tuple(float(t) for t in meta["theta"])
+            ok = len(value) == 2 and all(math.isfinite(t) and t > 0 for t in value)
+        else:
+            value = meta[key]
+            ok = isinstance(value, int) if key == "n_gs" else isinstance(value, str)
+    except (KeyError, TypeError, ValueError):
+        raise InputError(path, f"metadata.knockgs.{key}", "missing or malformed") from None
+    if not ok:
+        raise InputError(path, f"metadata.knockgs.{key}", f"malformed value {value!r}")
+    return value
+
+
+def _has_field(meta: dict, key: str) -> bool:
+    try:
+        _meta_field("", meta, key)
+    except InputError:
+        return False
+    return True
+
+
+def check_rollout_meta(path, meta: dict, *, partial: bool = False, **expected) -> None:
+    """Check a rollout's metadata against its use; raise :class:`InputError` on a mismatch.
+
+    ``expected`` may give ``object``, ``profile``, ``contract_hash``, ``theta`` (compared
+    to 1e-6, the precision of :func:`theta_tag`), ``probe`` (the probe's name), ``n_gs``,
+    ``n_particles`` (GS + fill) and ``n_frames`` (exported frames); None values are skipped.
+    The error names the file and the metadata field, with both values. A field missing
+    from the metadata is an error, or, with ``partial=True`` (a hand-made file that does
+    not carry the simulator's metadata), not compared.
+    """
+    for key, want in expected.items():
+        if want is None or (partial and not _has_field(meta, key)):
+            continue
+        got = _meta_field(path, meta, key)
+        if key == "theta":
+            same = theta_tag(got) == theta_tag(tuple(float(t) for t in want))
+            got, want = theta_tag(got), theta_tag(want)
+        else:
+            same = got == want
+        if not same:
+            raise InputError(path, f"metadata.knockgs.{key}", f"is '{got}', expected '{want}' where the file is used")
 
 
 def read_long_values(
@@ -69,6 +133,8 @@ def read_long_values(
     import pyarrow.parquet as pq
 
     source = os.fspath(path)
+    if os.path.isdir(source):
+        raise InputError(source, "file", "is a folder, not a Parquet file")
     try:
         schema = pq.read_schema(source)
     except Exception as exc:
@@ -77,7 +143,10 @@ def read_long_values(
     for col in wanted_cols:
         if col not in schema.names:
             raise InputError(source, col, "missing column")
-    table = pq.read_table(source, columns=list(wanted_cols))
+    try:
+        table = pq.read_table(source, columns=list(wanted_cols))
+    except Exception as exc:  # a truncated or corrupted file: ArrowInvalid, OSError
+        raise InputError(source, "file", f"cannot read Parquet file: {exc}") from None
     cols = {}
     for col in wanted_cols:
         arr = table.column(col)

@@ -5,7 +5,11 @@
   target is a library candidate; library rollouts are Probe-A rollouts of candidates.
 - non-finite: every rollout and table is finite (rollouts read with the one long-format
   reader, :mod:`knockgs_core._long_format`, which also reports a malformed file).
-- missing frames: every rollout holds every exported frame of every particle.
+- missing frames: every rollout holds every exported frame of every particle (a truncated
+  or unreadable file is a failed verdict naming it, not a crash).
+- rollout metadata: every cached rollout (and its deformation-gradient file) is the rollout
+  its place in the path grammar says it is: object, profile, contract hash, theta, probe,
+  particle and frame counts (a rollout copied over another's path is caught).
 - duplicates: no duplicate case names or parameter pairs among candidates and targets.
 - completion: every expected output exists and every main table has every method.
 """
@@ -13,6 +17,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
@@ -20,11 +25,12 @@ import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 
-from ._long_format import POSITION_COLUMNS, read_long_values, read_metadata
+from ._long_format import POSITION_COLUMNS, check_rollout_meta, read_long_values, read_metadata
 from .descriptors import FEATURE_NAMES
 from .errors import InputError
 
-__all__ = ["audit_leakage", "audit_nonfinite", "audit_missing_frames", "audit_duplicates", "audit_completion"]
+__all__ = ["audit_leakage", "audit_nonfinite", "audit_missing_frames", "audit_rollout_metadata", "audit_duplicates",
+           "audit_completion"]
 
 LABEL_COLUMNS = ("E_scale", "density_scale", "E_true", "rho_true")
 #: schema-metadata key of a rollout file (see :mod:`knockgs_core.rollout`)
@@ -113,7 +119,11 @@ def audit_nonfinite(rollout_dirs: Sequence, tables: Iterable) -> dict:
     n_tables = 0
     for f in tables:
         n_tables += 1
-        df = pd.read_csv(f)
+        try:
+            df = pd.read_csv(f)
+        except Exception as exc:  # an empty, truncated or binary file is a finding, not a crash
+            problems.append(f"{f}: not a readable CSV table ({type(exc).__name__}: {' '.join(str(exc).split())})")
+            continue
         num = df.select_dtypes(include=[np.number])
         vals = num.to_numpy(dtype=float)
         # +inf PSNR (identical frames) is a legitimate value; NaN and -inf are not
@@ -137,15 +147,95 @@ def audit_missing_frames(rollout_dirs: Sequence) -> dict:
     problems = []
     files = _rollout_files(rollout_dirs)
     for f in files:
-        md = _rollout_meta(f)
-        t = pq.read_table(f, columns=["frame", "particle"])
+        try:
+            md = _rollout_meta(f)
+            n_frames = md["probe"]["export"]["n_frames"]
+            n = md["n_gs"] + md["n_fill"]
+        except InputError as exc:
+            problems.append(f"{f}: {exc.field}: {exc.message}")
+            continue
+        except (KeyError, TypeError):
+            problems.append(f"{f}: metadata.knockgs: no probe.export.n_frames, n_gs or n_fill")
+            continue
+        try:
+            t = pq.read_table(f, columns=["frame", "particle"])
+        except Exception as exc:  # truncated or corrupted: ArrowInvalid, OSError
+            problems.append(f"{f}: unreadable ({type(exc).__name__}: {' '.join(str(exc).split())})")
+            continue
         frames = t.column("frame").to_numpy()
-        n_frames = md["probe"]["export"]["n_frames"]
-        n = md["n_gs"] + md["n_fill"]
-        counts = np.bincount(frames, minlength=n_frames)
+        counts = np.bincount(frames, minlength=n_frames) if frames.size and frames.min() >= 0 else np.zeros(0, int)
         if len(counts) != n_frames or np.any(counts != n):
             problems.append(f"{f}: expected {n_frames} frames x {n} particles, found frame counts {counts.tolist()[:8]}...")
     return {"passed": not problems, "rollouts_checked": len(files), "problems": problems}
+
+
+def _theta_of_tag(tag: str) -> tuple[float, float] | None:
+    m = re.fullmatch(r"sE([0-9.]+)_sR([0-9.]+)", tag)
+    return (float(m.group(1)), float(m.group(2))) if m else None
+
+
+def _expected_from_path(f: Path, root: Path, obj: Mapping) -> dict:
+    """What the path grammar says a cached rollout is (see the Snakefile):
+    ``lib/chunk*/{theta}.parquet`` (Probe A) or ``eval/{theta}/{probe}.parquet``."""
+    rel = f.relative_to(root).parts
+    want = {"object": obj["object"], "profile": obj.get("profile"), "contract_hash": obj.get("contract_hash"),
+            "n_particles": obj.get("n_particles")}
+    probe = None
+    if len(rel) == 3 and rel[0] == "lib":
+        want["theta"], probe = _theta_of_tag(rel[2].removesuffix(".parquet")), obj.get("calibration_probe")
+    elif len(rel) == 3 and rel[0] == "eval":
+        want["theta"], probe = _theta_of_tag(rel[1]), rel[2].removesuffix(".parquet")
+    want["probe"] = probe
+    want["n_frames"] = obj.get("n_frames", {}).get(probe)
+    return want
+
+
+def audit_rollout_metadata(objects: Mapping[str, Mapping]) -> dict:
+    """Every cached rollout is the one its path names; every F file belongs to its rollout.
+
+    ``objects``: object -> {``rollout_dir`` (``P/rollouts/{object}``), ``object``,
+    ``profile``, ``contract_hash``, ``calibration_probe``, ``n_particles``, ``n_frames``
+    (probe -> exported frames)}. The rollout's metadata must match what its place in the
+    path grammar says (object, profile, contract hash, theta, probe, particle and frame
+    counts); its ``.F.parquet`` sibling, when present, must carry the same object, profile,
+    contract hash, theta, probe and n_gs, and n_frames x n_gs rows. Only metadata and
+    Parquet footers are read. A mismatch or an unreadable file is a problem naming the file.
+    """
+    problems: list[str] = []
+    n_files = 0
+    for name, obj in objects.items():
+        root = Path(obj["rollout_dir"])
+        obj = {"object": name, **obj}
+        for f in _rollout_files([root]):
+            n_files += 1
+            try:
+                md = _rollout_meta(f)
+                want = _expected_from_path(f, root, obj)
+                if want.get("theta", 0) is None:
+                    raise InputError(f, "path", "no theta tag sE..._sR... where the path grammar has one")
+                check_rollout_meta(f, md, **want)
+                n_rows = pq.ParquetFile(f).metadata.num_rows
+                n_frames, n = md["probe"]["export"]["n_frames"], md["n_gs"] + md["n_fill"]
+                if n_rows != n_frames * n:
+                    raise InputError(f, "rows", f"{n_rows} rows, the metadata says {n_frames} frames x {n} particles")
+                F = f.with_name(f.name.removesuffix(".parquet") + ".F.parquet")
+                if F.exists():
+                    n_files += 1
+                    check_rollout_meta(F, _rollout_meta(F), **{k: _field(md, k) for k in
+                                                              ("object", "profile", "contract_hash", "theta", "probe", "n_gs")})
+                    n_rows = pq.ParquetFile(F).metadata.num_rows
+                    if n_rows != n_frames * md["n_gs"]:
+                        raise InputError(F, "rows", f"{n_rows} rows, its rollout has {n_frames} frames x "
+                                                    f"{md['n_gs']} GS particles")
+            except InputError as exc:
+                problems.append(f"{exc.source}: {exc.field}: {exc.message}")
+            except Exception as exc:  # a truncated footer, malformed metadata: a finding, not a crash
+                problems.append(f"{f}: unreadable ({type(exc).__name__}: {' '.join(str(exc).split())})")
+    return {"passed": not problems, "files_checked": n_files, "problems": problems}
+
+
+def _field(md: dict, key: str):
+    return {"probe": lambda: md["probe"]["name"], "theta": lambda: md["theta"]}.get(key, lambda: md[key])()
 
 
 def audit_duplicates(candidates: pd.DataFrame, targets: pd.DataFrame, library_tables: Iterable = ()) -> dict:

@@ -388,16 +388,57 @@ def _yaml_loader():
 
 
 def _read_yaml(path: Path) -> Any:
+    """The YAML document of ``path``, read with the strict loader of :func:`_yaml_loader`.
+
+    Aliases (``*name``) are refused while the text is parsed, before any document is
+    built, so a small file cannot expand into a huge one (an "alias bomb"). A file that
+    is not UTF-8 text, a folder or an unreadable file are refused naming the file.
+    """
     import yaml
 
     try:
-        text = path.read_text()
+        text = path.read_bytes().decode("utf-8")
     except FileNotFoundError:
         raise InputError(path, "file", "does not exist") from None
+    except IsADirectoryError:
+        raise InputError(path, "file", "is a folder, not a YAML file") from None
+    except OSError as exc:
+        raise InputError(path, "file", f"cannot be read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(path, "file", f"not UTF-8 text (a binary file?): byte {exc.start}") from None
+    loader = _yaml_loader()
     try:
-        return yaml.load(text, Loader=_yaml_loader())
+        for event in yaml.parse(text, Loader=loader):
+            if isinstance(event, yaml.AliasEvent):
+                line = event.start_mark.line + 1 if event.start_mark is not None else "?"
+                raise InputError(path, "yaml", f"line {line}: aliases (*{event.anchor}) are not allowed")
+        return yaml.load(text, Loader=loader)
     except yaml.YAMLError as exc:
         raise InputError(path, "yaml", f"not valid YAML: {exc}") from None
+
+
+def _check_finite(data: Any, path: Path, where: str = "") -> None:
+    """Every number of a contract is finite (infinity is written ``null`` where allowed)."""
+    if isinstance(data, dict):
+        for k, v in data.items():
+            _check_finite(v, path, f"{where}.{k}" if where else str(k))
+    elif isinstance(data, list):
+        for i, v in enumerate(data):
+            _check_finite(v, path, f"{where}[{i}]")
+    elif isinstance(data, float) and not math.isfinite(data):
+        raise InputError(path, where or "(top level)", f"{data} is not a finite number")
+
+
+def _check_materials(data: dict, path: Path) -> None:
+    """E > 0, rho > 0 and -1 < nu < 0.5, finite (the schema's bounds let NaN through)."""
+    for name, m in data.get("materials", {}).items():
+        if not isinstance(m, dict):
+            continue
+        for key, ok, rule in (("E", lambda v: v > 0, "> 0"), ("rho", lambda v: v > 0, "> 0"),
+                              ("nu", lambda v: -1.0 < v < 0.5, "in (-1, 0.5)")):
+            v = m.get(key)
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and not (math.isfinite(v) and ok(v)):
+                raise InputError(path, f"materials.{name}.{key}", f"{v} is not a finite number {rule}")
 
 
 @lru_cache(maxsize=4)
@@ -526,6 +567,9 @@ def load_contract(name_or_path: str | os.PathLike, profile: str = "default", *,
     """
     path = _resolve_path(name_or_path, config_dir)
     data = _read_yaml(path)
+    if isinstance(data, dict):
+        _check_materials(data, path)
+        _check_finite(data, path)
     _validate(data, path, schema_path())
     return _build(data, path, _tables_dir(path, config_dir), profile)
 

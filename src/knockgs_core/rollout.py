@@ -29,7 +29,8 @@ import pyarrow as pa
 
 from . import __version__
 from ._io import json_safe, write_parquet
-from ._long_format import POSITION_COLUMNS, read_long_values, read_metadata
+from ._long_format import (POSITION_COLUMNS, _has_field, _meta_field, check_rollout_meta, read_long_values, read_metadata,
+                           theta_tag)
 from .errors import InputError
 from .sim import Probe, SimResult, build_model, make_state, simulate
 
@@ -39,6 +40,7 @@ __all__ = [
     "write_rollout",
     "read_rollout",
     "read_rollout_meta",
+    "check_rollout_meta",
     "write_deformation",
     "read_deformation",
     "theta_tag",
@@ -55,11 +57,6 @@ class Rollout:
     positions: np.ndarray
     F: np.ndarray | None
     meta: dict[str, Any]
-
-
-def theta_tag(theta: tuple[float, float]) -> str:
-    """A file-name tag for a parameter pair, exact to 1e-6: ``sE0.950000_sR1.350000``."""
-    return f"sE{theta[0]:.6f}_sR{theta[1]:.6f}"
 
 
 def run_rollout(
@@ -169,20 +166,48 @@ def write_deformation(path, rollout: Rollout) -> None:
 
 
 def read_rollout_meta(path) -> dict:
-    """The ``knockgs`` metadata of a rollout file."""
+    """The ``knockgs`` metadata of a rollout file (a JSON object with the fields that
+    :func:`check_rollout_meta` compares)."""
     meta = read_metadata(path, META_KEY)
     if meta is None:
         raise InputError(path, "metadata.knockgs", "missing: not a KnockGS rollout")
+    if not isinstance(meta, dict):
+        raise InputError(path, "metadata.knockgs", "must be a JSON object")
     return meta
 
 
 def read_rollout(path) -> Rollout:
-    """Read a rollout file: positions (T, N, 3) float32 and its metadata."""
+    """Read a rollout file: positions (T, N, 3) float32 and its metadata.
+
+    The positions must agree with the metadata: N = n_gs + n_fill particles and T = the
+    number of export times.
+    """
     meta = read_rollout_meta(path)
-    return Rollout(positions=read_long_values(path, POSITION_COLUMNS), F=None, meta=meta)
+    positions = read_long_values(path, POSITION_COLUMNS)
+    n = _meta_field(path, meta, "n_particles") if "n_gs" in meta or "n_fill" in meta else positions.shape[1]
+    if positions.shape[1] != n:
+        raise InputError(path, "particle", f"{positions.shape[1]} particles, the metadata says {n} (n_gs + n_fill)")
+    times = meta.get("export_times")
+    if isinstance(times, list) and positions.shape[0] != len(times):
+        raise InputError(path, "frame", f"{positions.shape[0]} frames, the metadata lists {len(times)} export times")
+    return Rollout(positions=positions, F=None, meta=meta)
 
 
-def read_deformation(path) -> np.ndarray:
-    """Deformation gradients (T, n_gs, 3, 3) float32 from a file of :func:`write_deformation`."""
+def read_deformation(path, *, rollout: Rollout | None = None, rollout_path=None) -> np.ndarray:
+    """Deformation gradients (T, n_gs, 3, 3) float32 from a file of :func:`write_deformation`.
+
+    With ``rollout`` (read from ``rollout_path``), the file must come from the same run:
+    its metadata's object, profile, contract hash, theta, probe and n_gs equal the
+    rollout's (the fields both files carry), and it holds the rollout's frames.
+    """
     F = read_long_values(path, F_COLUMNS)
-    return F.reshape(F.shape[0], F.shape[1], 3, 3)
+    F = F.reshape(F.shape[0], F.shape[1], 3, 3)
+    if rollout is not None:
+        m = rollout.meta
+        keys = ("object", "profile", "contract_hash", "theta", "probe", "n_gs")
+        check_rollout_meta(path, read_rollout_meta(path), partial=True,
+                           **{k: _meta_field(rollout_path or "rollout", m, k) for k in keys if _has_field(m, k)})
+        if F.shape[0] != rollout.positions.shape[0]:
+            raise InputError(path, "frame", f"{F.shape[0]} frames; the rollout {rollout_path or ''} has "
+                             f"{rollout.positions.shape[0]}")
+    return F

@@ -1,7 +1,7 @@
 # Audits: separate rules, each writing a machine-readable verdict; a failed audit fails the run
 # (its verdict is kept in logs/{profile}/audits/NAME.failed.json).
 
-AUDITS = ["leakage", "nonfinite", "missing_frames", "duplicates", "completion"]
+AUDITS = ["leakage", "nonfinite", "missing_frames", "rollout_metadata", "duplicates", "completion"]
 AUDIT_OUTPUTS = [f"{P}/audits/{name}.json" for name in AUDITS]
 # the reported tables, checked for non-finite cells
 REPORTED_TABLES = (
@@ -11,6 +11,8 @@ REPORTED_TABLES = (
     + ([f"{P}/tables/render_{o}.csv" for o in OBJECTS] if RENDER["enabled"] else [])
 )
 LIBRARY_ROLLOUTS = [path for o in OBJECTS for path in library_rollouts(o).values()]
+# the descriptor tables between the rollouts and the estimators, checked for non-finite cells too
+DESCRIPTOR_TABLES = [f"{P}/descriptors/{o}/{name}.csv" for o in OBJECTS for name in ("library", f"queries_{SPLIT}")]
 
 # CONVERGENCE_IN_ALL (convergence.smk, included after this file) is read when the DAG is built,
 # hence the lambdas. The convergence tables' cells "not in the asymptotic range" are words by design.
@@ -38,7 +40,7 @@ rule audit_nonfinite:
     conda:
         "../envs/knockgs.yaml"
     input:
-        tables=lambda wc: REPORTED_TABLES + [path for path in CONVERGENCE_IN_ALL if path.endswith(".csv")],
+        tables=lambda wc: REPORTED_TABLES + DESCRIPTOR_TABLES + [path for path in CONVERGENCE_IN_ALL if path.endswith(".csv")],
     output:
         f"{P}/audits/nonfinite.json",
     log:
@@ -59,6 +61,27 @@ rule audit_missing_frames:
     log:
         f"logs/{PROFILE}/audits/missing_frames.log",
     params:
+        rollout_dirs=[f"{P}/rollouts/{o}" for o in OBJECTS],
+    script:
+        "../scripts/audit.py"
+
+
+rule audit_rollout_metadata:
+    """Every cached rollout is the one its path names (object, profile, contract hash, theta,
+    probe, particle and frame counts) and every F file belongs to its rollout: a rollout
+    copied over another's path, or truncated with its old time stamp, fails the run."""
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        tables=REPORTED_TABLES,
+        particles=[f"{P}/assets/{o}.particles.npz" for o in OBJECTS],
+    output:
+        f"{P}/audits/rollout_metadata.json",
+    log:
+        f"logs/{PROFILE}/audits/rollout_metadata.log",
+    params:
+        objects=OBJECTS,
+        profile=PROFILE,
         rollout_dirs=[f"{P}/rollouts/{o}" for o in OBJECTS],
     script:
         "../scripts/audit.py"

@@ -116,10 +116,17 @@ def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
     return buf.getvalue()
 
 
-def save_particles(ps: ParticleSet, path: str | os.PathLike) -> None:
-    """Write ``ps`` to an ``.npz`` file (byte-identical for identical particle sets), atomically."""
+def save_particles(ps: ParticleSet, path: str | os.PathLike, *, contract=None) -> None:
+    """Write ``ps`` to an ``.npz`` file (byte-identical for identical particle sets), atomically.
+
+    With ``contract`` (the :class:`~knockgs_core.contract.ObjectContract` the particles were
+    built from), its object name, profile and hash are stored too, and :func:`load_particles`
+    refuses the file under any other contract.
+    """
     meta = {"n_gs": ps.n_gs, "region_names": list(ps.region_names), "fill_cells": ps.fill_cells,
             "has_volumes": ps.volumes is not None, "format": "knockgs-particles/1"}
+    if contract is not None:
+        meta.update(object=contract.name, profile=contract.profile, contract_hash=contract.hash)
     arrays = {"positions": ps.positions, "gaussian_index": ps.gaussian_index,
               "region": ps.region,
               "meta": np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)}
@@ -128,21 +135,56 @@ def save_particles(ps: ParticleSet, path: str | os.PathLike) -> None:
     write_bytes(path, _npz_bytes(arrays))
 
 
-def load_particles(path: str | os.PathLike) -> ParticleSet:
-    """Read a file written by :func:`save_particles`."""
+def _check_use(path: Path, meta: dict, ps: ParticleSet, contract) -> None:
+    """The particle file against the contract it is used with (metadata when stored, else regions)."""
+    for key, want in (("object", contract.name), ("profile", contract.profile), ("contract_hash", contract.hash)):
+        got = meta.get(key)
+        if got is not None and got != want:
+            raise InputError(path, f"meta.{key}", f"the particles were built for {key} '{got}', "
+                             f"used with '{want}' ({contract.source})")
+    if tuple(ps.region_names) != tuple(contract.region_names):
+        raise InputError(path, "meta.region_names", f"particle regions {list(ps.region_names)} are not the "
+                         f"contract's {list(contract.region_names)} ({contract.source})")
+
+
+def load_particles(path: str | os.PathLike, *, contract=None) -> ParticleSet:
+    """Read a file written by :func:`save_particles`.
+
+    With ``contract``, the file is checked against it: the stored object, profile and
+    contract hash (when the file has them) and the material regions must match. Every
+    problem raises :class:`~knockgs_core.errors.InputError` naming the file and the field.
+    """
     path = Path(path)
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
     except FileNotFoundError:
         raise InputError(path, "file", "does not exist") from None
-    except Exception as exc:
-        raise InputError(path, "file", f"not a particle .npz file ({exc})") from None
+    except IsADirectoryError:
+        raise InputError(path, "file", "is a folder, not a particle .npz file") from None
+    except Exception as exc:  # BadZipFile, EOFError, ValueError (object arrays, a bad header), OSError
+        raise InputError(path, "file", f"not a particle .npz file ({type(exc).__name__}: {exc})") from None
     for key in ("positions", "gaussian_index", "region", "meta"):
         if key not in data:
             raise InputError(path, key, "missing from the particle file")
-    meta = json.loads(bytes(data["meta"]).decode())
-    return ParticleSet(positions=data["positions"], volumes=data.get("volumes"),
-                       n_gs=meta["n_gs"], gaussian_index=data["gaussian_index"],
-                       region=data["region"], region_names=tuple(meta["region_names"]),
-                       fill_cells=meta["fill_cells"])
+    try:
+        meta = json.loads(bytes(np.asarray(data["meta"], dtype=np.uint8)).decode())
+    except (TypeError, ValueError) as exc:
+        raise InputError(path, "meta", f"not the JSON of a particle file ({exc})") from None
+    if not isinstance(meta, dict):
+        raise InputError(path, "meta", "must be a JSON object")
+    for key in ("n_gs", "region_names", "fill_cells"):
+        if key not in meta:
+            raise InputError(path, f"meta.{key}", "missing from the particle file")
+    try:
+        ps = ParticleSet(positions=data["positions"], volumes=data.get("volumes"),
+                         n_gs=meta["n_gs"], gaussian_index=data["gaussian_index"],
+                         region=data["region"], region_names=tuple(meta["region_names"]),
+                         fill_cells=meta["fill_cells"])
+    except InputError as exc:
+        raise InputError(path, exc.field, exc.message) from None
+    except (TypeError, ValueError) as exc:
+        raise InputError(path, "meta", f"inconsistent particle file ({exc})") from None
+    if contract is not None:
+        _check_use(path, meta, ps, contract)
+    return ps

@@ -2,15 +2,27 @@
 
 Each subcommand lives in its own module ``knockgs_core.cli.<name>`` that defines
 ``register(subparsers)`` (cheap: no heavy imports at module level) and sets
-``func`` on its parser. Errors derived from :class:`knockgs_core.errors.KnockGSError`
-are printed as one line and give exit code 2; nothing prints a traceback for bad input.
+``func`` on its parser.
+
+Errors reach the user as one line on stderr, ``knockgs COMMAND: error: FILE: field 'F':
+WHAT``, never as a traceback: :class:`knockgs_core.errors.KnockGSError` (bad input, a
+stopped simulation) and, mapped here at the boundary, the errors of reading and writing
+files (``OSError`` with its file name, including a full disk or a missing permission;
+``ValueError``, ``UnicodeDecodeError``, ``EOFError``, ``zipfile.BadZipFile``, pyarrow's
+``ArrowInvalid``; ``MemoryError``) give exit code 2; Ctrl-C (``KeyboardInterrupt``)
+prints ``interrupted`` and gives exit code 130. Set ``KNOCKGS_TRACEBACK=1`` to see the
+traceback of a mapped error. Commands check their output paths before any work
+(:func:`knockgs_core._io.check_outputs`).
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
+import os
 import sys
+import zipfile
 
 from ..errors import KnockGSError
 
@@ -20,15 +32,47 @@ __all__ = ["main", "build_parser"]
 _COMMANDS = ("simulate", "asset", "calibrate", "render", "discrepancy")
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line (exit code 2), like every other refusal."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {_one_line(message)} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
 
-    parser = argparse.ArgumentParser(prog="knockgs", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="knockgs", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"knockgs {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     for name in _COMMANDS:
         importlib.import_module(f"{__name__}.{name}").register(sub)
     return parser
+
+
+#: errors mapped to one line (exit code 2) at the boundary, besides KnockGSError
+_MAPPED = (OSError, ValueError, EOFError, zipfile.BadZipFile, MemoryError)
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def describe_error(exc: BaseException) -> str:
+    """One line for a mapped error: the file (when known) and the cause."""
+    if isinstance(exc, KnockGSError):
+        return _one_line(exc)
+    if isinstance(exc, OSError):
+        names = [n for n in (exc.filename, exc.filename2) if n is not None]
+        why = exc.strerror or str(exc) or type(exc).__name__
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            why += " (nothing was replaced: the previous file, if any, is unchanged)"
+        where = ": ".join(os.fsdecode(n) for n in names)
+        return _one_line(f"{where}: {why}" if where else f"{type(exc).__name__}: {why}")
+    if isinstance(exc, MemoryError):
+        return _one_line(f"out of memory ({exc or 'an array too large for this machine'}); "
+                         "check sizes given on the command line (e.g. --width, --height)")
+    return _one_line(f"{type(exc).__name__}: {exc}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -37,7 +81,15 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except KnockGSError as exc:
-        print(f"knockgs {args.command}: error: {exc}", file=sys.stderr)
+        print(f"knockgs {args.command}: error: {describe_error(exc)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"knockgs {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except _MAPPED as exc:
+        if os.environ.get("KNOCKGS_TRACEBACK"):
+            raise
+        print(f"knockgs {args.command}: error: {describe_error(exc)}", file=sys.stderr)
         return 2
 
 

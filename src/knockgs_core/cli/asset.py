@@ -56,9 +56,14 @@ def _load(args):
 
 
 def _make(args) -> int:
+    from knockgs_core._io import check_outputs
     from knockgs_core.assets import build_asset, load_source_gaussians, save_particles, save_scene, scene_path, write_ply
 
+    from ._common import contract_inputs
+
     contract = _load(args)
+    check_outputs({"--output": args.output, "scene file": scene_path(args.output) if args.normalized else None,
+                   "--particles": args.particles}, contract_inputs(contract))
     if args.normalized or args.particles:
         built = build_asset(contract)
     written = [args.output]
@@ -69,7 +74,7 @@ def _make(args) -> int:
     else:
         write_ply(load_source_gaussians(contract), args.output)
     if args.particles:
-        save_particles(built.particles, args.particles)
+        save_particles(built.particles, args.particles, contract=contract)
         written.append(args.particles)
     print(f"wrote {', '.join(written)}")
     return 0
@@ -99,9 +104,13 @@ def _summary(args) -> int:
 
 def _figure(args) -> int:
     from knockgs_core.assets import build_asset
+    from knockgs_core._io import check_outputs
     from knockgs_core.assets._figure import asset_figure
 
+    from ._common import contract_inputs
+
     contract = _load(args)
+    check_outputs({"--output": args.output}, contract_inputs(contract))
     asset_figure(build_asset(contract), args.output, title=f"{contract.name} ({contract.profile})")
     print(f"wrote {args.output}")
     return 0

@@ -8,6 +8,7 @@ ignored) and writes the frozen estimates as JSON. Heavy imports happen inside :f
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from ..errors import InputError
@@ -60,21 +61,22 @@ def _parse_alpha(text: str):
     if text == "cv":
         return "cv"
     try:
-        return float(text)
+        value = float(text)
     except ValueError:
-        message = f"expected a number or 'cv', got {text!r}"
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        message = f"expected a finite number >= 0 or 'cv', got {text!r}"
         raise InputError("command line", "--alpha", message) from None
+    return value
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``knockgs calibrate``; bad input raises :class:`~knockgs_core.errors.InputError`."""
-    from .._io import write_json
+    from .._io import check_outputs, write_json
     from ..calibration import calibrate
 
     output = Path(args.output)
-    for flag, path in (("--library", args.library), ("--queries", args.queries)):
-        if output.resolve() == Path(path).resolve():
-            raise InputError(str(output), "--output", f"would overwrite the {flag} input")
+    check_outputs({"--output": output}, {"--library": args.library, "--queries": args.queries})
     params = {}
     if args.k is not None:
         params["k"] = _parse_k(args.k)

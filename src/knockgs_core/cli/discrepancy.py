@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 
 from ..errors import InputError
+from ._common import contract_inputs, nonnegative_float, nonnegative_int
 
 __all__ = ["register"]
 
@@ -22,7 +24,22 @@ def _pair(text: str) -> tuple[float, float]:
         a, b = (float(t) for t in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected 'SE,SRHO' (two numbers), got '{text}'") from None
+    if not all(math.isfinite(v) and v > 0 for v in (a, b)):
+        raise argparse.ArgumentTypeError(f"expected two finite scales > 0, got '{text}'")
     return a, b
+
+
+def _level(text: str):
+    """``low``, ``high`` or a finite fraction > 0."""
+    if text in ("low", "high"):
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected 'low', 'high' or a finite fraction > 0, got '{text}'")
+    return value
 
 
 def _common(p) -> None:
@@ -51,7 +68,7 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="candidate-library rollout (.parquet, theta in its metadata; repeatable): base calibration by "
                         "local ridge instead of Gauss-Newton from (1, 1)")
     p.add_argument("--catalogue", help="comma-separated catalogue keys to consider (default: all that apply)")
-    p.add_argument("--max-effects", type=int, default=2, help="most effects to add (default 2)")
+    p.add_argument("--max-effects", type=nonnegative_int, default=2, help="most effects to add (default 2)")
     p.add_argument("-o", "--output", required=True, metavar="DIR",
                    help="report folder (report.md, result.json, predictions.npz, figures)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -62,9 +79,10 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--case", required=True, help="case name; a standard case (see docs/discrepancy.md) unless --planted is given")
     p.add_argument("--planted", help="planted effect: none, damping, gravity, plasticity, poisson, stiffness_gradient_z, "
                                      "support_slip, force_pulse, hidden_mass")
-    p.add_argument("--level", default="low", help="low (12%% held-out change), high (25%%) or a fraction")
+    p.add_argument("--level", type=_level, default="low", help="low (12%% held-out change), high (25%%) or a fraction")
     p.add_argument("--theta", type=_pair, default=(0.8, 1.2), help="true 'SE,SRHO' (default 0.8,1.2)")
-    p.add_argument("--noise", type=float, default=0.02, help="noise std as a fraction of the RMS displacement (default 0.02)")
+    p.add_argument("--noise", type=nonnegative_float, default=0.02,
+                   help="noise std as a fraction of the RMS displacement, >= 0 (default 0.02)")
     p.add_argument("--observation", default="gs_identity", help="gs_identity, gs_tracks (no identity) or all_identity")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--measured-dir", required=True, metavar="DIR", help="where the measured files go")
@@ -87,19 +105,14 @@ def register(subparsers) -> argparse.ArgumentParser:
     return parser
 
 
-def _load(args):
-    from ..contract import load_contract
-
-    contract = load_contract(args.object, args.profile, config_dir=args.config_dir)
+def _load(args, contract):
     if args.particles:
         from ..assets import load_particles
 
-        particles = load_particles(args.particles)
-    else:
-        from ..assets import build_asset
+        return load_particles(args.particles, contract=contract)
+    from ..assets import build_asset
 
-        particles = build_asset(contract).particles
-    return contract, particles
+    return build_asset(contract).particles
 
 
 def _run(args) -> int:
@@ -110,6 +123,8 @@ def _run(args) -> int:
         if "=" not in item:
             raise InputError("command line", "--heldout-measured", f"expected PROBE=FILE, got '{item}'")
         name, path = item.split("=", 1)
+        if name in held:
+            raise InputError("command line", "--heldout-measured", f"probe '{name}' is given twice")
         held[name] = path
     settings = LoopSettings(max_effects=args.max_effects, catalogue=tuple(args.catalogue.split(",")) if args.catalogue else None)
     say = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
@@ -121,17 +136,22 @@ def _run(args) -> int:
 
 
 def _make_case(args) -> int:
+    from .._io import check_outputs
+    from ..contract import load_contract
     from ..discrepancy import CaseSpec, default_cases, make_case
 
-    contract, particles = _load(args)
+    contract = load_contract(args.object, args.profile, config_dir=args.config_dir)
+    check_outputs({"--measured-dir": args.measured_dir, "--truth-dir": args.truth_dir},
+                  {**contract_inputs(contract), "--particles": args.particles},
+                  directories={"--measured-dir": ("measured_*.parquet",), "--truth-dir": ("truth.json", "clean.npz")})
+    particles = _load(args, contract)
     if args.planted is None:
         std = {c.name: c for c in default_cases(targets_path=contract.targets_path)}
         if args.case not in std:
             raise InputError("command line", "--case", f"'{args.case}' is not a standard case ({', '.join(std)}); give --planted")
         spec = std[args.case]
     else:
-        level = args.level if args.level in ("low", "high") else float(args.level)
-        spec = CaseSpec(name=args.case, planted=args.planted, level=level, theta=args.theta, noise_rel=args.noise,
+        spec = CaseSpec(name=args.case, planted=args.planted, level=args.level, theta=args.theta, noise_rel=args.noise,
                         observation=args.observation, seed=args.seed)
     truth = make_case(spec, contract, particles, measured_dir=args.measured_dir, truth_dir=args.truth_dir, device=args.device)
     print(f"case {spec.name}: planted {truth['planted_effect']} -> {args.measured_dir} (truth in {args.truth_dir})",
@@ -149,8 +169,23 @@ def _evaluate(args) -> int:
 def _table(args) -> int:
     from ..discrepancy import case_table, table_figure, write_table
 
-    rows = [json.loads(open(p).read()) for p in args.rows]
-    df = case_table(rows)
+    from .._io import check_outputs
+
+    check_outputs({"--csv": args.csv, "--md": args.md, "--figure": args.figure}, {"ROW.json": list(args.rows)})
+    rows = []
+    for p in args.rows:
+        try:
+            with open(p, encoding="utf-8") as fh:
+                rows.append(json.load(fh))
+        except (OSError, ValueError) as exc:
+            raise InputError(p, "ROW.json", f"not a readable JSON row ({getattr(exc, 'strerror', None) or exc})") from None
+        if not isinstance(rows[-1], dict):
+            raise InputError(p, "ROW.json", "must be a JSON object (a row of `knockgs discrepancy evaluate`)")
+    try:
+        df = case_table(rows)
+    except KeyError as exc:
+        raise InputError("ROW.json", str(exc).strip("'"),
+                         "missing from a row (not written by `knockgs discrepancy evaluate`?)") from None
     write_table(df, args.csv, args.md)
     if args.figure:
         table_figure(df, args.figure)

@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
+from ._common import contract_inputs, image_side
 
 __all__ = ["register", "run_frames", "run_ply"]
 
@@ -34,8 +35,8 @@ def register(sub) -> None:
     _common(fr)
     fr.add_argument("--object", required=True, help="object whose contract camera is used (config/objects/NAME.yaml)")
     fr.add_argument("--profile", default="default", help="resolution profile of the contract (ci, default, paper)")
-    fr.add_argument("--width", type=int, help="image width (default: the contract camera's)")
-    fr.add_argument("--height", type=int, help="image height (default: the contract camera's)")
+    fr.add_argument("--width", type=image_side, help="image width, 1 .. 8192 pixels (default: the contract camera's)")
+    fr.add_argument("--height", type=image_side, help="image height, 1 .. 8192 pixels (default: the contract camera's)")
     fr.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
     fr.add_argument("--config-dir", help="folder holding objects/ (default: the project's config/)")
     fr.set_defaults(func=run_frames)
@@ -57,34 +58,54 @@ def _frames(text: str, n: int) -> list[int]:
     return out
 
 
-def _load(args):
-    from ..assets import load_scene, read_ply, scene_path
-    from ..rollout import read_deformation, read_rollout
+def _paths(args) -> dict:
+    from ..assets import scene_path
 
     asset = Path(args.asset)
-    scene = Path(args.scene) if args.scene else scene_path(asset)
     rollout = Path(args.rollout)
-    f_path = Path(args.deformation) if args.deformation else rollout.with_name(rollout.name.replace(".parquet", ".F.parquet"))
+    return {"--asset": asset, "--scene": Path(args.scene) if args.scene else scene_path(asset), "--rollout": rollout,
+            "--deformation": Path(args.deformation) if args.deformation
+            else rollout.with_name(rollout.name.replace(".parquet", ".F.parquet"))}
+
+
+def _load(args, paths: dict, contract=None):
+    """The asset, scene, rollout and F, each checked against the others (and the contract)."""
+    from ..assets import load_scene, read_ply
+    from ..rollout import check_rollout_meta, read_deformation, read_rollout
+
     hints = {"--scene": " (written next to the PLY by `knockgs asset make --normalized`)",
              "--deformation": " (written by `knockgs simulate ... --export-F`)"}
-    for path, field in ((asset, "--asset"), (scene, "--scene"), (rollout, "--rollout"), (f_path, "--deformation")):
+    for field, path in paths.items():
         if not path.is_file():
             raise InputError(str(path), field, "no such file" + hints.get(field, ""))
-    gaussians = read_ply(asset)
-    static_mask, gaussian_index = load_scene(scene, n_gaussians=len(gaussians))
-    ro = read_rollout(rollout)
-    F = read_deformation(f_path)
-    if F.shape[0] != ro.positions.shape[0] or F.shape[1] != gaussian_index.size:
-        raise InputError(str(f_path), "F", f"{F.shape[0]} frames x {F.shape[1]} particles; the rollout has "
-                         f"{ro.positions.shape[0]} frames and the scene {gaussian_index.size} Gaussian-associated particles")
+    gaussians = read_ply(paths["--asset"])
+    static_mask, gaussian_index = load_scene(paths["--scene"], n_gaussians=len(gaussians))
+    ro = read_rollout(paths["--rollout"])
+    if contract is not None and "contract_hash" in ro.meta:  # a simulator rollout: its provenance must match
+        check_rollout_meta(paths["--rollout"], ro.meta, object=contract.name, profile=contract.profile,
+                           contract_hash=contract.hash)
+    F = read_deformation(paths["--deformation"], rollout=ro, rollout_path=paths["--rollout"])
+    if F.shape[1] != gaussian_index.size:
+        raise InputError(str(paths["--deformation"]), "F", f"{F.shape[0]} frames x {F.shape[1]} particles; the scene "
+                         f"{paths['--scene']} has {gaussian_index.size} Gaussian-associated particles")
+    check_rollout_meta(paths["--rollout"], ro.meta, partial=True, n_gs=int(gaussian_index.size))
     return gaussians, gaussian_index, static_mask, ro, F
+
+
+def _check(args, paths: dict, pattern: str, contract=None) -> None:
+    from .._io import check_outputs
+
+    inputs = {**paths, **(contract_inputs(contract) if contract is not None else {})}
+    check_outputs({"--output": args.output}, inputs, directories={"--output": (pattern,)})
 
 
 def run_ply(args) -> int:
     from ..assets import write_ply
     from ..render import deformed_gaussians
 
-    gaussians, gaussian_index, _, ro, F = _load(args)
+    paths = _paths(args)
+    _check(args, paths, "frame_*.ply")
+    gaussians, gaussian_index, _, ro, F = _load(args, paths)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     frames = _frames(args.frames, ro.positions.shape[0])
@@ -101,14 +122,21 @@ def run_frames(args) -> int:
     from ..contract import load_contract
     from ..experiments import camera_from_contract, render_rollout
 
-    gaussians, gaussian_index, static_mask, ro, F = _load(args)
+    from .._io import atomic_write
+    from .._warp import warp_device
+
     contract = load_contract(args.object, args.profile, config_dir=args.config_dir)
+    paths = _paths(args)
+    _check(args, paths, "frame_*.png", contract)
+    warp_device(args.device)
+    gaussians, gaussian_index, static_mask, ro, F = _load(args, paths, contract)
     camera = camera_from_contract(contract.camera, width=args.width, height=args.height)
     frames = _frames(args.frames, ro.positions.shape[0])
     rgb, _ = render_rollout(gaussians, static_mask, gaussian_index, ro.positions[frames], F[frames], camera, device=args.device)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     for t, img in zip(frames, rgb):
-        Image.fromarray((np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)).save(out / f"frame_{t:04d}.png")
+        with atomic_write(out / f"frame_{t:04d}.png") as fh:
+            Image.fromarray((np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)).save(fh, format="png")
     print(f"{len(frames)} frame(s) at {camera.width}x{camera.height} -> {out}", file=sys.stderr)
     return 0

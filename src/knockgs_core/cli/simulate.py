@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from ..errors import InputError
@@ -35,17 +36,23 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    from .._io import check_outputs
     from ..contract import load_contract
     from ..rollout import run_rollout, write_deformation, write_rollout
+    from ._common import contract_inputs
 
-    if args.output in (args.particles, args.export_F):
-        raise InputError(args.output, "output", "the output path equals another path of the command")
+    if not all(math.isfinite(v) and v > 0 for v in args.theta):
+        raise InputError("command line", "--theta", f"scales must be finite and > 0, got {args.theta}")
     contract = load_contract(args.object, args.profile, config_dir=args.config_dir)
+    check_outputs({"--output": args.output, "--export-F": args.export_F},
+                  {**contract_inputs(contract), "--particles": args.particles})
+    if args.probe not in contract.probes:
+        raise InputError(contract.source, "probes", f"unknown probe '{args.probe}'; known: {', '.join(contract.probes)}")
     particles = None
     if args.particles:
         from ..assets import load_particles
 
-        particles = load_particles(args.particles)
+        particles = load_particles(args.particles, contract=contract)
 
     def progress(frame: int, n_frames: int, stats: dict) -> None:
         if not args.quiet:

@@ -45,6 +45,33 @@ def library_source(rollouts: Sequence) -> LibrarySource:
     return LibrarySource(theta=np.array(thetas, dtype=float), names=names, rollouts=paths)
 
 
+def _check_measurement_use(m, contract, probe: str | None) -> None:
+    """A measurement's metadata (object, profile, probe; when present) against its use."""
+    for key, want in (("object", contract.name), ("profile", contract.profile), ("probe", probe)):
+        got = m.meta.get(key)
+        if want is not None and got is not None and got != want:
+            raise InputError(m.source, f"metadata.{key}", f"the file says '{got}', it is used as '{want}'")
+
+
+def _read_json(path, field: str):
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise InputError(path, field, "no such file") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(path, field, f"not a readable JSON file ({exc})") from None
+
+
+def _read_npz(path, field: str) -> dict:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except FileNotFoundError:
+        raise InputError(path, field, "no such file") from None
+    except Exception as exc:  # BadZipFile, EOFError, ValueError (object arrays), OSError
+        raise InputError(path, field, f"not a readable .npz file ({type(exc).__name__}: {exc})") from None
+
+
 def run_files(
     object_name: str,
     profile: str,
@@ -66,23 +93,36 @@ def run_files(
     run :func:`run_discrepancy` (library base calibration when ``library_rollouts`` are
     given) and write the report into ``out_dir``. Every file read is listed in
     ``result.inputs``."""
+    from .._io import check_outputs
     from ..contract import load_contract
+    from ..rollout import check_rollout_meta, read_rollout_meta
 
     contract = load_contract(object_name, profile, config_dir=config_dir)
+    held_files = dict(heldout_measured or {})
+    check_outputs({"--output": out_dir},
+                  {"--object": contract.source, "--measured": measured, "--particles": particles,
+                   "--heldout-measured": list(held_files.values()), "--library-rollout": list(library_rollouts)},
+                  directories={"--output": ("report.md", "result.json", "predictions.npz", "residuals_*.png")})
+    m = read_measured(measured)
+    _check_measurement_use(m, contract, probe)
+    held = {}
+    for name, path in held_files.items():
+        held[name] = read_measured(path)
+        _check_measurement_use(held[name], contract, name)
     if particles:
         from ..assets import load_particles
 
-        ps = load_particles(particles)
+        ps = load_particles(particles, contract=contract)
     else:
         from ..assets import build_asset
 
         ps = build_asset(contract).particles
     inputs = [str(measured)] + ([str(particles)] if particles else [])
-    m = read_measured(measured)
-    held = {}
-    for name, path in (heldout_measured or {}).items():
-        held[name] = read_measured(path)
-        inputs.append(str(path))
+    inputs += [str(p) for p in held_files.values()]
+    library_probe = probe or m.meta.get("probe") or contract.roles.get("calibration")
+    for path in library_rollouts:
+        check_rollout_meta(path, read_rollout_meta(path), object=contract.name, profile=contract.profile,
+                           contract_hash=contract.hash, probe=library_probe, n_particles=len(ps))
     library = library_source(library_rollouts) if library_rollouts else None
     inputs += [str(p) for p in library_rollouts]
     result = run_discrepancy(m, contract, ps, probe=probe, heldout_probes=heldout_probes, heldout_measured=held,
@@ -97,11 +137,21 @@ def evaluate_files(run_dir, truth_dir, output, markdown=None) -> dict:
     ``markdown``, a short evaluation page: planted vs found, errors against the truth)."""
     from ._scoring import acceptance, evaluate_case
 
-    run_dir = Path(run_dir)
-    result = json.loads((run_dir / "result.json").read_text())
-    with np.load(run_dir / "predictions.npz") as z:
-        preds = {k: z[k] for k in z.files}
-    row = evaluate_case(result, preds, truth_dir)
+    from .._io import check_outputs
+
+    run_dir, truth_dir = Path(run_dir), Path(truth_dir)
+    reads = {"--run-dir": [run_dir / "result.json", run_dir / "predictions.npz"],
+             "--truth-dir": [truth_dir / "truth.json", truth_dir / "clean.npz"]}
+    check_outputs({"--output": output, "--markdown": markdown}, reads)
+    result = _read_json(run_dir / "result.json", "--run-dir")
+    preds = _read_npz(run_dir / "predictions.npz", "--run-dir")
+    _read_json(truth_dir / "truth.json", "--truth-dir")  # readable before the scoring reads them
+    _read_npz(truth_dir / "clean.npz", "--truth-dir")
+    try:
+        row = evaluate_case(result, preds, truth_dir)
+    except (KeyError, TypeError) as exc:
+        raise InputError(run_dir, "--run-dir", f"result.json or predictions.npz lacks {exc} "
+                         "(not the output of `knockgs discrepancy run`?)") from None
     write_json(output, row)
     if markdown is not None:
         ok, why = acceptance(row)

@@ -10,12 +10,16 @@ set); ``track`` is an arbitrary point id without that identity. NPZ files hold a
 ``track`` [M]. Parquet metadata (key ``knockgs_measurement``, JSON) and NPZ array
 ``meta`` (a JSON string) may carry ``object``, ``profile``, ``probe`` and ``noise_std``.
 Every point must be present in every frame; frame 0 (t = 0, the rest state before the
-probe acts) must be present.
+probe acts) must be present. Frames are integers (7.5 is refused, not truncated); the
+metadata's ``noise_std`` is a finite number >= 0 [m] and ``object``, ``profile`` and
+``probe`` are names. A KnockGS rollout (metadata key ``knockgs``: a simulation with its
+theta) is not a measurement and is refused.
 """
 
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -95,6 +99,7 @@ class Measurement:
         bad = set(self.meta) - set(MEASUREMENT_META_FIELDS)
         if bad:
             raise InputError(self.source, "metadata", f"unknown fields {sorted(bad)}; allowed: {list(MEASUREMENT_META_FIELDS)}")
+        _check_meta_values(self.meta, self.source)
 
     @property
     def has_identity(self) -> bool:
@@ -126,6 +131,20 @@ class Measurement:
         return idx
 
 
+def _check_meta_values(meta: dict, source) -> None:
+    """Metadata values that mean something: names are non-empty strings, the noise std a
+    finite number >= 0 (a string, a negative number or NaN is refused, naming the field)."""
+    for key in ("object", "profile", "probe"):
+        v = meta.get(key)
+        if v is not None and not (isinstance(v, str) and v.strip()):
+            raise InputError(source, f"metadata.{key}", f"must be a name (a non-empty string), got {v!r}")
+    v = meta.get("noise_std")
+    if v is not None:
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
+        if not ok:
+            raise InputError(source, "metadata.noise_std", f"must be a finite number >= 0 [m], got {v!r}")
+
+
 def _meta_from_bytes(raw, source) -> dict:
     try:
         meta = json.loads(raw)
@@ -147,13 +166,26 @@ def _from_long(df, source, meta) -> Measurement:
         raise InputError(source, "particle", "need exactly one of the columns 'particle' (identity) or 'track' (no identity)")
     tcol = "frame" if "frame" in cols else "time"
     pcol = "particle" if "particle" in cols else "track"
-    tv = df[tcol].to_numpy()
-    pv = df[pcol].to_numpy()
+    if len(df) == 0:
+        raise InputError(source, tcol, "no rows")
+
+    def numbers(col):
+        try:
+            v = df[col].to_numpy(dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InputError(source, col, f"expected numbers, got {df[col].dtype} values") from None
+        if not np.all(np.isfinite(v)):
+            raise InputError(source, col, "empty or non-finite values")
+        return v
+
+    tv = numbers(tcol)
+    pv = numbers(pcol)
     if tcol == "frame":
+        if np.any(tv != np.rint(tv)):
+            i = int(np.argmax(tv != np.rint(tv)))
+            raise InputError(source, "frame", f"frame indices must be integers, got {tv[i]:g}")
         tv = tv.astype(np.int64)
-    else:
-        tv = tv.astype(np.float64)
-    if not np.all(np.isfinite(pv.astype(np.float64))) or np.any(pv.astype(np.float64) != np.rint(pv.astype(np.float64))):
+    if np.any(pv != np.rint(pv)):
         raise InputError(source, pcol, "point ids must be integers")
     pv = pv.astype(np.int64)
     t_u, t_inv = np.unique(tv, return_inverse=True)
@@ -166,7 +198,7 @@ def _from_long(df, source, meta) -> Measurement:
     seen[t_inv, p_inv] = True
     if not seen.all():
         raise InputError(source, pcol, "duplicate (frame, point) rows")
-    X[t_inv, p_inv] = df[["x", "y", "z"]].to_numpy(dtype=np.float64)
+    X[t_inv, p_inv] = np.stack([numbers(c) for c in ("x", "y", "z")], axis=1)
     return Measurement(
         points=X,
         frames=t_u if tcol == "frame" else None,
@@ -184,6 +216,8 @@ def read_measured(path) -> Measurement:
     source = str(path)
     if not path.exists():
         raise InputError(source, "file", "no such file")
+    if not path.is_file():
+        raise InputError(source, "file", "not a regular file (a folder?)")
     suffix = path.suffix.lower()
     if suffix == ".parquet":
         import pyarrow.parquet as pq
@@ -193,6 +227,9 @@ def read_measured(path) -> Measurement:
         except Exception as exc:  # pyarrow raises several types
             raise InputError(source, "file", f"not a readable Parquet file ({exc})") from None
         md = table.schema.metadata or {}
+        if b"knockgs" in md:
+            raise InputError(source, "metadata.knockgs", "this is a KnockGS rollout (a simulation with its theta), "
+                             "not a measurement")
         meta = _meta_from_bytes(md[MEASUREMENT_META_KEY], source) if MEASUREMENT_META_KEY in md else {}
         return _from_long(table.to_pandas(), source, meta)
     if suffix == ".csv":
@@ -204,24 +241,30 @@ def read_measured(path) -> Measurement:
             raise InputError(source, "file", f"not a readable CSV file ({exc})") from None
         return _from_long(df, source, {})
     if suffix == ".npz":
-        with np.load(path, allow_pickle=False) as z:
-            names = set(z.files)
-            if "positions" not in names:
-                raise InputError(source, "positions", "missing array")
-            meta = _meta_from_bytes(str(z["meta"]), source) if "meta" in names else {}
-            X = z["positions"]
-            M = X.shape[1] if X.ndim == 3 else 0
-            particle = z["particle"] if "particle" in names else None
-            track = z["track"] if "track" in names else (particle if particle is not None else np.arange(M))
-            return Measurement(
-                points=X,
-                frames=z["frames"] if "frames" in names else None,
-                times=z["times"] if "times" in names else None,
-                particle=particle,
-                track=track,
-                meta=meta,
-                source=source,
-            )
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+        except Exception as exc:  # BadZipFile, EOFError, ValueError (object arrays), OSError
+            raise InputError(source, "file", f"not a readable .npz file ({type(exc).__name__}: {exc})") from None
+        if "positions" not in arrays:
+            raise InputError(source, "positions", "missing array")
+        meta = _meta_from_bytes(str(arrays["meta"]), source) if "meta" in arrays else {}
+        X = arrays["positions"]
+        if not (np.issubdtype(X.dtype, np.floating) or np.issubdtype(X.dtype, np.integer)):
+            raise InputError(source, "positions", f"expected numbers, got {X.dtype}")
+        M = X.shape[1] if X.ndim == 3 else 0
+        particle = arrays.get("particle")
+        track = arrays["track"] if "track" in arrays else (particle if particle is not None else np.arange(M))
+        frames = arrays.get("frames")
+        if frames is not None and (not np.issubdtype(frames.dtype, np.number) or np.any(frames != np.rint(frames))):
+            raise InputError(source, "frames", "frame indices must be integers")
+        try:
+            return Measurement(points=X, frames=frames, times=arrays.get("times"), particle=particle, track=track,
+                               meta=meta, source=source)
+        except (TypeError, ValueError) as exc:
+            if isinstance(exc, InputError):
+                raise
+            raise InputError(source, "positions", f"malformed arrays ({exc})") from None
     raise InputError(source, "file", f"unknown format '{suffix}'; use .parquet, .csv or .npz")
 
 
