@@ -194,9 +194,11 @@ def atomic_write(path, *, mode: str = "wb", suffix: str | None = None) -> Iterat
             yield fh
             fh.flush()
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(OSError):
             tmp.unlink()
+        if isinstance(exc, OSError) and exc.filename is None:
+            exc.filename = str(path)  # a failed write (e.g. a full disk) names the file it was for
         raise
 
 

@@ -387,11 +387,16 @@ def _yaml_loader():
     return Loader
 
 
+#: deepest nesting of mappings and lists accepted in a YAML file (a contract needs about 6)
+_MAX_YAML_DEPTH = 64
+
+
 def _read_yaml(path: Path) -> Any:
     """The YAML document of ``path``, read with the strict loader of :func:`_yaml_loader`.
 
     Aliases (``*name``) are refused while the text is parsed, before any document is
-    built, so a small file cannot expand into a huge one (an "alias bomb"). A file that
+    built, so a small file cannot expand into a huge one (an "alias bomb"); so is nesting
+    deeper than ``_MAX_YAML_DEPTH`` (which would exhaust the recursion limit). A file that
     is not UTF-8 text, a folder or an unreadable file are refused naming the file.
     """
     import yaml
@@ -407,11 +412,18 @@ def _read_yaml(path: Path) -> Any:
     except UnicodeDecodeError as exc:
         raise InputError(path, "file", f"not UTF-8 text (a binary file?): byte {exc.start}") from None
     loader = _yaml_loader()
+    depth = 0
     try:
         for event in yaml.parse(text, Loader=loader):
+            line = event.start_mark.line + 1 if event.start_mark is not None else "?"
             if isinstance(event, yaml.AliasEvent):
-                line = event.start_mark.line + 1 if event.start_mark is not None else "?"
                 raise InputError(path, "yaml", f"line {line}: aliases (*{event.anchor}) are not allowed")
+            if isinstance(event, yaml.CollectionStartEvent):
+                depth += 1
+                if depth > _MAX_YAML_DEPTH:
+                    raise InputError(path, "yaml", f"line {line}: nested deeper than {_MAX_YAML_DEPTH} levels")
+            elif isinstance(event, yaml.CollectionEndEvent):
+                depth -= 1
         return yaml.load(text, Loader=loader)
     except yaml.YAMLError as exc:
         raise InputError(path, "yaml", f"not valid YAML: {exc}") from None
@@ -431,7 +443,8 @@ def _check_finite(data: Any, path: Path, where: str = "") -> None:
 
 def _check_materials(data: dict, path: Path) -> None:
     """E > 0, rho > 0 and -1 < nu < 0.5, finite (the schema's bounds let NaN through)."""
-    for name, m in data.get("materials", {}).items():
+    materials = data.get("materials")
+    for name, m in (materials.items() if isinstance(materials, dict) else ()):
         if not isinstance(m, dict):
             continue
         for key, ok, rule in (("E", lambda v: v > 0, "> 0"), ("rho", lambda v: v > 0, "> 0"),

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["KnockGSError", "InputError", "SimulationError"]
+__all__ = ["KnockGSError", "InputError", "InputWarning", "SimulationError"]
 
 
 class KnockGSError(Exception):
@@ -31,3 +31,7 @@ class InputError(KnockGSError, ValueError):
 
 class SimulationError(KnockGSError, RuntimeError):
     """A simulation stopped by a guard (non-finite state, CFL violation)."""
+
+
+class InputWarning(UserWarning):
+    """Input that is used but probably not what was meant (the CLI prints it as one line)."""

@@ -63,6 +63,13 @@ def load_source_gaussians(contract) -> GaussianSet:
     if a.procedural is not None:
         return make_procedural(a.procedural, n_gaussians=a.n_gaussians, seed=a.seed)
     gs = read_ply(a.ply)
+    if a.n_gaussians is not None and len(gs) < a.n_gaussians:
+        import warnings
+
+        from knockgs_core.errors import InputWarning
+
+        warnings.warn(f"{a.ply}: holds {len(gs)} Gaussians, fewer than the {a.n_gaussians} of profile "
+                      f"'{contract.profile}' ({contract.source}); all of them are used", InputWarning, stacklevel=2)
     if a.n_gaussians is not None and a.n_gaussians < len(gs):
         rng = np.random.default_rng(a.seed)
         gs = gs.subset(np.sort(rng.choice(len(gs), size=a.n_gaussians, replace=False)))

@@ -24,7 +24,7 @@ import os
 import sys
 import zipfile
 
-from ..errors import KnockGSError
+from ..errors import InputWarning, KnockGSError
 
 __all__ = ["main", "build_parser"]
 
@@ -75,9 +75,21 @@ def describe_error(exc: BaseException) -> str:
     return _one_line(f"{type(exc).__name__}: {exc}")
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    if issubclass(category, InputWarning):
+        print(f"knockgs: warning: {_one_line(message)}", file=file or sys.stderr)
+    else:
+        _show_warning.default(message, category, filename, lineno, file, line)
+
+
 def main(argv: list[str] | None = None) -> int:
+    import warnings
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    if warnings.showwarning is not _show_warning:
+        _show_warning.default = warnings.showwarning
+        warnings.showwarning = _show_warning
     try:
         return int(args.func(args) or 0)
     except KnockGSError as exc:
