@@ -29,8 +29,8 @@ from ._long_format import POSITION_COLUMNS, check_rollout_meta, read_long_values
 from .descriptors import FEATURE_NAMES
 from .errors import InputError
 
-__all__ = ["audit_leakage", "audit_nonfinite", "audit_missing_frames", "audit_rollout_metadata", "audit_duplicates",
-           "audit_completion"]
+__all__ = ["audit_leakage", "audit_nonfinite", "audit_missing_frames", "audit_rollout_metadata", "rollout_expectations",
+           "audit_duplicates", "audit_completion"]
 
 LABEL_COLUMNS = ("E_scale", "density_scale", "E_true", "rho_true")
 #: schema-metadata key of a rollout file (see :mod:`knockgs_core.rollout`)
@@ -208,34 +208,56 @@ def audit_rollout_metadata(objects: Mapping[str, Mapping]) -> dict:
         obj = {"object": name, **obj}
         for f in _rollout_files([root]):
             n_files += 1
-            try:
-                md = _rollout_meta(f)
-                want = _expected_from_path(f, root, obj)
-                if want.get("theta", 0) is None:
-                    raise InputError(f, "path", "no theta tag sE..._sR... where the path grammar has one")
-                check_rollout_meta(f, md, **want)
-                n_rows = pq.ParquetFile(f).metadata.num_rows
-                n_frames, n = md["probe"]["export"]["n_frames"], md["n_gs"] + md["n_fill"]
-                if n_rows != n_frames * n:
-                    raise InputError(f, "rows", f"{n_rows} rows, the metadata says {n_frames} frames x {n} particles")
-                F = f.with_name(f.name.removesuffix(".parquet") + ".F.parquet")
-                if F.exists():
-                    n_files += 1
-                    check_rollout_meta(F, _rollout_meta(F), **{k: _field(md, k) for k in
-                                                              ("object", "profile", "contract_hash", "theta", "probe", "n_gs")})
-                    n_rows = pq.ParquetFile(F).metadata.num_rows
-                    if n_rows != n_frames * md["n_gs"]:
-                        raise InputError(F, "rows", f"{n_rows} rows, its rollout has {n_frames} frames x "
-                                                    f"{md['n_gs']} GS particles")
-            except InputError as exc:
-                problems.append(f"{exc.source}: {exc.field}: {exc.message}")
-            except Exception as exc:  # a truncated footer, malformed metadata: a finding, not a crash
-                problems.append(f"{f}: unreadable ({type(exc).__name__}: {' '.join(str(exc).split())})")
+            want = _expected_from_path(f, root, obj)
+            md = _check_cached(f, want, problems)
+            F = f.with_name(f.name.removesuffix(".parquet") + ".F.parquet")
+            if F.exists():
+                n_files += 1
+                n_gs = md.get("n_gs") if isinstance(md, dict) and isinstance(md.get("n_gs"), int) else None
+                f_want = {k: v for k, v in want.items() if k not in ("n_particles", "n_frames")}
+                _check_cached(F, {**f_want, "n_gs": n_gs}, problems,  # n_rows 0: unknown, not compared
+                              n_rows=(want.get("n_frames") or 0) * n_gs if n_gs is not None else 0)
     return {"passed": not problems, "files_checked": n_files, "problems": problems}
 
 
-def _field(md: dict, key: str):
-    return {"probe": lambda: md["probe"]["name"], "theta": lambda: md["theta"]}.get(key, lambda: md[key])()
+def rollout_expectations(objects: Sequence[str], profile: str, rollout_dirs: Sequence, particle_files: Sequence,
+                         config_dir=None) -> dict:
+    """The ``objects`` argument of :func:`audit_rollout_metadata` for a workflow run: each
+    object's contract at ``profile`` (hash, calibration probe, exported frames per probe)
+    and its particle count (from its particle file)."""
+    from .assets import load_particles
+    from .contract import load_contract
+
+    out = {}
+    for name, folder, particles in zip(objects, rollout_dirs, particle_files):
+        c = load_contract(name, profile, config_dir=config_dir)
+        out[name] = {"rollout_dir": str(folder), "profile": c.profile, "contract_hash": c.hash,
+                     "calibration_probe": c.roles["calibration"], "n_particles": len(load_particles(particles)),
+                     "n_frames": {k: probe.export.n_frames for k, probe in c.probes.items()}}
+    return out
+
+
+def _check_cached(f: Path, want: dict, problems: list, n_rows: int | None = None) -> dict | None:
+    """One cached file against what its path says (``want``) and its row count (the
+    rollout's frames x particles, or ``n_rows``): its metadata, or None when it failed."""
+    try:
+        md = _rollout_meta(f)
+        if want.get("theta", 0) is None:
+            raise InputError(f, "path", "no theta tag sE..._sR... where the path grammar has one")
+        check_rollout_meta(f, md, **want)
+        rows = pq.ParquetFile(f).metadata.num_rows
+        if n_rows is None:
+            n_frames, n = md["probe"]["export"]["n_frames"], md["n_gs"] + md["n_fill"]
+            if rows != n_frames * n:
+                raise InputError(f, "rows", f"{rows} rows, the metadata says {n_frames} frames x {n} particles")
+        elif n_rows and rows != n_rows:
+            raise InputError(f, "rows", f"{rows} rows, its rollout has {n_rows} (frames x GS particles)")
+        return md
+    except InputError as exc:
+        problems.append(f"{exc.source}: {exc.field}: {exc.message}")
+    except Exception as exc:  # a truncated footer, malformed metadata: a finding, not a crash
+        problems.append(f"{f}: unreadable ({type(exc).__name__}: {' '.join(str(exc).split())})")
+    return None
 
 
 def audit_duplicates(candidates: pd.DataFrame, targets: pd.DataFrame, library_tables: Iterable = ()) -> dict:

@@ -5,8 +5,7 @@ from pathlib import Path
 
 from knockgs_core import audits
 from knockgs_core._io import write_text
-from knockgs_core.assets import load_particles
-from knockgs_core.contract import load_candidates, load_contract, load_targets
+from knockgs_core.contract import load_candidates, load_targets
 
 sys.stderr = open(snakemake.log[0], "w")
 name = snakemake.rule.removeprefix("audit_")
@@ -19,12 +18,7 @@ elif name == "nonfinite":
 elif name == "missing_frames":
     verdict = audits.audit_missing_frames(p.rollout_dirs)
 elif name == "rollout_metadata":
-    objects = {}
-    for o, folder, particles in zip(p.objects, p.rollout_dirs, snakemake.input.particles):
-        c = load_contract(o, p.profile)
-        objects[o] = {"rollout_dir": folder, "profile": c.profile, "contract_hash": c.hash,
-                      "calibration_probe": c.roles["calibration"], "n_particles": len(load_particles(particles)),
-                      "n_frames": {k: probe.export.n_frames for k, probe in c.probes.items()}}
+    objects = audits.rollout_expectations(p.objects, p.profile, p.rollout_dirs, snakemake.input.particles)
     verdict = audits.audit_rollout_metadata(objects)
 elif name == "duplicates":
     verdict = audits.audit_duplicates(load_candidates(), load_targets(p.split), snakemake.input.libraries)

@@ -1,0 +1,165 @@
+"""Workflow faults on the ci profile (issue 17): an interrupted run (Ctrl-C or SIGKILL of the
+whole process group) resumes to byte-identical tables, and the audits catch a cached
+rollout that was swapped for another or truncated behind Snakemake's back, with a verdict
+naming the file (not a crash). One object (Pillow), the descriptor table of its candidate
+library: the asset job and nine library jobs.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+import pytest
+
+from _workflow import scratch_copy, snakemake
+
+from knockgs_core.audits import audit_missing_frames, audit_nonfinite, audit_rollout_metadata, rollout_expectations
+
+P = "results/ci"
+TABLE = f"{P}/descriptors/pillow/library.csv"
+ARGS = ("--cores", "2", "--configfile=config/ci.yaml", "--config", "objects=[pillow]", "--")
+
+
+def _start(work: Path, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "snakemake", *extra, *ARGS, TABLE], cwd=work, start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """An uninterrupted run: the table and the rollout cache it was computed from."""
+    work = scratch_copy(tmp_path_factory.mktemp("reference"))
+    out = snakemake(work, *ARGS, TABLE)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return work
+
+
+def _interrupt_and_resume(work: Path, sig: int) -> subprocess.CompletedProcess:
+    proc = _start(work)
+    lib = work / P / "rollouts/pillow/lib"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if len(list(lib.glob("chunk*/*.F.parquet"))) >= 3:  # library jobs under way, some rollouts written
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before it could be interrupted"
+    os.killpg(proc.pid, sig)  # Ctrl-C reaches the whole foreground group; SIGKILL: a power cut
+    proc.communicate(timeout=120)
+    assert not (work / TABLE).exists()
+    if sig == signal.SIGKILL:  # a killed Snakemake leaves its lock: the documented first step is --unlock
+        unlock = snakemake(work, "--unlock", *ARGS, TABLE)
+        assert unlock.returncode == 0, unlock.stderr[-2000:]
+    return snakemake(work, "--rerun-incomplete", *ARGS, TABLE)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL], ids=["SIGINT", "SIGKILL"])
+def test_an_interrupted_run_resumes_to_the_same_bytes(reference, tmp_path, sig):
+    work = scratch_copy(tmp_path / "wf")
+    out = _interrupt_and_resume(work, sig)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert (work / TABLE).read_bytes() == (reference / TABLE).read_bytes()
+    # no temporary file of the atomic writer is left anywhere in the results
+    assert [p for p in (work / P).rglob("*") if ".tmp" in p.name] == []
+
+
+def _cache_copy(reference: Path, dest: Path) -> Path:
+    shutil.copytree(reference / P, dest / P, ignore=shutil.ignore_patterns("benchmarks"))
+    return dest
+
+
+def _expect(work: Path) -> dict:
+    return rollout_expectations(["pillow"], "ci", [work / P / "rollouts/pillow"], [work / P / "assets/pillow.particles.npz"])
+
+
+@pytest.mark.slow
+def test_the_rollout_cache_of_a_clean_run_passes_the_audits(reference):
+    verdict = audit_rollout_metadata(_expect(reference))
+    assert verdict["passed"], verdict["problems"][:3]
+    assert verdict["files_checked"] == 2 * 54  # 54 library rollouts and their F files
+    assert audit_missing_frames([reference / P / "rollouts/pillow"])["passed"]
+
+
+@pytest.mark.slow
+def test_another_candidates_rollout_copied_over_a_library_path_is_caught(reference, tmp_path):
+    work = _cache_copy(reference, tmp_path)
+    files = sorted((work / P / "rollouts/pillow/lib/chunk0").glob("*[0-9].parquet"))
+    victim = files[1]
+    stat = victim.stat()
+    shutil.copy(files[0], victim)  # a valid rollout, of another theta
+    os.utime(victim, ns=(stat.st_atime_ns, stat.st_mtime_ns))  # Snakemake sees nothing
+    # and another candidate's deformation gradients copied over a library F file
+    f_victim = files[3].with_name(files[3].name.replace(".parquet", ".F.parquet"))
+    shutil.copy(files[2].with_name(files[2].name.replace(".parquet", ".F.parquet")), f_victim)
+    verdict = audit_rollout_metadata(_expect(work))
+    assert not verdict["passed"]
+    assert any(str(victim) in p and "metadata.knockgs.theta" in p for p in verdict["problems"]), verdict["problems"]
+    assert any(str(f_victim) in p and "metadata.knockgs.theta" in p for p in verdict["problems"]), verdict["problems"]
+    assert len(verdict["problems"]) == 2, verdict["problems"]
+
+
+@pytest.mark.slow
+def test_a_rollout_of_another_probe_in_the_cache_is_caught(reference, tmp_path):
+    from knockgs_core.assets import load_particles
+    from knockgs_core.contract import load_contract
+    from knockgs_core.rollout import run_rollout, write_rollout
+
+    work = _cache_copy(reference, tmp_path)
+    victim = sorted((work / P / "rollouts/pillow/lib/chunk0").glob("*[0-9].parquet"))[0]
+    contract = load_contract("pillow", "ci")
+    theta = json.loads(pq.read_schema(victim).metadata[b"knockgs"])["theta"]
+    ro = run_rollout(contract, theta, "standard_y", particles=load_particles(work / P / "assets/pillow.particles.npz"))
+    write_rollout(victim, ro)
+    verdict = audit_rollout_metadata(_expect(work))
+    assert any(str(victim) in p and "metadata.knockgs.probe" in p for p in verdict["problems"]), verdict["problems"]
+
+
+@pytest.mark.slow
+def test_a_truncated_rollout_with_its_old_time_stamp_is_caught_not_a_crash(reference, tmp_path):
+    work = _cache_copy(reference, tmp_path)
+    victim = sorted((work / P / "rollouts/pillow/lib/chunk2").glob("*[0-9].parquet"))[0]
+    stat = victim.stat()
+    data = victim.read_bytes()
+    victim.write_bytes(data[: len(data) // 2])
+    os.utime(victim, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    for verdict in (audit_rollout_metadata(_expect(work)), audit_missing_frames([work / P / "rollouts/pillow"]),
+                    audit_nonfinite([work / P / "rollouts/pillow"], [])):
+        assert not verdict["passed"]
+        assert [p for p in verdict["problems"] if str(victim) in p], verdict["problems"]
+
+
+@pytest.mark.slow
+def test_the_nonfinite_audit_scans_the_descriptor_tables(reference, tmp_path):
+    table = tmp_path / "library.csv"
+    df = pd.read_csv(reference / TABLE)
+    df.loc[3, df.columns[-1]] = np.nan
+    df.to_csv(table, index=False)
+    clean = audit_nonfinite([], [reference / TABLE])
+    assert clean["passed"], clean
+    bad = audit_nonfinite([], [table])
+    assert not bad["passed"] and str(table) in bad["problems"][0]
+    # the workflow's non-finite audit reads the descriptor tables, and the rollout audit is part of `all`
+    dry = snakemake(reference, "-n", *ARGS, f"{P}/audits/nonfinite.json")
+    assert dry.returncode == 0, dry.stderr[-2000:]
+    block = (dry.stdout + dry.stderr).split("rule audit_nonfinite:")[1].split("output:")[0]
+    assert f"{P}/descriptors/pillow/library.csv" in block and f"{P}/descriptors/pillow/queries_main.csv" in block
+    dry_all = snakemake(reference, "-n", *ARGS, "all")
+    assert "audit_rollout_metadata" in dry_all.stdout + dry_all.stderr
+
+
+@pytest.mark.slow
+def test_an_unreadable_table_is_a_finding_not_a_crash(tmp_path):
+    bad = tmp_path / "t.csv"
+    bad.write_bytes(b"\xff\xfe\x00\x81" * 10)
+    verdict = audit_nonfinite([], [bad])
+    assert not verdict["passed"] and str(bad) in verdict["problems"][0]
