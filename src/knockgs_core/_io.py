@@ -197,7 +197,7 @@ def atomic_write(path, *, mode: str = "wb", suffix: str | None = None) -> Iterat
     except BaseException as exc:
         with contextlib.suppress(OSError):
             tmp.unlink()
-        if isinstance(exc, OSError) and exc.filename is None:
+        if isinstance(exc, OSError) and exc.filename is None and exc.errno is not None:
             exc.filename = str(path)  # a failed write (e.g. a full disk) names the file it was for
         raise
 
