@@ -25,6 +25,7 @@
 #                                                         render_{object}, objects, discrepancy,
 #                                                         convergence_{object} (Probe-A dt and n_grid study),
 #                                                         boundaries_{object}, loo_object (library boundaries)
+#                                                         verification_fem (MPM vs finite-element reference)
 #   P/figures/{name}.png|gif                              reported figures: main_{object}, fill_{object},
 #                                                         qualitative_{object}, compare_{object} (gif),
 #                                                         objects, discrepancy, convergence_{object},
@@ -61,6 +62,7 @@ include: "workflow/rules/discrepancy.smk"
 include: "workflow/rules/audit.smk"
 include: "workflow/rules/convergence.smk"
 include: "workflow/rules/boundaries.smk"
+include: "workflow/rules/verification.smk"
 
 
 rule all:
@@ -72,3 +74,4 @@ rule all:
         AUDIT_OUTPUTS,
         CONVERGENCE_IN_ALL,
         BOUNDARIES_IN_ALL,
+        VERIFICATION_IN_ALL,

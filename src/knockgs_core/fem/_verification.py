@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from typing import Callable, Mapping
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -57,6 +57,8 @@ __all__ = [
     "response_gap",
     "verification_study",
     "verification_note",
+    "mpm_period_limit",
+    "mpm_period_order",
 ]
 
 _SOURCE = "verification settings"
@@ -318,6 +320,11 @@ def verification_note(table: pd.DataFrame, settings: VerificationSettings) -> st
     mpm = table[table["model"] == "mpm"]
     ref = table[table["model"] == "fem (reference)"].iloc[0]
     check = table[table["model"] == "fem (coarser mesh)"].iloc[0]
+    limit, own = mpm_period_limit(table), mpm_period_order(table)
+    extrapolated = ("" if limit is None else
+                    f" At first order, the MPM's two finest periods extrapolate to {limit:.4f} s, "
+                    f"{100 * (limit / ref['period_ref_s'] - 1):+.2f} % from the reference's"
+                    + ("" if own is None else f" (the observed order of its own three finest periods: {own:.2f})") + ".")
     return (
         f"Block 0.5 x 0.5 x 0.75 m held by its bottom 0.25 m (support box z <= 0.75), E = {MATERIAL['E']:g} Pa, "
         f"nu = {MATERIAL['nu']:g}, rho = {MATERIAL['rho']:g} kg/m^3, no gravity; at t = 0 a {PROBE_DURATION:g} s pulse "
@@ -329,5 +336,43 @@ def verification_note(table: pd.DataFrame, settings: VerificationSettings) -> st
         f"{check['period_error_pct']:+.3f} % in period and {check['traj_rmse_pct']:.3f} % in trajectory. "
         f"Errors are the MPM's (or the coarser FEM's) against the reference at the same points (the particles' rest "
         f"positions): RMS-curve and trajectory RMSE relative to the reference's norms; orders between successive MPM "
-        f"levels ({len(mpm)} levels, dx refined with dt)."
+        f"levels ({len(mpm)} levels, dx refined with dt)." + extrapolated
     )
+
+
+def _three_level_order(h: Sequence[float], values: Sequence[float]) -> float | None:
+    """Observed order ``p`` of three levels (step sizes ``h1 > h2 > h3``, values ``f1, f2, f3``):
+    solves ``(h1^p - h2^p) / (h2^p - h3^p) = (f1 - f2) / (f2 - f3)`` on ``(0, 20]`` by bisection;
+    ``None`` when the changes do not shrink monotonically as a positive order predicts."""
+    d12, d23 = values[0] - values[1], values[1] - values[2]
+    if d12 == 0 or d23 == 0 or (d12 > 0) != (d23 > 0):
+        return None
+    target = d12 / d23
+    ratio = lambda p: (h[0] ** p - h[1] ** p) / (h[1] ** p - h[2] ** p)  # noqa: E731
+    lo, hi = 1e-9, 20.0
+    if not (ratio(lo) < target <= ratio(hi)):
+        return None
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if ratio(mid) < target else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def mpm_period_limit(table: pd.DataFrame, *, order: float = 1.0) -> float | None:
+    """Richardson extrapolation of the MPM's first-mode period [s] from its two finest levels,
+    the MPM's own data only, at the given ``order`` (default first, the order the gaps show):
+    ``T2 + (T2 - T1) / ((h1 / h2)^order - 1)``; ``None`` with fewer than two levels."""
+    mpm = table[table["model"] == "mpm"]
+    if len(mpm) < 2:
+        return None
+    (h1, h2), (T1, T2) = [float(v) for v in mpm["h_m"].iloc[-2:]], [float(v) for v in mpm["period_s"].iloc[-2:]]
+    return T2 + (T2 - T1) / ((h1 / h2) ** order - 1)
+
+
+def mpm_period_order(table: pd.DataFrame) -> float | None:
+    """Observed order of the MPM's own period changes over its three finest levels (``None``
+    with fewer levels or changes that do not shrink as a positive order predicts)."""
+    mpm = table[table["model"] == "mpm"]
+    if len(mpm) < 3:
+        return None
+    return _three_level_order([float(v) for v in mpm["h_m"].iloc[-3:]], [float(v) for v in mpm["period_s"].iloc[-3:]])
