@@ -29,6 +29,7 @@ from knockgs_core.experiments import (
     condition_contract,
     condition_world,
     loo_table,
+    resolution_profile,
     shared_library,
 )
 from knockgs_core.rollout import run_rollout
@@ -74,7 +75,8 @@ def test_settings_defaults_are_the_config_schema_defaults():
                                            ({"rebuild": ["gird"]}, "rebuild"),
                                            ({"n_grid_scale": 1.0}, "n_grid_scale"),
                                            ({"fill_seeds": 0}, "fill_seeds"),
-                                           ({"fill_particles_per_cell": 0}, "fill_particles_per_cell")])
+                                           ({"fill_particles_per_cell": 0}, "fill_particles_per_cell"),
+                                           ({"resolution_profile": "laptop"}, "resolution_profile")])
 def test_bad_settings_are_one_line_errors(kwargs, field):
     with pytest.raises(InputError) as exc:
         BoundarySettings(**kwargs)
@@ -84,9 +86,16 @@ def test_bad_settings_are_one_line_errors(kwargs, field):
 def test_conditions_follow_the_contract(pillow):
     s = BoundarySettings(fill_seeds=2)
     assert boundary_conditions(pillow, s) == ["reference", "fill_density", "fill_density_equal_force",
-                                              "fill_seed1", "fill_seed2", "grid"]
-    ficus = load_contract("ficus", "ci")  # no interior fill: only the grid and the reference apply
+                                              "fill_seed1", "fill_seed2", "grid", "resolution"]
+    # no interior fill: no fill conditions; its ci and default profiles have one resolution: no resolution world
+    ficus = load_contract("ficus", "ci")
     assert boundary_conditions(ficus, s) == ["reference", "grid"]
+    with pytest.raises(InputError) as exc:
+        boundary_condition(ficus, "resolution", s)
+    assert exc.value.field == "resolution_profile"
+    with pytest.raises(InputError) as exc:   # a profile is not its own resolution world
+        boundary_condition(pillow, "resolution", BoundarySettings(resolution_profile="ci"))
+    assert exc.value.field == "resolution_profile"
     with pytest.raises(InputError) as exc:
         boundary_condition(ficus, "fill_density", s)
     assert exc.value.field == "fill.enabled"
@@ -129,6 +138,22 @@ def test_a_new_fill_seed_is_a_new_realization_of_the_same_fill(pillow):
     np.testing.assert_array_equal(new.positions[: new.n_gs], orig.positions[: orig.n_gs])
     assert not np.array_equal(new.positions[new.n_gs:], orig.positions[orig.n_gs:])
     assert world.force_factors[pillow.roles["calibration"]] == 1.0
+
+
+def test_the_resolution_world_is_the_other_profiles_contract_exactly(pillow):
+    """Data made at another resolution: that profile's contract, particles and probe forces as
+    they are (force factors 1), not the library's contract with one component changed."""
+    s = BoundarySettings()
+    assert resolution_profile(pillow, s) == "default"
+    assert resolution_profile(load_contract("pillow", "default"), s) == "ci"
+    cond = boundary_condition(pillow, "resolution", s)
+    assert (cond.kind, cond.value, cond.force, cond.contract_preserved) == ("resolution", "default", "contract", False)
+    world = condition_world(pillow, "resolution", s, original_particles=build_asset(pillow).particles)
+    other = load_contract("pillow", "default")
+    assert world.contract.hash == other.hash and world.contract.profile == "default"
+    assert set(world.force_factors) == set(other.probes) and set(world.force_factors.values()) == {1.0}
+    assert len(world.particles) == len(build_asset(other).particles)
+    assert world.summary(build_asset(pillow).particles)["n_grid"] == other.sim.n_grid
 
 
 # ------------------------------------------------------------------------------ probe forces (rollouts)

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import yaml
 
 from knockgs_core.assets import build_asset
 from knockgs_core.cli import main as cli_main
@@ -35,6 +36,8 @@ from knockgs_core.sim._config import (
     Probe,
     SimParams,
 )
+
+ROOT = Path(__file__).resolve().parents[1]
 
 OBJECTS = ("pillow", "ficus", "vasedeck")
 REFERENCE = Path(__file__).parent / "data" / "knockgs-ficus"  # the authors' released Ficus tables
@@ -138,8 +141,9 @@ def test_replaced_contract_gets_its_own_hash_and_asset():
     assert not np.array_equal(a.particles.positions, b.particles.positions)
 
 
-#: probe.match_total_force lives in ObjectContract.probe_force_match (absent = None)
-CONTRACT_LEVEL = {("probe", "match_total_force"): None}
+#: probe.match_total_force and probe.selected_reference live in ObjectContract.probe_force_match
+#: and ObjectContract.probe_selected_reference (absent = None)
+CONTRACT_LEVEL = {("probe", "match_total_force"): None, ("probe", "selected_reference"): None}
 OPTIONAL_FIELDS = {"fixed_cuboid": ("friction",)}
 
 
@@ -197,6 +201,51 @@ def test_resolve_probes_matches_total_force():
     assert b.probes["shifted_contact_x"].force[1:] == (0.0, 0.0) and b.probes["shifted_contact_x"].force[0] < 0
     assert b.probes["standard_x"] == c.probes["standard_x"]
     assert n["standard_x"] == len(b.particles) > n["local_center_x"] > 0
+
+
+def _total_force(contract, particles, name) -> float:
+    """Total force [N] a contract's probe applies to particles: the resolved per-particle force,
+    scaled by the simulator by probe_reference_particles / N, times the selected particles."""
+    probe = contract.resolve_probes(particles)[name]
+    selected = int(np.count_nonzero(contract.probe_selection(probe, particles.positions)))
+    return float(np.linalg.norm(probe.force)) * contract.probe_reference_particles / len(particles) * selected
+
+
+@pytest.mark.parametrize("name, probe, reference", [("vasedeck", "standard_x", 5866), ("pillow", "local_center_x", 65550),
+                                                    ("pillow", "shifted_contact_x", 65550)])
+def test_a_box_probe_applies_the_same_total_force_at_every_profile(name, probe, reference):
+    """The same physical knock at any resolution: |f| x (particles the box selects at the paper
+    profile), although the ci and default profiles sample the box with other fractions of their
+    particles (Vasedeck 10.8 % and 9.8 %, Pillow 15.7 % and 17.0 %)."""
+    force = {}
+    for profile in ("ci", "default"):
+        c = load_contract(name, profile)
+        ps = build_asset(c).particles
+        force[profile] = _total_force(c, ps, probe)
+        nominal = float(np.linalg.norm(c.probes[probe if probe != "shifted_contact_x" else "local_center_x"].force))
+        assert force[profile] == pytest.approx(nominal * reference, rel=1e-9)
+    # a global probe: |f| x probe_reference_particles, as before
+    c = load_contract(name, "ci")
+    assert _total_force(c, build_asset(c).particles, "standard_x" if name == "pillow" else "standard_z") > 0
+
+
+@pytest.mark.parametrize("edit, field", [
+    (lambda d: d["probes"]["standard_x"].update(selected_reference=1000), "probes.standard_x.selected_reference"),
+    (lambda d: d["probes"]["shifted_contact_x"].update(selected_reference=1000), "probes.shifted_contact_x.selected_reference"),
+])
+def test_selected_reference_needs_a_box_and_no_match(tmp_path, edit, field):
+    from knockgs_core.errors import InputError
+
+    data = yaml.safe_load((ROOT / "config" / "objects" / "pillow.yaml").read_text())
+    edit(data)
+    (tmp_path / "objects").mkdir()
+    for f in ("candidates.csv", "targets.csv"):
+        (tmp_path / f).write_text((ROOT / "config" / f).read_text())
+    path = tmp_path / "objects" / "pillow.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(InputError) as exc:
+        load_contract(path, "ci")
+    assert exc.value.field == field
 
 
 def test_particle_materials_scale_every_region():

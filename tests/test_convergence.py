@@ -137,14 +137,16 @@ def _energy(model, state) -> float:
 
 
 def test_affine_flip_converges_at_first_order_in_dt():
-    """Observed order of the bar's trajectory change under dt -> dt/2 -> dt/4 -> dt/8
-    (measured 0.22, 0.12, 0.06 %: orders 0.89, 0.96); APIC's change grows instead
-    (1.74, 3.14 %: order -0.85)."""
-    runs = [_bar_run("affine_flip", BAR_DT / 2**k)[0] for k in range(4)]
+    """Observed order of the bar's trajectory change under dt -> dt/2 -> ... -> dt/16
+    (measured 0.114, 0.067, 0.038, 0.020 %: orders 0.77, 0.82, 0.89, rising to 1); APIC's
+    change grows instead (1.74, 3.14 %: order -0.85). With F in float32 the changes stalled at
+    0.04 % from dt/8 on (orders 0.64, -0.06): the rounding floor of F's update."""
+    runs = [_bar_run("affine_flip", BAR_DT / 2**k)[0] for k in range(5)]
     changes = [np.linalg.norm(a - b) / np.linalg.norm(b) for a, b in zip(runs, runs[1:])]
     orders = np.log2(np.array(changes[:-1]) / np.array(changes[1:]))
     assert changes[0] < 0.005, changes
-    assert np.all(orders >= 0.8), (changes, orders)
+    assert np.all(orders >= 0.7) and orders[-1] >= 0.85, (changes, orders)
+    assert np.all(np.diff(orders) > 0), (changes, orders)   # entering the asymptotic range
     apic = [_bar_run("apic", BAR_DT / 2**k)[0] for k in range(3)]
     apic_changes = [np.linalg.norm(a - b) / np.linalg.norm(b) for a, b in zip(apic, apic[1:])]
     assert apic_changes[1] > apic_changes[0] > 3 * changes[0], apic_changes

@@ -152,7 +152,7 @@ def test_von_mises_return_mapping_matches_numpy(rng):
     mu = rng.uniform(50.0, 150.0, n)
     yield_stress = 8.0
     wp.init()
-    Fw = wp.array(F.astype(np.float32), dtype=wp.mat33, device="cpu")
+    Fw = wp.array(F.astype(np.float32).astype(np.float64), dtype=wp.mat33d, device="cpu")  # F is float64 in the solver
     plastic = wp.zeros(n, dtype=float, device="cpu")
     mu_w = wp.array(mu.astype(np.float32), dtype=float, device="cpu")
     wp.launch(von_mises_return, dim=n, inputs=[mu_w, yield_stress], outputs=[Fw, plastic], device="cpu")

@@ -36,10 +36,15 @@ def test_each_asset_responds_to_its_probe_a(name, tmp_path):
     meta = ro.meta
     assert meta["n_gs"] == built.particles.n_gs and meta["n_gs"] + meta["n_fill"] == len(built.particles)
     assert meta["contract_hash"] == contract.hash
-    # total force is the same at every resolution: per-particle force x count = reference count x f
+    # total force is the same at every resolution: f x the particles the probe selects at the paper
+    # profile (all of them for a global probe: probe_reference_particles; a box's selected_reference)
+    reference = contract.probe_selected_reference.get(probe)
+    if reference is None:
+        assert contract.probes[probe].box is None
+        reference = contract.probe_reference_particles * meta["probe_selected_count"] / len(built.particles)
     np.testing.assert_allclose(
         np.asarray(meta["total_probe_force"]) * meta["sim"]["dt"] / contract.probes[probe].duration,
-        f * contract.probe_reference_particles * meta["probe_selected_count"] / len(built.particles), rtol=1e-5)
+        f * reference, rtol=1e-5)
 
 
 def test_rollout_parquet_round_trip_and_metadata(tmp_path):

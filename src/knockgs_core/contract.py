@@ -29,7 +29,7 @@ import json
 import math
 import os
 import re
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from fractions import Fraction
 from functools import cached_property, lru_cache
 from pathlib import Path
@@ -160,8 +160,9 @@ class ObjectContract:
 
     ``probes`` hold the nominal forces from the file; :meth:`resolve_probes` (used by
     :func:`knockgs_core.assets.build_asset`, which stores the result as
-    ``BuiltAsset.probes``) applies ``match_total_force`` against the built particles.
-    ``hash`` is the sha256 of the canonical JSON of :meth:`to_dict`. Variants for
+    ``BuiltAsset.probes``) applies ``selected_reference`` and ``match_total_force`` against
+    the built particles (``probe_selected_reference``: probe name -> the particles its box
+    selects at the paper profile). ``hash`` is the sha256 of the canonical JSON of :meth:`to_dict`. Variants for
     experiments (another fill seed, grid, ...) are made with :func:`dataclasses.replace`.
     """
 
@@ -182,6 +183,7 @@ class ObjectContract:
     candidates_path: Path
     targets_path: Path
     profiles: dict[str, Profile]
+    probe_selected_reference: dict[str, int] = field(default_factory=dict)
 
     @cached_property
     def hash(self) -> str:
@@ -246,10 +248,16 @@ class ObjectContract:
     def resolve_probes(self, particles) -> dict[str, Probe]:
         """Probes checked against built ``particles`` (:class:`~knockgs_core.assets.ParticleSet`).
 
-        A box that selects no particle raises :class:`InputError`. A probe with
-        ``match_total_force: REF`` keeps its direction and gets the magnitude
-        ``|f_REF| * n_REF / n_self`` (n: selected particles), so both deliver the same
-        total force and impulse.
+        A box that selects no particle raises :class:`InputError`. The simulator multiplies
+        every per-particle force by ``probe_reference_particles / N`` (N: all particles), so a
+        global probe's total force is ``|f| * probe_reference_particles`` at every profile. A box
+        probe with ``selected_reference: S_ref`` (the particles its box selects at the paper
+        profile) is rescaled by ``(S_ref / n) (N / probe_reference_particles)`` (n: the particles
+        it selects here), so its total force is ``|f| * S_ref`` at every profile (without it the
+        total, ``|f| * probe_reference_particles * n / N``, follows how the profile samples the
+        box). A probe with ``match_total_force: REF`` keeps its direction and gets the magnitude
+        ``|f_REF| * n_REF / n_self`` of REF's resolved force, so both deliver the same total
+        force and impulse.
         """
         counts = {}
         for name, p in self.probes.items():
@@ -260,9 +268,13 @@ class ObjectContract:
                                  f"{len(particles)} particles)")
             counts[name] = n
         out = dict(self.probes)
+        n_all = len(particles.positions)
+        for name, s_ref in self.probe_selected_reference.items():
+            factor = float(s_ref) / counts[name] * n_all / float(self.probe_reference_particles)
+            out[name] = replace(self.probes[name], force=tuple(float(x) * factor for x in self.probes[name].force))
         for name, ref in self.probe_force_match.items():
             f = np.asarray(self.probes[name].force, dtype=np.float64)
-            mag = np.linalg.norm(self.probes[ref].force) * counts[ref] / counts[name]
+            mag = np.linalg.norm(out[ref].force) * counts[ref] / counts[name]
             out[name] = replace(self.probes[name],
                                 force=tuple(float(x) for x in f / np.linalg.norm(f) * mag))
         return out
@@ -282,6 +294,7 @@ class ObjectContract:
             "materials": json_safe(self.materials),
             "regions": {k: json_safe(v) for k, v in self.regions.items()},
             "probes": json_safe(self.probes), "probe_force_match": dict(self.probe_force_match),
+            **({"probe_selected_reference": dict(self.probe_selected_reference)} if self.probe_selected_reference else {}),
             "roles": json_safe(self.roles), "probe_reference_particles": self.probe_reference_particles,
             "camera": json_safe(self.camera),
             "candidates": self.candidates_path.name, "targets": self.targets_path.name,
@@ -665,6 +678,17 @@ def _build(data: dict, path: Path, cfg: Path, profile: str) -> ObjectContract:
         if not np.linalg.norm(probes[k].force) > 0:
             raise InputError(path, f"probes.{k}.force", "needs a direction (non-zero force)")
         match[k] = ref
+    selected_reference = {}
+    for k, v in data["probes"].items():
+        if v.get("selected_reference") is None:
+            continue
+        if probes[k].box is None:
+            raise InputError(path, f"probes.{k}.selected_reference", "needs a contact box (a global probe's reference "
+                             "is probe_reference_particles)")
+        if k in match:
+            raise InputError(path, f"probes.{k}.selected_reference", "a probe with match_total_force takes its total "
+                             "force from the matched probe")
+        selected_reference[k] = int(v["selected_reference"])
 
     r = data["roles"]
     roles = {"calibration": r["calibration"], "heldout": list(r.get("heldout", [])),
@@ -687,7 +711,7 @@ def _build(data: dict, path: Path, cfg: Path, profile: str) -> ObjectContract:
     contract = ObjectContract(
         name=data["name"], profile=profile, source=path, description=data.get("description", ""),
         asset=asset, fill=fill, sim=sim, materials=materials, regions=regions, probes=probes,
-        probe_force_match=match, roles=roles,
+        probe_force_match=match, roles=roles, probe_selected_reference=selected_reference,
         probe_reference_particles=int(data["probe_reference_particles"]), camera=camera,
         candidates_path=cfg / data.get("candidates", "candidates.csv"),
         targets_path=cfg / data.get("targets", "targets.csv"), profiles=profiles)

@@ -16,7 +16,7 @@
 #   B/{object}/{condition}/metrics/{library}.csv               write-back evaluation rows (Probe B)
 #   B/loo/{object}/library.csv, estimate.json, metrics.csv    leave-one-object-out
 #   P/tables/boundaries_{object}.csv|md, P/figures/boundaries_{object}.png, P/tables/loo_object.csv|md
-# Wildcards: condition (reference, fill_density, fill_density_equal_force, fill_seed{k}, grid),
+# Wildcards: condition (reference, fill_density, fill_density_equal_force, fill_seed{k}, grid, resolution),
 # library (original, rebuilt). `snakemake boundaries` makes every table and figure; `all`
 # includes them when config boundaries.enabled is true.
 
@@ -30,7 +30,7 @@ BOUNDARIES_IN_ALL = BOUNDARY_OUTPUTS if BOUNDARIES["enabled"] else []
 
 
 wildcard_constraints:
-    condition="reference|fill_density|fill_density_equal_force|fill_seed[0-9]+|grid",
+    condition="reference|fill_density|fill_density_equal_force|fill_seed[0-9]+|grid|resolution",
     library="|".join(BOUNDARY_LIBRARIES),
 
 

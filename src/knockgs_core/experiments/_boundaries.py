@@ -17,16 +17,23 @@ specification). The conditions (:data:`BOUNDARY_KINDS`):
 - ``fill_seed{k}``: the fill's random seed changed (``contract seed + k``, k = 1 .. n), the
   same specification (a random realization, not a changed model);
 - ``grid``: the MPM grid ``n_grid`` scaled (the same particles; the substep is kept unless the
-  CFL bound of the new grid needs a shorter one that divides the export intervals).
+  CFL bound of the new grid needs a shorter one that divides the export intervals);
+- ``resolution``: the world made at another resolution profile of the same contract
+  (:func:`resolution_profile`: by default ``ci`` <-> ``default``, ``paper`` -> ``default``): its
+  own Gaussians, fill, grid, substep and probe forces (force factors 1). Data made elsewhere,
+  at a resolution the library was not built at; skipped where the two profiles' resolutions are
+  the same (the Ficus's ``ci`` and ``default``).
 
 Fill conditions apply only to objects whose contract has an interior fill.
 
 Probe forces. A contract scales its per-particle forces by ``probe_reference_particles / N``
-(the total force is the same at every resolution profile). A condition multiplies the
+and a box probe's by its ``selected_reference`` (:meth:`ObjectContract.resolve_probes`: the
+total force is the same at every resolution profile). A condition multiplies the
 resolved probe force of the changed contract by a factor (:attr:`ConditionWorld.force_factors`):
 ``N_new / N_orig`` keeps the original per-particle force, ``N_new / N_orig * S_orig / S_new``
 (S: particles the probe selects) keeps the original total force. Where the particles are the
-same, both factors are exactly 1.
+same, both factors are exactly 1. The ``resolution`` world keeps its own contract's
+forces (factor 1): it is that profile's contract exactly, as data made there would be.
 
 Leave-one-object-out: a shared library of the other objects' candidate tables
 (:func:`shared_library`) estimates the held-out object's targets (:func:`loo_table`).
@@ -62,7 +69,9 @@ __all__ = [
 ]
 
 #: condition kinds in table order; ``fill_seed`` expands to ``fill_seed1 .. fill_seed{n}``
-BOUNDARY_KINDS: tuple[str, ...] = ("reference", "fill_density", "fill_density_equal_force", "fill_seed", "grid")
+BOUNDARY_KINDS: tuple[str, ...] = ("reference", "fill_density", "fill_density_equal_force", "fill_seed", "grid", "resolution")
+#: the profile a ``resolution`` world is made at, unless the settings name one
+RESOLUTION_NEIGHBOURS: Mapping[str, str] = {"ci": "default", "default": "ci", "paper": "default"}
 #: the library an estimate comes from: the main one, or the candidates re-simulated under the condition
 BOUNDARY_LIBRARIES: tuple[str, ...] = ("original", "rebuilt")
 _FILL_KINDS = frozenset({"fill_density", "fill_density_equal_force", "fill_seed"})
@@ -76,14 +85,17 @@ class BoundarySettings:
     ``conditions``: condition kinds to run (:data:`BOUNDARY_KINDS`); ``rebuild``: kinds whose
     matched library is rebuilt; ``fill_particles_per_cell``: the changed fill density
     (particles per interior fill cell; the contracts use 4); ``fill_seeds``: how many seeds
-    ``fill_seed`` runs; ``n_grid_scale``: the grid condition's ``n_grid`` multiplier.
+    ``fill_seed`` runs; ``n_grid_scale``: the grid condition's ``n_grid`` multiplier;
+    ``resolution_profile``: the profile the ``resolution`` world is made at (``None``: the
+    neighbour in :data:`RESOLUTION_NEIGHBOURS`).
     """
 
     conditions: tuple[str, ...] = BOUNDARY_KINDS
-    rebuild: tuple[str, ...] = ("fill_density", "grid")
+    rebuild: tuple[str, ...] = ("fill_density", "grid", "resolution")
     fill_particles_per_cell: int = 2
     fill_seeds: int = 3
     n_grid_scale: float = 0.75
+    resolution_profile: str | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "conditions", tuple(self.conditions))
@@ -98,6 +110,9 @@ class BoundarySettings:
             raise InputError(_SOURCE, "fill_seeds", f"must be >= 1, got {self.fill_seeds}")
         if not (math.isfinite(self.n_grid_scale) and self.n_grid_scale > 0 and self.n_grid_scale != 1):
             raise InputError(_SOURCE, "n_grid_scale", f"must be finite, > 0 and != 1, got {self.n_grid_scale}")
+        if self.resolution_profile is not None and self.resolution_profile not in RESOLUTION_NEIGHBOURS:
+            raise InputError(_SOURCE, "resolution_profile",
+                             f"must be one of {', '.join(RESOLUTION_NEIGHBOURS)} or null, got {self.resolution_profile!r}")
 
     @classmethod
     def from_config(cls, block: Mapping) -> "BoundarySettings":
@@ -110,17 +125,18 @@ class BoundarySettings:
 class BoundaryCondition:
     """One condition: ``name`` (a path component), ``kind`` (:data:`BOUNDARY_KINDS`),
     ``component`` (what changed), ``force`` (``per_particle``: the original per-particle
-    probe force; ``total``: the original total force), ``contract_preserved`` (whether the
+    probe force; ``total``: the original total force; ``contract``: the changed contract's
+    own), ``contract_preserved`` (whether the
     original library's contract still holds: true for the reference and a new fill seed),
     ``rebuild`` (whether a matched library is rebuilt) and the changed value."""
 
     name: str
     kind: str
     component: str
-    force: Literal["per_particle", "total"]
+    force: Literal["per_particle", "total", "contract"]
     contract_preserved: bool
     rebuild: bool
-    value: float | int | None = None
+    value: float | int | str | None = None
 
     def describe(self, contract) -> str:
         """One line for tables: what changed, from what to what."""
@@ -130,17 +146,45 @@ class BoundaryCondition:
             return f"fill seed {contract.fill.seed} -> {self.value}"
         if self.kind == "grid":
             return f"n_grid {contract.sim.n_grid} -> {self.value}"
+        if self.kind == "resolution":
+            return f"world at the {self.value} profile's resolution, library at {contract.profile}'s"
         force = "equal total force" if self.force == "total" else "original per-particle force"
         return f"fill {contract.fill.max_particles_per_cell} -> {self.value} particles/cell, {force}"
 
 
+def resolution_profile(contract, settings: BoundarySettings) -> str:
+    """The profile a ``resolution`` world of ``contract`` is made at: the settings' choice, else
+    the neighbour of the contract's profile (:data:`RESOLUTION_NEIGHBOURS`)."""
+    other = settings.resolution_profile or RESOLUTION_NEIGHBOURS.get(contract.profile)
+    if other is None or other == contract.profile or other not in contract.profiles:
+        raise InputError(_SOURCE, "resolution_profile", f"no other profile for {contract.name} at {contract.profile!r}"
+                         f" (got {other!r}; the contract's profiles: {', '.join(contract.profiles)})")
+    return other
+
+
+def _resolution_contract(contract, other: str):
+    from ..contract import load_contract
+
+    return load_contract(contract.source, other)
+
+
+def _same_resolution(a, b) -> bool:
+    """Whether two profiles of one contract simulate the same particles on the same grid."""
+    return a.profiles[a.profile] == b.profiles[b.profile]
+
+
 def boundary_conditions(contract, settings: BoundarySettings) -> list[str]:
     """The condition names that apply to ``contract``, in table order (fill conditions only
-    where the contract has an interior fill)."""
+    where the contract has an interior fill; ``resolution`` only where the other profile's
+    resolution differs)."""
     names = []
     for kind in settings.conditions:
         if kind in _FILL_KINDS and not contract.fill.enabled:
             continue
+        if kind == "resolution":
+            other = _resolution_contract(contract, resolution_profile(contract, settings))
+            if _same_resolution(contract, other):
+                continue
         if kind == "fill_seed":
             names += [f"fill_seed{k}" for k in range(1, int(settings.fill_seeds) + 1)]
         else:
@@ -176,6 +220,12 @@ def boundary_condition(contract, name: str, settings: BoundarySettings) -> Bound
             raise InputError(_SOURCE, "n_grid_scale", f"n_grid {contract.sim.n_grid} x {settings.n_grid_scale} "
                              f"gives {n}: not a changed grid of at least 4 cells")
         return BoundaryCondition(name, kind, "grid", "per_particle", False, rebuild, n)
+    if kind == "resolution":
+        other = resolution_profile(contract, settings)
+        if _same_resolution(contract, _resolution_contract(contract, other)):
+            raise InputError(_SOURCE, "resolution_profile", f"{contract.name}'s {other!r} profile has the resolution "
+                             f"of {contract.profile!r}: not a changed condition")
+        return BoundaryCondition(name, kind, "resolution profile", "contract", False, rebuild, other)
     m = int(settings.fill_particles_per_cell)
     if m == contract.fill.max_particles_per_cell:
         raise InputError(_SOURCE, "fill_particles_per_cell",
@@ -197,6 +247,8 @@ def condition_contract(contract, condition: BoundaryCondition):
         variant = replace(contract, sim=sim)
         dt = min(contract.sim.dt, variant.cfl_dt())
         return replace(variant, sim=replace(sim, dt=dt)) if dt != contract.sim.dt else variant
+    if condition.kind == "resolution":
+        return _resolution_contract(contract, str(condition.value))
     return replace(contract, fill=replace(contract.fill, max_particles_per_cell=int(condition.value)))
 
 
@@ -276,6 +328,8 @@ def condition_world(contract, name: str, settings: BoundarySettings, *, particle
     variant = condition_contract(contract, condition)
     if particles is None:
         particles = build_asset(variant).particles
+    if force_factors is None and condition.force == "contract":
+        force_factors = {p: 1.0 for p in variant.probes}
     if force_factors is None:
         if original_particles is None:
             original_particles = build_asset(contract).particles

@@ -34,6 +34,22 @@ wp.set_module_options({"enable_backward": False})
 # shared math
 # --------------------------------------------------------------------------------------
 @wp.func
+def mat33_to_f64(A: wp.mat33) -> wp.mat33d:
+    """A float32 3x3 matrix in float64."""
+    return wp.mat33d(wp.float64(A[0, 0]), wp.float64(A[0, 1]), wp.float64(A[0, 2]),
+                     wp.float64(A[1, 0]), wp.float64(A[1, 1]), wp.float64(A[1, 2]),
+                     wp.float64(A[2, 0]), wp.float64(A[2, 1]), wp.float64(A[2, 2]))
+
+
+@wp.func
+def mat33_to_f32(A: wp.mat33d) -> wp.mat33:
+    """A float64 3x3 matrix rounded to float32."""
+    return wp.mat33(float(A[0, 0]), float(A[0, 1]), float(A[0, 2]),
+                    float(A[1, 0]), float(A[1, 1]), float(A[1, 2]),
+                    float(A[2, 0]), float(A[2, 1]), float(A[2, 2]))
+
+
+@wp.func
 def bspline_weights(fx: wp.vec3) -> wp.mat33:
     """Quadratic B-spline weights; row ``k`` holds the weight of stencil node ``k`` per axis.
 
@@ -69,7 +85,9 @@ def polar_rotation(A: wp.mat33, q0: wp.quat, max_iter: int) -> wp.quat:
 
     Mueller et al. 2016, "A Robust Method to Extract the Rotational Part of Deformations":
     rotate ``q`` about the axis that aligns its columns with those of ``A`` until the
-    correction angle is negligible. No SVD; 1-2 iterations when warm-started.
+    correction angle is below 1e-7 rad (or ``max_iter`` iterations). No SVD; usually 1-2
+    iterations when warm-started, up to 8 on fast-rotating thin parts: ``max_iter`` must not
+    bind (an unconverged rotation puts a spurious stress into every substep).
     """
     q = q0
     a0 = wp.vec3(A[0, 0], A[1, 0], A[2, 0])
@@ -261,7 +279,7 @@ def p2g(
     x0: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33d),
     mass: wp.array(dtype=float),
     vol: wp.array(dtype=float),
     mu: wp.array(dtype=float),
@@ -292,7 +310,7 @@ def p2g(
         vp = vp + probe_force * (dt / m)
         v[p] = vp
 
-    Fp = F[p]
+    Fp = mat33_to_f32(F[p])
     q = polar_rotation(Fp, rot[p], polar_iters)
     rot[p] = q
     tau = fixed_corotated_kirchhoff(Fp, wp.quat_to_matrix(q), mu[p], lam[p])
@@ -339,12 +357,13 @@ def g2p(
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33d),
     overrun: wp.array(dtype=wp.int32),
 ):
     """Gather: new velocity and affine matrix (APIC, or with ``affine_flip = 1`` the affine
     FLIP update of weight ``flip_weight = exp(-dt / tau)`` with the old node velocities
-    ``grid_v_old`` [m/s]), F <- (I + dt C_pic) F, advect with the grid velocity ``v_pic``.
+    ``grid_v_old`` [m/s]), F <- (I + dt C_pic) F (F in float64), advect with the grid velocity
+    ``v_pic``.
 
     Positions are rest position ``x0`` plus displacement ``u``; advecting the (small)
     displacement keeps sub-ulp motion that ``x += dt v`` in float32 near x = 1 would round
@@ -377,7 +396,7 @@ def g2p(
     if held:  # a prescribed motion: v and C take it exactly, under either transfer
         new_v = trans_velocity
         new_C = wp.mat33(0.0)
-    F[p] = (wp.identity(n=3, dtype=float) + dt * new_C) * F[p]
+    F[p] = (wp.identity(n=3, dtype=wp.float64) + wp.float64(dt) * mat33_to_f64(new_C)) * F[p]
     u[p] = u[p] + dt * new_v
     if affine_flip == 1 and not held:
         v[p] = flip_weight * (v[p] + dv) + (1.0 - flip_weight) * new_v
@@ -392,7 +411,7 @@ def particle_stats(
     x0: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33d),
     inv_dx: float,
     out_f: wp.array(dtype=float),
     out_i: wp.array(dtype=wp.int32),
@@ -402,7 +421,7 @@ def particle_stats(
     p = wp.tid()
     xp = x0[p] + u[p]
     vp = v[p]
-    Fp = F[p]
+    Fp = mat33_to_f32(F[p])
     s = xp[0] + xp[1] + xp[2] + vp[0] + vp[1] + vp[2]
     for a in range(3):
         for b in range(3):
