@@ -10,7 +10,7 @@ sys.stderr = open(snakemake.log[0], "w")
 contract = load_contract(snakemake.wildcards.object, snakemake.params.profile)
 built = build_asset(contract)
 write_ply(built.gaussians, snakemake.output.ply)
-save_particles(built.particles, snakemake.output.particles)
+save_particles(built.particles, snakemake.output.particles, contract=contract)
 save_scene(built, snakemake.output.scene)
 summary = {"object": contract.name, "profile": contract.profile, "contract_hash": contract.hash, **built.summary()}
 write_json(snakemake.output.summary, summary, indent=1)

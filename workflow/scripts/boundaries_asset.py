@@ -12,7 +12,7 @@ p = snakemake.params
 contract = load_contract(p.object, p.profile)
 original = build_asset(contract).particles
 world = condition_world(contract, p.condition, BoundarySettings.from_config(p.settings), original_particles=original)
-save_particles(world.particles, snakemake.output.particles)
+save_particles(world.particles, snakemake.output.particles, contract=world.contract)
 summary = world.summary(original)
 write_json(snakemake.output.summary, summary, indent=1)
 print(json.dumps(summary, default=str), file=sys.stderr)
