@@ -22,9 +22,11 @@ THETAS = ((0.60, 1.65), (0.95, 1.35), (1.15, 0.75))
 
 
 def rms_curve(positions: np.ndarray, n_gs: int) -> np.ndarray:
-    """RMS displacement [m] per frame of the first ``n_gs`` particles, shape (frames,)."""
-    X = np.asarray(positions[:, :n_gs], dtype=np.float64)
-    return np.sqrt(((X - X[0]) ** 2).sum(-1).mean(-1))
+    """RMS displacement [m] per frame of the first ``n_gs`` particles (the Gaussian-associated
+    ones), shape (frames,): :func:`knockgs_core.metrics.rms_displacement_curve`."""
+    from knockgs_core.metrics import rms_displacement_curve
+
+    return rms_displacement_curve(np.asarray(positions[:, :n_gs], dtype=np.float64))
 
 
 def change(a: np.ndarray, b: np.ndarray) -> float:
