@@ -278,6 +278,11 @@ def test_boundaries_target_plans_every_object_and_the_loo_table(tmp_path):
     # fill conditions only where a contract has an interior fill (Pillow's)
     assert f"{CI}/boundaries/pillow/fill_seed3/asset.json" in planned
     assert f"{CI}/boundaries/ficus/fill_density" not in planned
+    # a world made at the default profile's resolution, with its rebuilt library, where that differs
+    for o in ("pillow", "vasedeck"):
+        assert f"{CI}/boundaries/{o}/resolution/asset.json" in planned
+        assert f"{CI}/boundaries/{o}/resolution/estimates/rebuilt.json" in planned
+    assert f"{CI}/boundaries/ficus/resolution" not in planned   # its ci and default profiles are one resolution
 
 
 @pytest.fixture(scope="module")
