@@ -239,7 +239,7 @@ def test_planted_damping_is_found_and_improves_the_heldout_prediction(cases):
 def test_null_case_reports_no_missing_effect(cases):
     row, res = cases["null"]["row"], cases["null"]["result"]
     assert row["identified_effect"] == "none" and not res.unexplained
-    assert res.verdict == "no missing effect found"
+    assert res.verdict_kind == "none" and res.verdict.startswith("no missing effect found")
     assert not res.observation["identity"]  # tracks without identity, matched at frame 0
     assert res.rounds[0]["excess_val"] < SETTINGS.min_excess
 
@@ -302,7 +302,7 @@ def test_library_base_calibration_on_a_null_measurement(pillow, rng):
     assert res.base_method == "library_local_ridge"
     err = lambda th: 50 * (abs(th[0] - truth[0]) / truth[0] + abs(th[1] - truth[1]) / truth[1])  # noqa: E731
     assert err(res.theta_base) < 15.0 and err(res.theta_refit) < 1.0
-    assert res.verdict == "no missing effect found" and res.identified_label == "none"
+    assert res.verdict_kind == "none" and res.identified_label == "none"
     assert res.noise["std"] == pytest.approx(5e-5, rel=0.05)
 
 

@@ -39,7 +39,13 @@ class AttributionRow:
     ``error`` when no trial simulated. Refinement (``refined``): the nonlinear estimate
     (``strength_estimate``, ``value_estimate``, ``theta_estimate``), ``explained_fit``,
     ``delta_bic`` (fit window) and the score ``explained_val``; ``refine_error`` when it
-    failed. ``refined_spec``: the refined model, used by the decision, never written.
+    failed. Time signature (sustained and permanent candidates, refined):
+    ``signature_share``, the share of the candidate's predicted late offset (its mean over
+    the validation window) that the data hold there, and ``signature_ok``
+    (at least ``LoopSettings.signature_min``): a push that has ended leaves no offset, a load
+    that stays on or a permanent set does. ``explained_beyond_floor``: the energy it removes
+    as a share of the validation energy above the discretization floor (what the decision
+    uses; equal to ``explained_val`` without a term). ``refined_spec``: the refined model, used by the decision, never written.
     """
 
     key: str
@@ -59,6 +65,9 @@ class AttributionRow:
     explained_fit: float = math.nan
     explained_val: float = -math.inf
     delta_bic: float = math.nan
+    signature_share: float = math.nan
+    signature_ok: bool = True
+    explained_beyond_floor: float = -math.inf
     rank: int = 0
     refined_spec: ModelSpec | None = field(default=None, repr=False)
 
@@ -84,6 +93,10 @@ class AttributionRow:
         if self.refined:
             d.update({"theta_estimate": self.theta_estimate, "explained_fit": self.explained_fit,
                       "explained_val": self.explained_val, "delta_bic": self.delta_bic})
+            if not math.isnan(self.signature_share):
+                d.update({"signature_share": self.signature_share, "signature_ok": self.signature_ok})
+            if self.explained_beyond_floor != self.explained_val:
+                d["explained_beyond_floor"] = self.explained_beyond_floor
         else:
             if self.refine_error is not None:
                 d["refine_error"] = self.refine_error
@@ -100,9 +113,12 @@ class AttributionRound:
     ``rss_theta_fit``, ``rss_theta_val`` [m^2]: residual energy after the nonlinear
     theta-only refit on the fit window (``theta_fit_window``); ``screen_rss_theta_val``:
     the same after the linearized theta fit; ``noise_floor_val`` [m^2]: the noise's share of
-    the validation energy; ``excess_val``: validation energy over that floor, minus 1;
+    the validation energy; ``model_floor_val`` [m^2]: the discretization floor there (the
+    term's energy, 0 without one); ``excess_val``: validation energy over both floors, minus 1;
     ``significant``: above ``LoopSettings.min_excess``; ``table``: the ranked rows;
-    ``decision``: what the loop did next; ``tried``: the joint recalibrations attempted.
+    ``decision``: what the loop did next; ``tried``: the joint recalibrations attempted;
+    with a discretization term, ``term_coefficient`` (its profiled c at the theta-only
+    refit) and ``rss_theta_val_without_term`` (the validation energy there with c = 0).
     """
 
     theta: list
@@ -119,6 +135,10 @@ class AttributionRound:
     table: list[AttributionRow]
     decision: str | None = None
     tried: list[dict] | None = None
+    model_floor_val: float = 0.0
+    floor_weight: float = 0.0
+    term_coefficient: float | None = None
+    rss_theta_val_without_term: float | None = None
 
     @property
     def best(self) -> AttributionRow | None:
@@ -134,27 +154,40 @@ class AttributionRound:
         }
         if self.tried is not None:
             d["tried"] = self.tried
+        if self.term_coefficient is not None:
+            d["model_floor_val"] = self.model_floor_val
+            d["floor_weight"] = self.floor_weight
+            d["term_coefficient"] = self.term_coefficient
+            d["rss_theta_val_without_term"] = self.rss_theta_val_without_term
         return d
 
 
 @dataclass(frozen=True)
 class _Linearization:
     """The model ``spec`` linearized in log theta: observed positions ``base`` [T, M, 3],
-    the residual ``r`` (measured minus simulated, flattened), the sensitivities ``J`` to
-    log s_E and log s_rho, the theta-only fit ``a`` on the fit window and its residual
-    energies on the fit and validation windows [m^2]."""
+    the residual ``r`` (measured minus simulated, flattened), the columns ``J`` of the
+    sensitivities to log s_E and log s_rho (and the discretization term when the problem
+    has one), their bounds ``lower``/``upper``, the theta-only fit ``a`` on the fit window
+    and its residual energies on the fit and validation windows [m^2]."""
 
     base: np.ndarray
     r: np.ndarray
     J: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
     a: np.ndarray
     rss_fit: float
     rss_val: float
 
 
-def _fit_rows(A, r, rows):
-    coef, *_ = np.linalg.lstsq(A[rows], r[rows], rcond=None)
-    return coef
+def _fit_rows(A, r, rows, lower=None, upper=None):
+    """Least squares of ``A x = r`` on ``rows``, with bounds on x when given."""
+    if lower is None or not (np.any(np.isfinite(lower)) or np.any(np.isfinite(upper))):
+        coef, *_ = np.linalg.lstsq(A[rows], r[rows], rcond=None)
+        return coef
+    from scipy.optimize import lsq_linear
+
+    return lsq_linear(A[rows], r[rows], bounds=(lower, upper), method="bvls").x
 
 
 def _rss(A, coef, r, rows):
@@ -166,19 +199,31 @@ def _linearize(problem: Problem, spec: ModelSpec, settings: LoopSettings) -> _Li
     base = problem.observe(spec)
     r = (problem.Y - base)[1:].reshape(-1)  # measured minus simulated: what a change must add
     h = settings.theta_step
-    J = np.empty((r.size, 2))
+    cols = []
     for j in range(2):
         th = list(spec.theta)
         th[j] *= math.exp(h)
-        J[:, j] = (problem.observe(spec.with_theta(th)) - base)[1:].reshape(-1) / h
+        cols.append((problem.observe(spec.with_theta(th)) - base)[1:].reshape(-1) / h)
+    lower, upper = [-np.inf, -np.inf], [np.inf, np.inf]
+    if problem.term is not None:
+        cols.append(problem.term)
+        lower.append(0.0)
+        upper.append(problem.term_max)
+    J = np.column_stack(cols)
+    lower, upper = np.array(lower), np.array(upper)
     F, V = problem.fit_rows, problem.val_rows
-    a = _fit_rows(J, r, F)
-    return _Linearization(base, r, J, a, _rss(J, a, r, F), _rss(J, a, r, V))
+    a = _fit_rows(J, r, F, lower, upper)
+    return _Linearization(base, r, J, lower, upper, a, _rss(J, a, r, F), _rss(J, a, r, V))
 
 
 def _screen(problem: Problem, spec: ModelSpec, cand: Candidate, lin: _Linearization) -> AttributionRow:
-    """The candidate's best trial signature fitted jointly with the theta sensitivities."""
+    """The candidate's best trial signature fitted jointly with the theta sensitivities (and
+    the discretization term)."""
     F, V, r, J, a = problem.fit_rows, problem.val_rows, lin.r, lin.J, lin.a
+    nj = J.shape[1]
+    lower = np.append(lin.lower, 0.0 if cand.one_sided else -np.inf)
+    upper = np.append(lin.upper, np.inf)
+    bounded = problem.term is not None
     best = None
     for u in cand.trials:
         try:
@@ -187,12 +232,15 @@ def _screen(problem: Problem, spec: ModelSpec, cand: Candidate, lin: _Linearizat
             best = best or {"trial": u, "error": str(exc)[:200]}
             continue
         A = np.column_stack([J, S])
-        coef = _fit_rows(A, r, F)
-        if cand.one_sided and coef[2] < 0:
-            coef = np.array([a[0], a[1], 0.0])
+        if bounded:
+            coef = _fit_rows(A, r, F, lower, upper)
+        else:
+            coef = _fit_rows(A, r, F)
+            if cand.one_sided and coef[nj] < 0:
+                coef = np.append(a, 0.0)
         rF = _rss(A, coef, r, F)
         if best is None or "error" in best or rF < best["rss_fit"]:
-            best = {"trial": u, "coef": float(coef[2]), "rss_fit": rF, "rss_val": _rss(A, coef, r, V)}
+            best = {"trial": u, "coef": float(coef[nj]), "rss_fit": rF, "rss_val": _rss(A, coef, r, V)}
     if best is None or "error" in best:
         return AttributionRow(cand.key, cand.label, error=(best or {}).get("error", "no trial"))
     u_est = float(np.clip(best["coef"] * best["trial"], *cand.bounds))
@@ -202,6 +250,22 @@ def _screen(problem: Problem, spec: ModelSpec, cand: Candidate, lin: _Linearizat
         screen_explained_fit=1.0 - best["rss_fit"] / max(lin.rss_fit, 1e-300),
         screen_explained_val=1.0 - best["rss_val"] / max(lin.rss_val, 1e-300),
     )
+
+
+def _late_offset_share(problem: Problem, fitted: ModelSpec, key: str) -> float:
+    """The share of the candidate's late offset found in the data: at the candidate's fitted
+    model, S is its contribution (the rollout minus the same without it) and R what the data
+    need on top of the model without it (measured minus that rollout), both averaged over the
+    validation frames per point and axis; returns ``<R, S> / <S, S>`` (1: the data keep the
+    offset the candidate predicts; 0: they have none)."""
+    without = problem.observe(fitted.with_effect(key, 0.0))
+    S = problem.observe(fitted) - without
+    R = problem.Y - without
+    n_fit = problem.fit_frames
+    S_late = S[1:][n_fit:].mean(axis=0).reshape(-1)
+    R_late = R[1:][n_fit:].mean(axis=0).reshape(-1)
+    ss = float(S_late @ S_late)
+    return float(R_late @ S_late) / ss if ss > 0 else math.nan
 
 
 def _refine(problem: Problem, spec: ModelSpec, row: AttributionRow, cand: Candidate, rss_theta: tuple[float, float],
@@ -242,6 +306,13 @@ def _refine(problem: Problem, spec: ModelSpec, row: AttributionRow, cand: Candid
     row.explained_val = 1.0 - rV / max(rss_theta[1], 1e-300)
     row.delta_bic = F.size * math.log(max(rF, 1e-300) / max(rss_theta[0], 1e-300)) + math.log(F.size)
     row.refined_spec = fitted
+    if cand.time_signature and u != 0.0:
+        try:
+            share = _late_offset_share(problem, fitted, cand.key)
+        except (SimulationError, InputError):
+            share = math.nan
+        row.signature_share = share
+        row.signature_ok = bool(not math.isnan(share) and share >= settings.signature_min)
 
 
 def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], floor: float, settings: LoopSettings,
@@ -260,23 +331,36 @@ def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], fl
 
     theta_fit, r_theta = lm_fit(problem, spec, list(spec.effect_keys), F, settings, settings.refine_iterations, log)
     rss_nl_theta_F, rss_nl_theta_V = float(r_theta[F] @ r_theta[F]), float(r_theta[V] @ r_theta[V])
-    excess = rss_nl_theta_V / (V.size * floor) - 1.0 if floor > 0 else math.inf
+    raw = problem.raw_residual(theta_fit)
+    term_c = problem.coefficient(raw)
+    rss_raw_V = float(raw[V] @ raw[V])
+    weight = problem.floor_weight(term_c)
+    model_floor_V = problem.model_floor(V, weight)
+    floor_V = V.size * floor + model_floor_V
+    excess = rss_nl_theta_V / floor_V - 1.0 if floor_V > 0 else math.inf
     significant = bool(excess > settings.min_excess)
     screened = [row.key for row in rows if row.error is None]
     chosen = screened[: settings.refine_top]
     chosen += [key for key in screened if by_key[key].threshold and key not in chosen]
     if not significant:  # nothing to explain: the screen is reported, no refinement is needed
         chosen = []
+    beyond = max(rss_nl_theta_V - model_floor_V, 1e-300)
     for row in rows:
         if row.key in chosen:
             _refine(problem, spec, row, by_key[row.key], (rss_nl_theta_F, rss_nl_theta_V), settings, log)
         else:
             row.explained_val = row.screen_explained_val
+        if math.isfinite(row.explained_val):
+            row.explained_beyond_floor = (rss_nl_theta_V * row.explained_val) / beyond if model_floor_V > 0 else row.explained_val
     rows.sort(key=lambda row: (not row.refined, -row.explained_val))
     for rank, row in enumerate(rows, 1):
         row.rank = rank
     return AttributionRound(
         theta=list(spec.theta), effects=[list(e) for e in spec.effects], n_fit=F.size, n_val=V.size,
         rss_theta_fit=rss_nl_theta_F, rss_theta_val=rss_nl_theta_V, theta_fit_window=list(theta_fit.theta),
-        screen_rss_theta_val=lin.rss_val, noise_floor_val=V.size * floor, excess_val=excess, significant=significant, table=rows,
+        screen_rss_theta_val=lin.rss_val, noise_floor_val=V.size * floor, model_floor_val=model_floor_V, floor_weight=weight,
+        excess_val=excess,
+        significant=significant, table=rows,
+        term_coefficient=term_c if problem.term is not None else None,
+        rss_theta_val_without_term=rss_raw_V if problem.term is not None else None,
     )

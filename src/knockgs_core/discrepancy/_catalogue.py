@@ -60,7 +60,10 @@ class Candidate:
     signatures are computed; ``scale``: the strength's natural size (the optimizer works in
     ``u / scale``); ``one_sided``: ``u >= 0`` only; ``bounds``: allowed strengths;
     ``threshold``: the response sets in only beyond some strength (a yield or a slip onset),
-    so a linear screen can miss it and it is always refined nonlinearly."""
+    so a linear screen can miss it and it is always refined nonlinearly; ``time_signature``:
+    ``sustained`` (a load that stays on), ``permanent`` (a set that stays after the motion),
+    or ``""`` (no sustained offset of its own): a sustained or permanent candidate is
+    checked against the residual's late offset (module :mod:`._attribution`)."""
 
     key: str
     label: str
@@ -73,6 +76,7 @@ class Candidate:
     one_sided: bool
     bounds: tuple[float, float]
     threshold: bool = False
+    time_signature: str = ""
 
     def effect(self, u: float):
         return self.make(float(u))
@@ -95,14 +99,14 @@ def default_catalogue(ctx: CatalogueContext, *, keys=None) -> list[Candidate]:
     g = 2.0 * D / H**2
     out.append(Candidate(
         "gravity", "gravity (sag under self-weight)", lambda u: Gravity(g=u), lambda u: u, "g", "m/s^2",
-        trials=(g, 5.0 * g), scale=g, one_sided=False, bounds=(-1e3 * g, 1e3 * g)))
+        trials=(g, 5.0 * g), scale=g, one_sided=False, bounds=(-1e3 * g, 1e3 * g), time_signature="sustained"))
     # strength = inverse yield strain 2 mu0 / yield_stress (0 = never yields)
     out.append(Candidate(
         "plasticity", "von Mises plasticity (permanent set)",
         lambda u: VonMisesPlasticity(yield_stress=(2.0 * mu0 / u) if u > 0 else math.inf),
         lambda u: (2.0 * mu0 / u) if u > 0 else math.inf, "yield_stress", "Pa",
         trials=tuple(f / eps for f in (1.2, 1.6, 2.2, 3.0, 4.5, 7.0, 12.0, 20.0, 35.0)), scale=1.0 / eps, one_sided=True,
-        bounds=(0.0, 200.0 / eps), threshold=True))
+        bounds=(0.0, 200.0 / eps), threshold=True, time_signature="permanent"))
     out.append(Candidate(
         "poisson", "Poisson-ratio shift", lambda u: PoissonShift(delta_nu=u), lambda u: u, "delta_nu", "",
         trials=tuple(d for d in (-0.4, -0.1, 0.1) if -0.95 < nu_lo + d and nu_hi + d < 0.495), scale=0.1, one_sided=False,
@@ -116,13 +120,14 @@ def default_catalogue(ctx: CatalogueContext, *, keys=None) -> list[Candidate]:
         out.append(Candidate(
             "support_slip", "viscous slip at the support", lambda u: SupportSlip(slip_time=u), lambda u: u, "slip_time", "s",
             trials=tuple(f * H for f in (0.004, 0.01, 0.025, 0.06, 0.15)), scale=0.01 * H, one_sided=True, bounds=(0.0, 10.0 * H),
-            threshold=True))
+            threshold=True, time_signature="permanent"))
         if ctx.has_gravity:
             # strength = 1 / mu (0 = sticky)
             out.append(Candidate(
                 "support_friction", "Coulomb friction at the support",
                 lambda u: SupportFriction(mu=(1.0 / u) if u > 0 else math.inf), lambda u: (1.0 / u) if u > 0 else math.inf,
-                "mu", "", trials=(1.0, 4.0), scale=1.0, one_sided=True, bounds=(0.0, 1e3), threshold=True))
+                "mu", "", trials=(1.0, 4.0), scale=1.0, one_sided=True, bounds=(0.0, 1e3), threshold=True,
+                time_signature="permanent"))
     if keys is not None:
         keys = list(keys)
         unknown = set(keys) - set(CATALOGUE_KEYS)

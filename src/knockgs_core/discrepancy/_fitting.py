@@ -45,14 +45,63 @@ class Problem:
         self.val_rows = np.arange(n_fit * rows_per_frame, (T - 1) * rows_per_frame)
         self.fit_frames = n_fit
         self.Y = measured.points
+        self.term: np.ndarray | None = None
+        self.term_max = 0.0
 
     def observe(self, spec: ModelSpec) -> np.ndarray:
+        """The model's positions [T, M, 3] at the observed points and frames (no term)."""
         X = self.forward.rollout(spec, self.probe)
         return self.corr.observe(X, self.frames, self.Y[0])
 
-    def residual(self, spec: ModelSpec) -> np.ndarray:
-        """Simulated minus measured, frames after t = 0, flattened (frame, point, axis)."""
+    def raw_residual(self, spec: ModelSpec) -> np.ndarray:
+        """Simulated minus measured without the discretization term, frames after t = 0,
+        flattened (frame, point, axis)."""
         return (self.observe(spec) - self.Y)[1:].reshape(-1)
+
+    def coefficient(self, raw: np.ndarray) -> float:
+        """The discretization term's coefficient c for a raw residual: least squares on the
+        fit window, clipped to [0, ``term_max``] (0 without a term)."""
+        if self.term is None:
+            return 0.0
+        t, r = self.term[self.fit_rows], raw[self.fit_rows]
+        tt = float(t @ t)
+        return float(np.clip(-float(t @ r) / tt, 0.0, self.term_max)) if tt > 0 else 0.0
+
+    def residual(self, spec: ModelSpec) -> np.ndarray:
+        """Simulated (plus the discretization term, its coefficient profiled out on the fit
+        window) minus measured, frames after t = 0, flattened (frame, point, axis)."""
+        raw = self.raw_residual(spec)
+        if self.term is None:
+            return raw
+        return raw + self.coefficient(raw) * self.term
+
+    def floor_weight(self, c: float) -> float:
+        """How much of the discretization floor applies when the data show the term with
+        coefficient ``c``: 0 up to ``c0``, rising linearly to 1 at ``c1``
+        (``LoopSettings.model_error_ramp``; 0 without a term). Data at the model's own
+        resolution (c near 0) carry no discretization error of the model; data a sizeable part
+        of a refinement step away carry at least the change of one step."""
+        if self.term is None:
+            return 0.0
+        c0, c1 = self.settings.model_error_ramp
+        return float(np.clip((c - c0) / (c1 - c0), 0.0, 1.0))
+
+    def model_floor(self, rows, weight: float = 1.0) -> float:
+        """The discretization floor [m^2] of the residual rows ``rows``: ``weight`` times the
+        energy of the term (the model's change under refinement that theta cannot absorb)
+        there; 0 without a term."""
+        if self.term is None:
+            return 0.0
+        t = self.term[rows]
+        return float(weight) * float(t @ t)
+
+    def with_term(self, term: np.ndarray | None, term_max: float) -> Problem:
+        """The same problem with the discretization term ``term`` [T, M, 3] (m, frame 0
+        included) whose coefficient is profiled in [0, ``term_max``]."""
+        other = copy.copy(self)
+        other.term = None if term is None else np.asarray(term, dtype=np.float64)[1:].reshape(-1)
+        other.term_max = float(term_max)
+        return other
 
     def with_forward(self, forward: ForwardModel) -> Problem:
         """The same problem simulated by ``forward`` (e.g. once it has its catalogue)."""

@@ -39,6 +39,7 @@ from ._catalogue import Candidate, CatalogueContext, default_catalogue, dev_stra
 from ._fitting import Parametrization, Problem, levenberg_marquardt, lm_fit
 from ._forward import ForwardModel, ModelSpec
 from ._measured import Measurement
+from ._model_error import ModelError, build_model_error
 from ._settings import LoopSettings
 from ._views import residual_views, view_summary
 
@@ -61,7 +62,12 @@ class LibrarySource:
 
 @dataclass
 class DiscrepancyResult:
-    """What the loop found. ``identified`` lists the added effects' keys (empty: none);
+    """What the loop found. ``verdict_kind``: ``effect_found``, ``discretization`` (the
+    residual is consistent with the model's discretization error), ``unexplained`` or
+    ``none``. ``model_error``: the discretization term (refined model, coefficient, size;
+    None when off); ``approximation``: the closest catalogue term to an unexplained residual
+    whose time signature does not match (None otherwise); ``theta_interval`` [[lo, hi] of s_E, [lo, hi] of s_rho] with its parts
+    in ``theta_uncertainty``. ``identified`` lists the added effects' keys (empty: none);
     ``effects`` their estimated parameters; ``theta_*`` the estimates at each stage;
     ``unexplained`` says a significant residual remains that no catalogue effect explains
     (``residual`` gives its size); ``rounds`` hold the ranked attribution tables;
@@ -75,6 +81,7 @@ class DiscrepancyResult:
     probe: str
     heldout_probes: list[str]
     verdict: str
+    verdict_kind: str
     identified: list[str]
     effects: list[dict]
     theta_base: tuple[float, float]
@@ -86,6 +93,10 @@ class DiscrepancyResult:
     noise: dict
     observation: dict
     rounds: list[dict]
+    model_error: dict | None
+    approximation: dict | None
+    theta_interval: list
+    theta_uncertainty: dict
     metrics: dict
     n_simulations: int
     seconds: float
@@ -188,14 +199,96 @@ def _context(problem: Problem, spec: ModelSpec) -> CatalogueContext:
 # --------------------------------------------------------------------------------------
 def _refit_theta(problem: Problem, base: ModelSpec, library: LibrarySource | None, settings: LoopSettings,
                  log: list) -> ModelSpec:
-    """Phase 2: after a library estimate, theta refined by a few LM steps (the LM base
-    calibration already is a fit through the simulator)."""
-    if library is None:
+    """Phase 2: after a library estimate, or with a discretization term, theta refined by a
+    few LM steps (the LM base calibration without a term already is a fit through the
+    simulator)."""
+    if library is None and problem.term is None:
         return base
     par = Parametrization([], problem.forward.catalogue, settings)
     x, _, _ = levenberg_marquardt(lambda x: problem.residual(par.to_spec(x, base)), par.to_x(base), par.lower, par.upper,
                                   par.steps, settings.refit_iterations, log)
     return par.to_spec(x, base)
+
+
+def _sensitivities(problem: Problem, spec: ModelSpec, settings: LoopSettings) -> np.ndarray:
+    """Forward-difference sensitivities of the observed positions to log s_E and log s_rho,
+    frames after t = 0, flattened: [rows, 2]."""
+    base = problem.observe(spec)
+    h = settings.theta_step
+    cols = []
+    for j in range(2):
+        th = list(spec.theta)
+        th[j] *= math.exp(h)
+        cols.append((problem.observe(spec.with_theta(th)) - base)[1:].reshape(-1) / h)
+    return np.column_stack(cols)
+
+
+def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: LoopSettings) -> Problem:
+    """``problem`` with the discretization term computed at ``spec``: the refined minus the
+    model displacement at the observed points' rest positions and measured frames, less its
+    projection on the theta sensitivities (what re-tuning theta can absorb is left to theta
+    and reported in its interval, so the term never trades off against E or rho)."""
+    fw = problem.forward
+    points = np.asarray(fw.particles.positions, dtype=np.float64)[problem.corr.index]
+    D = me.difference(fw, spec, problem.probe, points)[problem.frames]
+    J = _sensitivities(problem, spec, settings)
+    flat = D[1:].reshape(-1)
+    perp = flat - J @ np.linalg.lstsq(J, flat, rcond=None)[0]
+    term = np.zeros_like(D)
+    term[1:] = perp.reshape(D[1:].shape)
+    me.spec, me.term, me.change = spec, term, D
+    return problem.with_term(term, me.c_max)
+
+
+def _refined_theta(problem: Problem, me: ModelError, spec: ModelSpec, settings: LoopSettings, log: list) -> ModelSpec:
+    """theta refitted (LM, all calibration frames, effect strengths held) with the refined
+    model: the calibration the data gives one refinement further."""
+    from ._measured import Correspondence
+
+    rest = np.asarray(problem.forward.particles.positions, dtype=np.float64)[problem.corr.index]
+    from scipy.spatial import cKDTree
+
+    d, idx = cKDTree(np.asarray(me.refined.particles.positions, dtype=np.float64)).query(rest)
+    sub = problem.with_forward(me.refined).with_term(None, 0.0)
+    sub.corr = Correspondence(index=np.asarray(idx, dtype=np.int64), identity=False, match_distance=np.asarray(d))
+    fitted, _ = lm_fit(sub, spec, [], slice(None), settings, settings.refit_iterations, log)
+    return fitted
+
+
+def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, settings: LoopSettings, log: list) -> dict:
+    """An interval on theta at the final model ``spec``: the statistical part (2 standard
+    deviations of the linearized least squares in log theta, with the residual's own
+    variance) around the hull of theta fitted by the model (``estimate``) and by the refined
+    model (``refined``). Their first-order Richardson extrapolation to the continuum
+    (``continuum``: ``refined + (refined - estimate) / (r - 1)`` in log theta) is reported,
+    not included: where the convergence is not yet asymptotic (the Pillow's, docs/assets.md)
+    it extrapolates past any plausible value."""
+    J = _sensitivities(problem, spec, settings)
+    r = problem.residual(spec)
+    A = np.column_stack([J, problem.term]) if problem.term is not None else J
+    dof = max(r.size - A.shape[1], 1)
+    s2 = float(r @ r) / dof
+    try:
+        cov = s2 * np.linalg.inv(A.T @ A)
+    except np.linalg.LinAlgError:
+        cov = np.full((A.shape[1], A.shape[1]), np.inf)
+    sd = np.sqrt(np.clip(np.diag(cov)[:2], 0.0, np.inf))
+    logt = np.log(np.asarray(spec.theta, dtype=np.float64))
+    points = {"estimate": logt}
+    if me is not None:
+        try:
+            ref = np.log(np.asarray(_refined_theta(problem, me, spec, settings, log).theta, dtype=np.float64))
+            points["refined"] = ref
+            points["continuum"] = ref + (ref - logt) / (me.factor - 1.0)
+        except SimulationError as exc:
+            log.append({"event": "refined_theta_failed", "error": str(exc)[:200]})
+    P = np.array([v for k, v in points.items() if k != "continuum"])
+    lo, hi = P.min(axis=0) - 2 * sd, P.max(axis=0) + 2 * sd
+    return {
+        "interval": [[float(math.exp(lo[k])), float(math.exp(hi[k]))] for k in range(2)],
+        "statistical_sd_log": [float(x) for x in sd],
+        "theta_at": {k: [float(math.exp(x)) for x in v] for k, v in points.items()},
+    }
 
 
 # --------------------------------------------------------------------------------------
@@ -210,7 +303,7 @@ def _try_candidates(problem: Problem, spec: ModelSpec, att: AttributionRound, fl
     tried = []
     rss_cur = float(np.sum(problem.residual(spec) ** 2))
     for row in att.table[: settings.max_tries]:
-        if not row.refined or row.explained_val < settings.min_explained or row.delta_bic >= 0:
+        if not row.refined or row.explained_beyond_floor < settings.min_explained or row.delta_bic >= 0 or not row.signature_ok:
             continue
         key = row.key
         start_spec = row.refined_spec
@@ -221,7 +314,7 @@ def _try_candidates(problem: Problem, spec: ModelSpec, att: AttributionRound, fl
             tried.append({"key": key, "error": str(exc)[:200]})
             continue
         cost = float(rr @ rr)
-        excess_all = max(rss_cur - rr.size * floor, 1e-12 * rss_cur)
+        excess_all = max(rss_cur - rr.size * floor - problem.model_floor(slice(None), att.floor_weight), 1e-12 * rss_cur)
         gain = (rss_cur - cost) / excess_all
         new = ModelSpec(new.theta, tuple((k, u) for k, u in new.effects if u != 0.0 or k == key))
         tried.append({"key": key, "rss_before": rss_cur, "rss_after": cost, "gain_over_excess": gain, "theta": list(new.theta),
@@ -266,7 +359,9 @@ def _predict_and_score(problem: Problem, stages: dict[str, ModelSpec], probes: S
                        settings: LoopSettings) -> tuple[dict, dict, dict]:
     """Predicted Gaussian-particle positions [T, n_gs, 3] (float32) of every stage under
     every probe, and the residual views and their summaries for the probes in ``measured``
-    (the calibration probe first). Returns (predictions, metrics, views)."""
+    (the calibration probe first). Predictions are the model's own (theta and the added
+    effects): the discretization term is an analysis device of the attribution, not a part
+    of the predictive model. Returns (predictions, metrics, views)."""
     fw = problem.forward
     n_gs = fw.particles.n_gs
     predictions = {}
@@ -311,18 +406,91 @@ def _effects_found(catalogue: dict[str, Candidate], spec: ModelSpec) -> list[dic
     return out
 
 
-def _verdict(effects: list[dict], unexplained: bool, residual: dict) -> str:
-    """One sentence: the effects found, or that none is missing, or the unexplained residual."""
+def _model_error_summary(problem: Problem, final: ModelSpec, me: ModelError, floor: float, settings: LoopSettings,
+                         coefficients: dict[str, float]) -> dict:
+    """The discretization term at the final model: its coefficient, its RMS per point [m]
+    (at that coefficient and per unit), its share of the measured RMS displacement, and
+    whether the residual is significant without it and with it (validation window)."""
+    raw = problem.raw_residual(final)
+    c = problem.coefficient(raw)
+    full = raw + c * problem.term
+    V = problem.val_rows
+    Yd = problem.Y - problem.Y[0]
+    rms_meas = float(np.sqrt(np.mean(np.sum(Yd**2, axis=-1))))
+    unit = math.sqrt(3.0 * float(problem.term @ problem.term) / problem.term.size)
+
+    weight = problem.floor_weight(c)
+    model_floor_V = problem.model_floor(V, weight)
+
+    def excess(r, extra=0.0):
+        den = V.size * floor + extra
+        return float(r[V] @ r[V]) / den - 1.0 if den > 0 else math.inf
+
+    return {
+        **me.to_dict(),
+        "computed_at_theta": list(me.spec.theta) if me.spec is not None else None,
+        "coefficient": c,
+        "coefficient_refit": coefficients.get("refit", 0.0),
+        "term_rms_per_point": c * unit,
+        "term_rms_per_unit": unit,
+        "term_share_of_response": c * unit / max(rms_meas, 1e-30),
+        "continuum_share_of_response": me.richardson * unit / max(rms_meas, 1e-30),
+        "floor_weight": weight,
+        "floor_rms_per_point": math.sqrt(3.0 * model_floor_V / max(V.size, 1)),
+        "excess_without_term": excess(raw),
+        "excess_with_term": excess(full, model_floor_V),
+        "significant_without_term": bool(excess(raw) > settings.min_excess),
+        "significant_with_term": bool(excess(full, model_floor_V) > settings.min_excess),
+    }
+
+
+def _approximation(rounds: list[AttributionRound], unexplained: bool, settings: LoopSettings) -> dict | None:
+    """When a residual stays unexplained, the candidate that would have explained enough of it
+    but whose time signature does not match (reported as an approximation, never added)."""
+    if not unexplained or not rounds:
+        return None
+    for row in rounds[-1].table:
+        if row.refined and not row.signature_ok and row.explained_beyond_floor >= settings.min_explained and row.delta_bic < 0:
+            return {"key": row.key, "label": row.label, "explained_val": row.explained_val,
+                    "signature_share": row.signature_share, "parameter": row.parameter, "value_estimate": row.value_estimate,
+                    "note": (f"{row.label} would explain {100 * row.explained_val:.0f}% of the validation residual, but the "
+                             f"residual keeps only {100 * row.signature_share:.0f}% of the late offset it predicts "
+                             f"(at least {100 * settings.signature_min:.0f}% for a sustained load or a permanent set): "
+                             "an approximation, not added")}
+    return None
+
+
+def _verdict_kind(effects: list[dict], unexplained: bool, model_error: dict | None) -> str:
+    if unexplained:
+        return "unexplained"
+    if effects:
+        return "effect_found"
+    if model_error is not None and model_error["significant_without_term"]:
+        return "discretization"
+    return "none"
+
+
+def _verdict(effects: list[dict], unexplained: bool, residual: dict, model_error: dict | None = None,
+             kind: str | None = None) -> str:
+    """One sentence: the effects found, or that none is missing, or the unexplained residual;
+    with the discretization term's size when it carries a significant part."""
     identified = [e["key"] for e in effects]
+    term = ""
+    if model_error is not None:
+        term = (f"; the model's discretization floor is RMS {model_error['floor_rms_per_point']:.3g} m per point "
+                f"(validation window), its term carries {model_error['term_rms_per_point']:.3g} m "
+                f"(c = {model_error['coefficient']:.2f})")
     if unexplained:
         found = f"added {', '.join(identified)}; " if identified else ""
         return (f"{found}a residual remains that no catalogue effect explains: "
                 f"RMS {residual['excess_rms_per_point']:.3g} m above the noise "
-                f"({100 * residual['excess_fraction_of_response']:.1f}% of the measured RMS displacement)")
+                f"({100 * residual['excess_fraction_of_response']:.1f}% of the measured RMS displacement){term}")
     if identified:
         found = ", ".join(f"{e['key']} ({e['parameter']} = {e['value']:.4g} {e['unit']})".replace(" )", ")") for e in effects)
-        return "effects found: " + found + "; no further effect"
-    return "no missing effect found"
+        return "effects found: " + found + "; no further effect" + term
+    if kind == "discretization":
+        return "no missing effect found: the residual is consistent with the model's discretization error" + term
+    return "no missing effect found" + term
 
 
 # --------------------------------------------------------------------------------------
@@ -382,17 +550,37 @@ def run_discrepancy(
     pb = pb.with_forward(pb.forward.with_catalogue({c.key: c for c in cands}))
     noise = _noise(pb, base)
     floor = noise["floor_per_scalar"]
+    me = None
+    if settings.model_error_refine is not None:
+        me = build_model_error(pb.forward, factor=settings.model_error_refine, c_max=settings.model_error_max)
+        pb = _with_term(pb, me, base, settings)
     refit = _refit_theta(pb, base, library, settings, log)
+    if me is not None:
+        # the term is computed at the theta it is used at: recompute it and refit until theta
+        # moves less than 1% (the refined rollout at the final theta is the last one made)
+        for _ in range(settings.model_error_updates):
+            if max(abs(math.log(a / b)) for a, b in zip(refit.theta, me.spec.theta)) < 0.01:
+                break
+            pb = _with_term(pb, me, refit, settings)
+            refit = _refit_theta(pb, refit, library, settings, log)
+            say(f"theta refit with the discretization term at the new theta: ({refit.theta[0]:.4f}, {refit.theta[1]:.4f})")
     say(f"theta refit: ({refit.theta[0]:.4f}, {refit.theta[1]:.4f})")
     final, rounds, unexplained, stop_reason = _augment(pb, refit, cands, floor, settings, log, say)
 
     stages = {"before": base, "refit": refit, "after": final}
+    coefficients = {name: pb.coefficient(pb.raw_residual(s)) for name, s in stages.items() if name != "before"}
     scored = {probe: measured, **{p: heldout_measured[p] for p in heldout_probes if p in heldout_measured}}
     predictions, metrics, views = _predict_and_score(pb, stages, [probe] + heldout_probes, scored, settings)
     residual = _residual_size(pb, final, floor, stop_reason)
+    model_error = _model_error_summary(pb, final, me, floor, settings, coefficients) if me is not None else None
+    theta_interval = _theta_interval(pb, final, me, settings, log)
     fw = pb.forward
     effects = _effects_found(fw.catalogue, final)
-    verdict = _verdict(effects, unexplained, residual)
+    kind = _verdict_kind(effects, unexplained, model_error)
+    approximation = _approximation(rounds, unexplained, settings)
+    verdict = _verdict(effects, unexplained, residual, model_error, kind)
+    if approximation is not None:
+        verdict += f"; closest catalogue term: {approximation['note']}"
     say(verdict)
     n_gs = particles.n_gs
     return DiscrepancyResult(
@@ -401,6 +589,7 @@ def run_discrepancy(
         probe=probe,
         heldout_probes=heldout_probes,
         verdict=verdict,
+        verdict_kind=kind,
         identified=list(final.effect_keys),
         effects=effects,
         theta_base=base.theta,
@@ -423,6 +612,10 @@ def run_discrepancy(
             "catalogue": [c.key for c in cands],
         },
         rounds=[att.to_dict() for att in rounds],
+        model_error=model_error,
+        approximation=approximation,
+        theta_interval=theta_interval["interval"],
+        theta_uncertainty=theta_interval,
         metrics=metrics,
         n_simulations=fw.n_simulations,
         seconds=fw.seconds,

@@ -128,6 +128,32 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
         f"({100 * result.residual['excess_fraction_of_response']:.2f}% of the measured RMS displacement "
         f"{result.residual['measured_rms_displacement']:.3g} m)",
         f"- {result.n_simulations} simulations, {result.seconds:.1f} s",
+    ]
+    iv = result.theta_interval
+    if iv:
+        at = result.theta_uncertainty.get("theta_at", {})
+        L.append(f"- theta interval (final model): s_E in [{iv[0][0]:.3f}, {iv[0][1]:.3f}], s_rho in [{iv[1][0]:.3f}, "
+                 f"{iv[1][1]:.3f}]: " + ", ".join(f"{k} ({v[0]:.3f}, {v[1]:.3f})" for k, v in at.items())
+                 + " (the interval spans the model's and the refined model's fits, 2 sd each side; the continuum "
+                 "extrapolation is reported, not included)")
+    me = result.model_error
+    if me:
+        L += [
+            "",
+            "## The model's discretization error",
+            "",
+            f"Refined model: grid {me['refined_n_grid']}, fill {me['refined_fill_resolution']}, dt {me['refined_dt']:.3g} s, "
+            f"{me['refined_particles']} particles (refinement ratio {me['refine_factor']:g}). Its change against the model, "
+            f"less what theta absorbs, is the structured term: coefficient c = {me['coefficient']:.3f} "
+            f"(0 <= c <= {me['coefficient_max']:g}; {me['richardson_coefficient']:g} is the continuum under first-order "
+            f"convergence), RMS {me['term_rms_per_point']:.3g} m per point at c. The discretization floor of the validation "
+            f"window is RMS {me['floor_rms_per_point']:.3g} m per point. Validation residual over the floors, minus 1: "
+            f"{me['excess_without_term']:.3g} without the term (noise only), {me['excess_with_term']:.3g} with it "
+            f"(noise + discretization floor).",
+        ]
+    if result.approximation:
+        L += ["", f"**Approximation, not added:** {result.approximation['note']}."]
+    L += [
         "",
         "## Error before and after",
         "",
@@ -151,7 +177,9 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
             + (f", effects {', '.join(f'{k} = {u:.4g}' for k, u in rd['effects'])}" if rd["effects"] else ""),
             "",
             f"Residual energy on the validation window after re-tuning theta on the fit window: {rd['rss_theta_val']:.4g} m^2, "
-            f"{1.0 + rd['excess_val']:.3g} x the noise floor ({'significant' if rd['significant'] else 'not significant'}). "
+            f"{1.0 + rd['excess_val']:.3g} x the floor (noise"
+            + (f" + discretization {rd['model_floor_val']:.3g} m^2" if rd.get("model_floor_val") else "")
+            + f"; {'significant' if rd['significant'] else 'not significant'}). "
             f"Decision: **{rd['decision']}**.",
             "",
             "| rank | effect | explained (validation) | explained (fit) | delta BIC (fit) | screen: explained (validation) "
@@ -165,7 +193,10 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
             refined = row["refined"]
             L.append(
                 f"| {row['rank']} | {row['label']} (`{row['key']}`) | "
-                + (f"{row['explained_val']:.3f} | {row['explained_fit']:.3f} | {row['delta_bic']:.4g}" if refined
+                + (f"{row['explained_val']:.3f}"
+                   + (f" ({row['explained_beyond_floor']:.3f} beyond the floor)" if "explained_beyond_floor" in row else "")
+                   + ("" if row.get("signature_ok", True) else f"; time signature off ({row['signature_share']:.2f})")
+                   + f" | {row['explained_fit']:.3f} | {row['delta_bic']:.4g}" if refined
                    else "not refined | | ")
                 + f" | {row['screen_explained_val']:.3f} | {row['parameter']} = {_fmt(row['value_estimate'])} {row['unit']} |"
             )

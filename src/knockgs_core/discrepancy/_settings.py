@@ -30,6 +30,19 @@ class LoopSettings:
     refine_top: screened candidates refined nonlinearly (besides the threshold-type ones).
     theta_bounds: allowed range of each scale.
     catalogue: catalogue keys to consider (None: all that apply).
+    model_error_refine: grid and fill refinement ratio r of the refined model that estimates
+        the model's discretization error (``_model_error``); None: no discretization term.
+    model_error_max: bound of the term's coefficient c (``r / (r - 1)`` is the continuum
+        limit under first-order convergence: 3 at r = 1.5).
+    model_error_updates: times the term is recomputed at the refitted theta (until theta moves
+        less than 1%).
+    model_error_ramp: (c0, c1): the discretization floor is the term's energy times a weight
+        that is 0 up to c = c0 and 1 from c = c1 (linear between): none for data at the
+        model's own resolution, all of it from 0.4 of a refinement step on. c0 sits above the
+        coefficients that planted effects alone project on the term in the standard cases
+        (up to 0.09 at ci).
+    signature_min: a sustained-load or permanent-set candidate must find at least this share
+        of its predicted sustained offset in the residual's validation window (time signature).
     """
 
     fit_fraction: float = 2.0 / 3.0
@@ -47,10 +60,22 @@ class LoopSettings:
     refine_top: int = 3
     theta_bounds: tuple[float, float] = (0.2, 5.0)
     catalogue: tuple[str, ...] | None = None
+    model_error_refine: float | None = 1.5
+    model_error_max: float = 6.0
+    model_error_updates: int = 4
+    model_error_ramp: tuple[float, float] = (0.15, 0.4)
+    signature_min: float = 0.5
 
     def __post_init__(self):
         if not (0.2 <= self.fit_fraction <= 0.9):
             raise InputError("LoopSettings", "fit_fraction", "must be in [0.2, 0.9]")
+        if self.model_error_refine is not None and not (1.0 < self.model_error_refine <= 4.0):
+            raise InputError("LoopSettings", "model_error_refine", "must be in (1, 4] or None")
+        c0, c1 = self.model_error_ramp
+        if not (0 <= c0 < c1):
+            raise InputError("LoopSettings", "model_error_ramp", "must be (c0, c1) with 0 <= c0 < c1")
+        if not (self.model_error_max > 0):
+            raise InputError("LoopSettings", "model_error_max", "must be > 0")
         if self.catalogue is not None:
             bad = set(self.catalogue) - set(CATALOGUE_KEYS)
             if bad:
