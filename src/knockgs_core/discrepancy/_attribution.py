@@ -40,10 +40,10 @@ class AttributionRow:
     (``strength_estimate``, ``value_estimate``, ``theta_estimate``), ``explained_fit``,
     ``delta_bic`` (fit window) and the score ``explained_val``; ``refine_error`` when it
     failed. Time signature (sustained and permanent candidates, refined):
-    ``signature_share``, the share of the candidate's predicted late offset (its mean over
-    the validation window) that the data hold there, and ``signature_ok``
-    (at least ``LoopSettings.signature_min``): a push that has ended leaves no offset, a load
-    that stays on or a permanent set does. ``explained_beyond_floor``: the energy it removes
+    ``signature_share``, the smallest share of the candidate's contribution that the data
+    hold in a third of the record where it is visible above the noise (:func:`_window_shares`),
+    and ``signature_ok`` (at least ``LoopSettings.signature_min``): a load that stays on acts
+    from t = 0 to the end, a push that starts later or ends does not. ``explained_beyond_floor``: the energy it removes
     as a share of the validation energy above the discretization floor (what the decision
     uses; equal to ``explained_val`` without a term). ``refined_spec``: the refined model, used by the decision, never written.
     """
@@ -95,7 +95,7 @@ class AttributionRow:
                       "explained_val": self.explained_val, "delta_bic": self.delta_bic})
             if not math.isnan(self.signature_share):
                 d.update({"signature_share": self.signature_share, "signature_ok": self.signature_ok})
-            if self.explained_beyond_floor != self.explained_val:
+            if math.isfinite(self.explained_beyond_floor) and self.explained_beyond_floor != self.explained_val:
                 d["explained_beyond_floor"] = self.explained_beyond_floor
         else:
             if self.refine_error is not None:
@@ -252,24 +252,35 @@ def _screen(problem: Problem, spec: ModelSpec, cand: Candidate, lin: _Linearizat
     )
 
 
-def _late_offset_share(problem: Problem, fitted: ModelSpec, key: str) -> float:
-    """The share of the candidate's late offset found in the data: at the candidate's fitted
-    model, S is its contribution (the rollout minus the same without it) and R what the data
-    need on top of the model without it (measured minus that rollout), both averaged over the
-    validation frames per point and axis; returns ``<R, S> / <S, S>`` (1: the data keep the
-    offset the candidate predicts; 0: they have none)."""
+def _window_shares(problem: Problem, fitted: ModelSpec, key: str, floor: float) -> list[float]:
+    """How much of the candidate's contribution the data hold in each third of the record.
+
+    At the candidate's fitted model, S is its contribution (the rollout minus the same
+    without it) and R what the data need on top of the model without it (measured minus that
+    rollout, minus the fitted discretization term). For each third W of the frames after
+    t = 0, ``a_W = <R_W, S_W> / <S_W, S_W>`` (1: the data hold the contribution there; 0: they
+    have none). Windows where the contribution is too small to be seen in the noise (standard
+    error of ``a_W``, ``sqrt(floor) / |S_W|``, above 0.1) give NaN. A load that stays on acts
+    from t = 0 and in every window; a push that starts later or has ended does not."""
     without = problem.observe(fitted.with_effect(key, 0.0))
-    S = problem.observe(fitted) - without
-    R = problem.Y - without
-    n_fit = problem.fit_frames
-    S_late = S[1:][n_fit:].mean(axis=0).reshape(-1)
-    R_late = R[1:][n_fit:].mean(axis=0).reshape(-1)
-    ss = float(S_late @ S_late)
-    return float(R_late @ S_late) / ss if ss > 0 else math.nan
+    S = (problem.observe(fitted) - without)[1:]
+    R = (problem.Y - without)[1:]
+    if problem.term is not None:
+        c = problem.coefficient(problem.raw_residual(fitted))
+        R = R - c * problem.term.reshape(R.shape)
+    shares = []
+    for w in np.array_split(np.arange(S.shape[0]), 3):
+        s_w, r_w = S[w].reshape(-1), R[w].reshape(-1)
+        ss = float(s_w @ s_w)
+        if ss <= 0 or math.sqrt(max(floor, 0.0) / ss) > 0.1:
+            shares.append(math.nan)
+        else:
+            shares.append(float(r_w @ s_w) / ss)
+    return shares
 
 
 def _refine(problem: Problem, spec: ModelSpec, row: AttributionRow, cand: Candidate, rss_theta: tuple[float, float],
-            settings: LoopSettings, log: list) -> None:
+            settings: LoopSettings, log: list, floor: float = 0.0) -> None:
     """Fit the candidate nonlinearly (theta, the strengths in ``spec`` and its own) on the fit
     window and score it against the theta-only refit energies ``rss_theta`` (fit,
     validation); updates ``row`` in place."""
@@ -308,11 +319,11 @@ def _refine(problem: Problem, spec: ModelSpec, row: AttributionRow, cand: Candid
     row.refined_spec = fitted
     if cand.time_signature and u != 0.0:
         try:
-            share = _late_offset_share(problem, fitted, cand.key)
+            shares = [a for a in _window_shares(problem, fitted, cand.key, floor) if not math.isnan(a)]
         except (SimulationError, InputError):
-            share = math.nan
-        row.signature_share = share
-        row.signature_ok = bool(not math.isnan(share) and share >= settings.signature_min)
+            shares = []
+        row.signature_share = min(shares) if shares else math.nan
+        row.signature_ok = bool(not shares or row.signature_share >= settings.signature_min)
 
 
 def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], floor: float, settings: LoopSettings,
@@ -347,7 +358,7 @@ def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], fl
     beyond = max(rss_nl_theta_V - model_floor_V, 1e-300)
     for row in rows:
         if row.key in chosen:
-            _refine(problem, spec, row, by_key[row.key], (rss_nl_theta_F, rss_nl_theta_V), settings, log)
+            _refine(problem, spec, row, by_key[row.key], (rss_nl_theta_F, rss_nl_theta_V), settings, log, floor)
         else:
             row.explained_val = row.screen_explained_val
         if math.isfinite(row.explained_val):

@@ -63,7 +63,7 @@ class Candidate:
     so a linear screen can miss it and it is always refined nonlinearly; ``time_signature``:
     ``sustained`` (a load that stays on), ``permanent`` (a set that stays after the motion),
     or ``""`` (no sustained offset of its own): a sustained or permanent candidate is
-    checked against the residual's late offset (module :mod:`._attribution`)."""
+    checked third by third of the record against the data (module :mod:`._attribution`)."""
 
     key: str
     label: str

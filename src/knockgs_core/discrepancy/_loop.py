@@ -454,8 +454,9 @@ def _approximation(rounds: list[AttributionRound], unexplained: bool, settings: 
             return {"key": row.key, "label": row.label, "explained_val": row.explained_val,
                     "signature_share": row.signature_share, "parameter": row.parameter, "value_estimate": row.value_estimate,
                     "note": (f"{row.label} would explain {100 * row.explained_val:.0f}% of the validation residual, but the "
-                             f"residual keeps only {100 * row.signature_share:.0f}% of the late offset it predicts "
-                             f"(at least {100 * settings.signature_min:.0f}% for a sustained load or a permanent set): "
+                             f"data hold only {100 * row.signature_share:.0f}% of its contribution in one third of the "
+                             f"record (at least {100 * settings.signature_min:.0f}% in each third for a load that stays "
+                             "on or a permanent set): "
                              "an approximation, not added")}
     return None
 

@@ -41,8 +41,9 @@ class LoopSettings:
         model's own resolution, all of it from 0.4 of a refinement step on. c0 sits above the
         coefficients that planted effects alone project on the term in the standard cases
         (up to 0.09 at ci).
-    signature_min: a sustained-load or permanent-set candidate must find at least this share
-        of its predicted sustained offset in the residual's validation window (time signature).
+    signature_min: a sustained-load or permanent-set candidate's contribution must be held by
+        the data at least at this share in every third of the record where it is visible
+        above the noise (time signature).
     """
 
     fit_fraction: float = 2.0 / 3.0
