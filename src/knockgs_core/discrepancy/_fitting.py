@@ -78,13 +78,14 @@ class Problem:
     def floor_weight(self, c: float) -> float:
         """How much of the discretization floor applies when the data show the term with
         coefficient ``c``: 0 up to ``c0``, rising linearly to 1 at ``c1``
-        (``LoopSettings.model_error_ramp``; 0 without a term). Data at the model's own
-        resolution (c near 0) carry no discretization error of the model; data a sizeable part
-        of a refinement step away carry at least the change of one step."""
+        (``LoopSettings.model_error_ramp``), and ``c^2`` beyond ``c = 1`` (0 without a term).
+        Data at the model's own resolution (c near 0) carry no discretization error of the
+        model; data a sizeable part of a refinement step away carry at least the change of one
+        step, and data further away at least the term as fitted."""
         if self.term is None:
             return 0.0
         c0, c1 = self.settings.model_error_ramp
-        return float(np.clip((c - c0) / (c1 - c0), 0.0, 1.0))
+        return float(np.clip((c - c0) / (c1 - c0), 0.0, 1.0) * max(1.0, c * c))
 
     def model_floor(self, rows, weight: float = 1.0) -> float:
         """The discretization floor [m^2] of the residual rows ``rows``: ``weight`` times the
