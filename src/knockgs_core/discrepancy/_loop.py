@@ -233,33 +233,21 @@ def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loop
     D = me.difference(fw, spec, problem.probe, points)[problem.frames]
     J = _sensitivities(problem, spec, settings)
     flat = D[1:].reshape(-1)
-    perp = flat - J @ np.linalg.lstsq(J, flat, rcond=None)[0]
+    shift = np.linalg.lstsq(J, flat, rcond=None)[0]
+    perp = flat - J @ shift
+    me.theta_shift = shift  # d log theta that makes the model move like the refined one
     term = np.zeros_like(D)
     term[1:] = perp.reshape(D[1:].shape)
     me.spec, me.term, me.change = spec, term, D
     return problem.with_term(term, me.c_max)
 
 
-def _refined_theta(problem: Problem, me: ModelError, spec: ModelSpec, settings: LoopSettings, log: list) -> ModelSpec:
-    """theta refitted (LM, all calibration frames, effect strengths held) with the refined
-    model: the calibration the data gives one refinement further."""
-    from ._measured import Correspondence
-
-    rest = np.asarray(problem.forward.particles.positions, dtype=np.float64)[problem.corr.index]
-    from scipy.spatial import cKDTree
-
-    d, idx = cKDTree(np.asarray(me.refined.particles.positions, dtype=np.float64)).query(rest)
-    sub = problem.with_forward(me.refined).with_term(None, 0.0)
-    sub.corr = Correspondence(index=np.asarray(idx, dtype=np.int64), identity=False, match_distance=np.asarray(d))
-    fitted, _ = lm_fit(sub, spec, [], slice(None), settings, settings.refit_iterations, log)
-    return fitted
-
-
 def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, settings: LoopSettings, log: list) -> dict:
     """An interval on theta at the final model ``spec``: the statistical part (2 standard
     deviations of the linearized least squares in log theta, with the residual's own
     variance) around the hull of theta fitted by the model (``estimate``) and by the refined
-    model (``refined``). Their first-order Richardson extrapolation to the continuum
+    model (``refined``, linearized: the model at ``estimate`` moved by the theta change that
+    reproduces the refined model's change, ``ModelError.theta_shift``). Their first-order Richardson extrapolation to the continuum
     (``continuum``: ``refined + (refined - estimate) / (r - 1)`` in log theta) is reported,
     not included: where the convergence is not yet asymptotic (the Pillow's, docs/assets.md)
     it extrapolates past any plausible value."""
@@ -275,13 +263,10 @@ def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, se
     sd = np.sqrt(np.clip(np.diag(cov)[:2], 0.0, np.inf))
     logt = np.log(np.asarray(spec.theta, dtype=np.float64))
     points = {"estimate": logt}
-    if me is not None:
-        try:
-            ref = np.log(np.asarray(_refined_theta(problem, me, spec, settings, log).theta, dtype=np.float64))
-            points["refined"] = ref
-            points["continuum"] = ref + (ref - logt) / (me.factor - 1.0)
-        except SimulationError as exc:
-            log.append({"event": "refined_theta_failed", "error": str(exc)[:200]})
+    if me is not None and me.theta_shift is not None:
+        ref = logt - np.asarray(me.theta_shift, dtype=np.float64)
+        points["refined"] = ref
+        points["continuum"] = ref + (ref - logt) / (me.factor - 1.0)
     P = np.array([v for k, v in points.items() if k != "continuum"])
     lo, hi = P.min(axis=0) - 2 * sd, P.max(axis=0) + 2 * sd
     return {

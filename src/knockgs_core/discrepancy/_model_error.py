@@ -70,7 +70,8 @@ def displacement_at(rest: np.ndarray, displacement: np.ndarray, points: np.ndarr
 class ModelError:
     """The model's discretization term: ``change`` [T, M, 3] (m), D at the observed points for
     the calibration probe and the model ``spec`` it was computed at, and ``term``, its part
-    that theta cannot absorb (the loop's structured term); ``refined`` the refined
+    that theta cannot absorb (the loop's structured term); ``theta_shift`` [2], the change of
+    log theta that moves the model like the refinement does (least squares on D); ``refined`` the refined
     forward model; ``factor`` the refinement ratio r; ``c_max`` the bound of the coefficient;
     ``richardson`` ``r / (r - 1)``: the coefficient of the continuum limit under first-order
     convergence; ``length`` the kernel length [m]."""
@@ -82,6 +83,7 @@ class ModelError:
     spec: ModelSpec | None = None
     term: np.ndarray | None = None
     change: np.ndarray | None = None
+    theta_shift: np.ndarray | None = None
 
     @property
     def richardson(self) -> float:
