@@ -13,17 +13,26 @@
 #                                                          the main library (simulate.smk)
 #   P/tables/discrepancy.csv|md, P/figures/discrepancy.png the table of cases, RMSE before/after per case
 #   P/audits/discrepancy_truth.json                        verdict: no run read the truth
+#   P/tables/discrepancy_worlds.csv|md, P/figures/discrepancy_worlds.png,
+#   P/audits/discrepancy_worlds_truth.json                 the world cases (finer grid, FEM): target
+#                                                          `discrepancy_worlds`, not in `all`
 #
 # The cases run at config discrepancy.resolution. At the profile's own resolution they share
 # its asset (P/assets) and candidate library (P/rollouts/{object}/lib); at another, the
 # D/{res}/ asset and library are built for them.
 
-from knockgs_core.discrepancy import default_cases
+from knockgs_core.discrepancy import default_cases, world_cases
 
 D = f"{P}/discrepancy"
 DISCREPANCY_OBJECT = DISCREPANCY["object"]
 DISCREPANCY_RES = DISCREPANCY["resolution"]
 DISCREPANCY_CASES = [c.name for c in default_cases()]
+_WORLD_CASES = [c.name for c in world_cases()]
+_unknown_worlds = sorted(set(DISCREPANCY.get("worlds") or []) - set(_WORLD_CASES))
+if _unknown_worlds:
+    raise ValueError(f"config discrepancy.worlds: unknown world cases {_unknown_worlds}; known: {_WORLD_CASES}")
+# the world cases (data the loop's model cannot match exactly), in world_cases() order
+DISCREPANCY_WORLD_CASES = [c for c in _WORLD_CASES if c in (DISCREPANCY.get("worlds") or _WORLD_CASES)]
 _DISCREPANCY_CONTRACT = contract(DISCREPANCY_OBJECT, DISCREPANCY_RES)
 _DISCREPANCY_SHARED = DISCREPANCY_RES == PROFILE
 DISCREPANCY_PARTICLES = (f"{P}/assets/{DISCREPANCY_OBJECT}.particles.npz" if _DISCREPANCY_SHARED
@@ -35,7 +44,7 @@ DISCREPANCY_LIBRARY = [library_rollout(DISCREPANCY_LIBRARY_ROOT, case) for case 
 # the files each run job reads (and the truth audit checks)
 DISCREPANCY_RUN_READS = {
     case: [f"{D}/cases/{case}/measured_calib.parquet", f"{D}/cases/{case}/measured_heldout.parquet", DISCREPANCY_PARTICLES, *DISCREPANCY_LIBRARY]
-    for case in DISCREPANCY_CASES
+    for case in DISCREPANCY_CASES + DISCREPANCY_WORLD_CASES
 }
 
 DISCREPANCY_OUTPUTS = (
@@ -196,3 +205,48 @@ rule audit_discrepancy_truth:
         declared=DISCREPANCY_RUN_READS,
     script:
         "../scripts/discrepancy_audit.py"
+
+
+rule discrepancy_worlds_table:
+    """The world cases (data from a finer MPM grid and from the FEM reference), scored by the
+    world rule (knockgs_core.discrepancy.world_acceptance)."""
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        rows=[f"{D}/eval/{case}.json" for case in DISCREPANCY_WORLD_CASES],
+    output:
+        csv=report(f"{P}/tables/discrepancy_worlds.csv", category="Discrepancy"),
+        md=f"{P}/tables/discrepancy_worlds.md",
+        figure=report(f"{P}/figures/discrepancy_worlds.png", category="Discrepancy"),
+    log:
+        f"logs/{PROFILE}/discrepancy/table_worlds.log",
+    params:
+        title="Discrepancy loop in worlds its model cannot match (finer grid, FEM reference)",
+    script:
+        "../scripts/discrepancy_table.py"
+
+
+rule audit_discrepancy_worlds_truth:
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        results=[f"{D}/reports/{case}/result.json" for case in DISCREPANCY_WORLD_CASES],
+        measured=[f"{D}/cases/{case}/measured_{role}.parquet" for case in DISCREPANCY_WORLD_CASES for role in ("calib", "heldout")],
+    output:
+        f"{P}/audits/discrepancy_worlds_truth.json",
+    log:
+        f"logs/{PROFILE}/audits/discrepancy_worlds_truth.log",
+    params:
+        truth_dirs=[f"{D}/truth"],
+        declared=DISCREPANCY_RUN_READS,
+    script:
+        "../scripts/discrepancy_audit.py"
+
+
+rule discrepancy_worlds:
+    """Target: the discrepancy loop on the world cases, their table and truth audit."""
+    input:
+        f"{P}/tables/discrepancy_worlds.csv",
+        f"{P}/tables/discrepancy_worlds.md",
+        f"{P}/figures/discrepancy_worlds.png",
+        f"{P}/audits/discrepancy_worlds_truth.json",

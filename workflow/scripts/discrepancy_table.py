@@ -6,5 +6,6 @@ from knockgs_core.discrepancy import case_table, table_figure, write_table
 
 sys.stderr = open(snakemake.log[0], "w")
 df = case_table([json.loads(open(path).read()) for path in snakemake.input.rows])
-write_table(df, snakemake.output.csv, snakemake.output.md)
+title = getattr(snakemake.params, "title", None)
+write_table(df, snakemake.output.csv, snakemake.output.md, **({"title": title} if title else {}))
 table_figure(df, snakemake.output.figure)

@@ -25,9 +25,10 @@ from ._files import audit_truth_separation, evaluate_files, run_files
 from ._loop import DiscrepancyResult, LibrarySource, LoopSettings, run_discrepancy
 from ._measured import Correspondence, Measurement, match_points, read_measured, write_measured
 from ._report import write_report, write_result
-from ._scoring import acceptance, evaluate_case
+from ._scoring import acceptance, evaluate_case, world_acceptance
 from ._tables import case_table, table_figure, write_table
 from ._views import residual_views, view_summary
+from ._worlds import FEM_EFFECTS, FINER_EFFECTS, make_world_case, world_cases, world_contract
 
 __all__ = [
     "Measurement",
@@ -53,6 +54,12 @@ __all__ = [
     "CaseSpec",
     "default_cases",
     "make_case",
+    "world_cases",
+    "world_contract",
+    "make_world_case",
+    "FEM_EFFECTS",
+    "FINER_EFFECTS",
+    "world_acceptance",
     "evaluate_case",
     "case_table",
     "acceptance",

@@ -31,7 +31,7 @@ from ..sim import (
 )
 from ._measured import Measurement, write_measured
 
-__all__ = ["PLANTED_EFFECTS", "LEVELS", "CaseSpec", "default_cases", "make_case"]
+__all__ = ["PLANTED_EFFECTS", "LEVELS", "WORLDS", "CaseSpec", "default_cases", "make_case", "search_strength"]
 
 
 def _top_box(particles, frac=0.5):
@@ -69,10 +69,17 @@ PLANTED_EFFECTS = {
                                                     start=0.2 * H, end=0.6 * H),
                     0.05, False, lambda s: ("accel", s, "m/s^2")),
     "hidden_mass": (lambda s, ps, H: HiddenMass(fraction=s, box=_end_box(ps)), 0.5, False, lambda s: ("fraction", s, "")),
+    # a transient push on the whole body along -z: not a sustained load
+    "vertical_push": (lambda s, ps, H: BodyForcePulse(accel=s, direction=(0.0, 0.0, -1.0), box=_top_box(ps, frac=1.0),
+                                                      start=0.2 * H, end=0.6 * H),
+                      0.1, False, lambda s: ("accel", s, "m/s^2")),
 }
 
 #: relative change of the held-out response aimed at, per level
 LEVELS = {"low": 0.12, "high": 0.25}
+
+#: who makes a case's data: the loop's own model, the same MPM on a finer grid, the FEM reference
+WORLDS = ("same", "finer", "fem")
 
 
 @dataclass(frozen=True)
@@ -82,7 +89,8 @@ class CaseSpec:
     the true ``theta``, observation noise ``noise_rel`` (per-coordinate std as a fraction of
     the calibration response's RMS displacement), ``observation`` (``gs_identity``: the
     Gaussian-associated particles with identity; ``gs_tracks``: a random 60% of them,
-    shuffled, without identity), ``seed``."""
+    shuffled, without identity), ``seed``, and the ``world`` that makes the data (``same``:
+    the loop's own contract and particles; ``finer``, ``fem``: :mod:`._worlds`)."""
 
     name: str
     planted: str
@@ -91,8 +99,11 @@ class CaseSpec:
     noise_rel: float = 0.02
     observation: str = "gs_identity"
     seed: int = 0
+    world: str = "same"
 
     def __post_init__(self):
+        if self.world not in WORLDS:
+            raise InputError("case", "world", f"unknown world '{self.world}'; known: {', '.join(WORLDS)}")
         if self.planted != "none" and self.planted not in PLANTED_EFFECTS:
             raise InputError("case", "planted", f"unknown effect '{self.planted}'; known: none, {', '.join(PLANTED_EFFECTS)}")
         if self.observation not in ("gs_identity", "gs_tracks", "all_identity"):
@@ -142,10 +153,19 @@ def _find_strength(contract, particles, planted, target, theta, probe, H, device
     ``target`` (within 10%): doubling/halving to bracket, then bisection in log."""
     build, s0, _, _ = PLANTED_EFFECTS[planted]
     Y0 = _sim(contract, particles, theta, probe, device=device)
+    return search_strength(
+        lambda s: _rel_change(_sim(contract, particles, theta, probe, (build(s, particles, H),), device), Y0, particles.n_gs),
+        s0, target, log)
+
+
+def search_strength(response_change, s0: float, target: float, log: list) -> tuple[float, float]:
+    """The strength ``s`` whose ``response_change(s)`` (relative change of the held-out
+    response, [-]) is ``target`` within 10%: doubling/halving from ``s0`` to bracket, then
+    bisection in log. Every evaluation is appended to ``log``; returns (strength, change)."""
 
     def change(s):
         try:
-            c = _rel_change(_sim(contract, particles, theta, probe, (build(s, particles, H),), device), Y0, particles.n_gs)
+            c = response_change(s)
         except Exception as exc:  # out of range (e.g. nu >= 0.5) or unstable
             log.append({"strength": s, "error": str(exc)[:200]})
             return math.nan
@@ -211,6 +231,11 @@ def make_case(spec: CaseSpec, contract, particles, *, measured_dir, truth_dir, c
     truth record."""
     calibration_probe = calibration_probe or contract.roles["calibration"]
     heldout_probe = heldout_probe or contract.roles["heldout"][0]
+    if spec.world != "same":
+        from ._worlds import make_world_case
+
+        return make_world_case(spec, contract, particles, measured_dir=measured_dir, truth_dir=truth_dir,
+                               calibration_probe=calibration_probe, heldout_probe=heldout_probe, device=device)
     rng = np.random.default_rng(spec.seed)
     export_c = contract.probes[calibration_probe].export
     H = export_c.horizon

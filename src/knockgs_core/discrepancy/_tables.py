@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from .._io import atomic_write, write_text
-from ._scoring import acceptance
+from ._scoring import acceptance, world_acceptance
 
 __all__ = ["TABLE_COLUMNS", "case_table", "write_table", "table_figure"]
 
@@ -17,20 +17,25 @@ TABLE_COLUMNS = [
     "calib_traj_rmse_before", "calib_traj_rmse_after", "theta_error_before_pct", "theta_error_after_pct",
     "heldout_traj_rmse_refit", "calib_traj_rmse_refit", "heldout_improvement", "planted_rank", "unexplained",
     "residual_excess_pct", "parameter", "planted_value", "estimated_value", "heldout_change", "theta_true", "theta_before",
-    "theta_after", "observation", "n_simulations", "accepted", "note",
+    "theta_after", "observation", "n_simulations", "world", "verdict_kind", "theta_interval", "theta_in_interval",
+    "model_error_coefficient", "approximation", "accepted", "note",
 ]
 
 
 def case_table(rows: list[dict]):
-    """The table of cases (one row per case, :data:`TABLE_COLUMNS`), acceptance included."""
+    """The table of cases (one row per case, :data:`TABLE_COLUMNS`), acceptance included: the
+    standard rule (:func:`acceptance`) for cases of the loop's own world, the world rule
+    (:func:`world_acceptance`) for the ``finer`` and ``fem`` worlds."""
     import pandas as pd
 
     out = []
     for row in rows:
         row = dict(row)
-        row["accepted"], row["note"] = acceptance(row)
+        row.setdefault("world", "same")
+        rule = acceptance if row["world"] == "same" else world_acceptance
+        row["accepted"], row["note"] = rule(row)
         out.append(row)
-    return pd.DataFrame(out)[TABLE_COLUMNS]
+    return pd.DataFrame(out).reindex(columns=TABLE_COLUMNS)
 
 
 #: columns of the Markdown table, and those shown with two decimals (percentages)
@@ -51,11 +56,15 @@ def write_table(df, csv_path, md_path, *, title="Discrepancy loop: planted effec
     with atomic_write(csv_path, mode="w") as fh:
         df.to_csv(fh, index=False, float_format="%.6g")
     lines = [f"# {title}", "", f"{int(df['accepted'].sum())} of {len(df)} cases meet the acceptance rule.", ""]
-    lines.append("| " + " | ".join(_MD_COLUMNS) + " |")
-    lines.append("|" + "---|" * len(_MD_COLUMNS))
+    columns = list(_MD_COLUMNS)
+    if "world" in df and (df["world"] != "same").any():
+        columns[-1:-1] = ["world", "verdict_kind", "model_error_coefficient", "theta_interval", "theta_in_interval",
+                          "approximation"]
+    lines.append("| " + " | ".join(columns) + " |")
+    lines.append("|" + "---|" * len(columns))
     for _, r in df.iterrows():
         cells = []
-        for c in _MD_COLUMNS:
+        for c in columns:
             v = r[c]
             if isinstance(v, float):
                 cells.append(f"{v:.3g}" if c not in _MD_PERCENT else f"{v:.2f}")

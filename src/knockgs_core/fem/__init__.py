@@ -25,6 +25,7 @@ from ._elasticity import (
 )
 from ._mesh import Region, box_mesh, mesh_size, tensor_mesh
 from ._newmark import DIRECT_MAX_DOFS, SOLVERS, ForcePulse, NewmarkResult, RayleighDamping, newmark
+from ._world import FemWorld, fem_world_mesh, fem_world_rollout
 from ._verification import (
     BLOCK,
     MATERIAL,
@@ -45,6 +46,9 @@ from ._verification import (
 )
 
 __all__ = [
+    "FemWorld",
+    "fem_world_mesh",
+    "fem_world_rollout",
     "Region",
     "tensor_mesh",
     "box_mesh",

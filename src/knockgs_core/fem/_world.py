@@ -1,0 +1,161 @@
+"""An object's response computed by the finite-element reference: "measured" data that the
+MPM model cannot match exactly (private).
+
+The body is the object's particle set voxelized on the contract's grid: every grid cell that
+holds a particle becomes a hexahedron (six tetrahedra), so the meshed volume is the MPM's
+(which gives each occupied cell the volume dx^3) and so is the mass. The still sticky
+supports (the contract's ``fixed_cuboid`` boxes) hold the mesh nodes inside them. The probe
+acts as the MPM's does: the same force on every selected particle, so the force density of a
+cell is proportional to the particles it holds; the total impulse is the contract's. A probe
+shorter than the FEM step is applied as the velocity jump ``M^-1 J`` at t = 0. Quadratic
+tetrahedra and Newmark's average acceleration (``_elasticity``, ``_newmark``) integrate the
+small-strain response. Effects the MPM model does not have exactly can be planted: Rayleigh
+damping (mass- and stiffness-proportional) and gravity.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse.linalg as spla
+import skfem
+
+from ..errors import InputError
+from ._elasticity import ElasticSystem, assemble_elasticity, interpolate, support_dofs
+from ._mesh import Region
+from ._newmark import RayleighDamping, newmark
+
+__all__ = ["FemWorld", "fem_world_mesh", "fem_world_rollout"]
+
+
+@dataclass(frozen=True)
+class FemWorld:
+    """Settings and planted effects of an FEM world (effects off by default).
+
+    ``degree``: 2 (P2 tetrahedra; P1 locks in bending, docs/verification.md);
+    ``steps_per_frame``: Newmark steps per export interval; ``rayleigh_alpha`` [1/s] and
+    ``rayleigh_beta`` [s]: Rayleigh damping ``C = alpha M + beta K``; ``gravity`` [m/s^2]: a
+    body acceleration along -z from t = 0, the body starting at rest and unloaded."""
+
+    degree: int = 2
+    steps_per_frame: int = 2
+    rayleigh_alpha: float = 0.0
+    rayleigh_beta: float = 0.0
+    gravity: float = 0.0
+
+    def __post_init__(self):
+        if self.degree not in (1, 2):
+            raise InputError("FemWorld", "degree", f"must be 1 or 2, got {self.degree!r}")
+        if int(self.steps_per_frame) < 1:
+            raise InputError("FemWorld", "steps_per_frame", f"must be >= 1, got {self.steps_per_frame!r}")
+        for name in ("rayleigh_alpha", "rayleigh_beta", "gravity"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and (v >= 0 or name == "gravity")):
+                raise InputError("FemWorld", name, f"must be finite{' and >= 0' if name != 'gravity' else ''}, got {v!r}")
+
+
+def _cells(positions: np.ndarray, dx: float) -> tuple[np.ndarray, np.ndarray]:
+    """Occupied grid cells (integer indices [K, 3]) and the particles each holds [K]."""
+    idx = np.floor(np.asarray(positions, dtype=np.float64) / dx).astype(np.int64)
+    cells, counts = np.unique(idx, axis=0, return_counts=True)
+    return cells, counts
+
+
+def fem_world_mesh(contract, particles, *, world: FemWorld = FemWorld()) -> dict:
+    """The voxel mesh of ``particles`` on ``contract``'s grid: ``mesh`` (scikit-fem MeshTet),
+    ``dx`` [m], ``cells`` [K, 3] occupied cell indices, ``counts`` [K] particles per cell,
+    ``volume`` [m^3] (= K dx^3, the MPM's)."""
+    dx = contract.sim.grid_lim / contract.sim.n_grid
+    cells, counts = _cells(particles.positions, dx)
+    lo = cells.min(axis=0)
+    shape = cells.max(axis=0) - lo + 1
+    axes = [dx * (lo[k] + np.arange(shape[k] + 1)) for k in range(3)]
+    full = skfem.MeshTet.init_tensor(*axes)
+    cent = full.p[:, full.t].mean(axis=1).T                          # tet centroids [n_tet, 3]
+    ci = np.floor(cent / dx + 1e-9).astype(np.int64) - lo
+    occ = np.zeros(shape, dtype=bool)
+    occ[tuple((cells - lo).T)] = True
+    keep = occ[ci[:, 0], ci[:, 1], ci[:, 2]]
+    t = full.t[:, keep]
+    used, inv = np.unique(t, return_inverse=True)
+    mesh = skfem.MeshTet(np.ascontiguousarray(full.p[:, used]), np.ascontiguousarray(inv.reshape(t.shape)))
+    return {"mesh": mesh, "dx": dx, "cells": cells, "counts": counts, "volume": float(len(cells) * dx**3)}
+
+
+def _probe_load(system: ElasticSystem, cells: np.ndarray, counts: np.ndarray, dx: float, force: np.ndarray) -> np.ndarray:
+    """Load vector [N] of a force density that puts ``force`` [N] on every particle: each
+    occupied cell carries ``count * force / dx^3`` [N/m^3]."""
+    lo = cells.min(axis=0)
+    shape = cells.max(axis=0) - lo + 1
+    density = np.zeros(tuple(shape), dtype=np.float64)
+    density[tuple((cells - lo).T)] = counts / dx**3
+
+    @skfem.LinearForm
+    def load(v, w):
+        x = w.x
+        i = [np.clip(np.floor(x[k] / dx).astype(np.int64) - lo[k], 0, shape[k] - 1) for k in range(3)]
+        d = density[i[0], i[1], i[2]]
+        return d * (force[0] * v[0] + force[1] * v[1] + force[2] * v[2])
+
+    return load.assemble(system.basis)
+
+
+def _inside(points: np.ndarray, cells: np.ndarray, dx: float) -> np.ndarray:
+    """``points`` [P, 3] moved into the voxel body where they lie outside it: onto the closest
+    point of the nearest occupied cell."""
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, dtype=np.float64)
+    occupied = {tuple(c) for c in cells.tolist()}
+    own = np.floor(p / dx).astype(np.int64)
+    out = np.array([tuple(c) not in occupied for c in own.tolist()], dtype=bool)
+    if not out.any():
+        return p
+    _, j = cKDTree((cells + 0.5) * dx).query(p[out])
+    lo = cells[j] * dx
+    q = p.copy()
+    q[out] = np.clip(p[out], lo + 1e-6 * dx, lo + dx * (1 - 1e-6))
+    return q
+
+
+def fem_world_rollout(contract, particles, theta, probe: str, points, *, world: FemWorld = FemWorld()) -> np.ndarray:
+    """Positions [T, P, 3] (float64, normalized domain [m]) of material points with rest
+    positions ``points`` [P, 3] under ``probe`` at its export frames (T = export.n_frames, frame
+    0 = rest), for the object of ``contract`` (one base material at theta = (s_E, s_rho)) on
+    ``particles`` (a :class:`~knockgs_core.assets.ParticleSet`). Points outside the voxel body
+    move with its closest point."""
+    if probe not in contract.probes:
+        raise InputError(f"object {contract.name}", "probe", f"unknown probe '{probe}'")
+    if set(contract.region_names) != {"base"}:
+        raise InputError(contract.source, "regions", "the FEM world supports one material region (base)")
+    pr = contract.resolve_probes(particles)[probe]
+    export = pr.export
+    dt = export.frame_dt / int(world.steps_per_frame)
+    if pr.start_time != 0.0 or pr.duration >= dt:
+        raise InputError(contract.source, f"probes.{probe}", "the FEM world applies a probe shorter than its step at t = 0 only")
+    m = contract.materials["base"]
+    geo = fem_world_mesh(contract, particles, world=world)
+    system = assemble_elasticity(geo["mesh"], E=m.E * float(theta[0]), nu=m.nu, rho=m.rho * float(theta[1]), degree=world.degree)
+    fixed = []
+    for bc in contract.sim.boundaries:
+        box = getattr(bc, "box", None)
+        if box is not None and type(bc).__name__ == "FixedCuboid" and not any(getattr(bc, "velocity", (0, 0, 0))):
+            fixed.append(support_dofs(system, Region.from_center(box.center, box.half_size)))
+    fixed = np.unique(np.concatenate(fixed)) if fixed else np.zeros(0, dtype=np.int64)
+    sel = contract.probe_selection(pr, particles.positions)
+    cells, counts = _cells(np.asarray(particles.positions)[sel], geo["dx"])
+    scale = float(contract.probe_reference_particles) / len(particles.positions) if contract.probe_reference_particles else 1.0
+    force = np.asarray(pr.force, dtype=np.float64) * scale
+    J = _probe_load(system, cells, counts, geo["dx"], force) * pr.duration
+    free = np.setdiff1d(np.arange(system.n_dofs), fixed)
+    v0 = np.zeros(system.n_dofs)
+    v0[free] = spla.splu(system.M[free][:, free].tocsc()).solve(J[free])
+    damping = RayleighDamping(world.rayleigh_alpha, world.rayleigh_beta)
+    gravity = (0.0, 0.0, -float(world.gravity)) if world.gravity else None
+    res = newmark(system, dt=dt, frame_dt=export.frame_dt, n_frames=export.n_frames, fixed=fixed, v0=v0,
+                  damping=damping, gravity=gravity)
+    x = np.asarray(points, dtype=np.float64)
+    u = interpolate(system, res.u, _inside(x, geo["cells"], geo["dx"]))
+    return x[None] + u
