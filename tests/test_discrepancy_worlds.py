@@ -1,0 +1,126 @@
+"""Discrepancy cases in worlds the loop's model cannot match: a finer MPM grid and the FEM
+reference (docs/discrepancy.md, section 5; docs/verification.md, the FEM world)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from knockgs_core.discrepancy import CaseSpec, make_case, read_measured, world_acceptance, world_cases, world_contract
+from knockgs_core.errors import InputError
+
+
+@pytest.fixture(scope="module")
+def pillow():
+    from knockgs_core.assets import build_asset
+    from knockgs_core.contract import load_contract
+
+    contract = load_contract("pillow", "ci")
+    return contract, build_asset(contract).particles
+
+
+def test_world_cases_and_their_validation():
+    cases = world_cases()
+    assert [c.name for c in cases][:2] == ["finer_null", "finer_damping"] and {c.world for c in cases} == {"finer", "fem"}
+    assert all(c.observation == "gs_tracks" and c.level == "high" for c in cases)
+    assert {"finer_vertical_push", "fem_null", "fem_damping", "fem_gravity"} <= {c.name for c in cases}
+    with pytest.raises(InputError, match="world"):
+        CaseSpec("x", "none", world="moon")
+
+
+def test_the_finer_world_has_twice_the_grid_and_the_next_profiles_gaussians(pillow):
+    from knockgs_core.contract import cfl_dt
+
+    contract, _ = pillow
+    w = world_contract(contract)
+    assert (w.sim.n_grid, w.fill.resolution) == (2 * contract.sim.n_grid, 2 * contract.fill.resolution)
+    assert w.profile == "default" and w.asset.n_gaussians > contract.asset.n_gaussians
+    assert w.sim.dt <= cfl_dt(w.materials, n_grid=w.sim.n_grid, grid_lim=w.sim.grid_lim) * (1 + 1e-12)
+
+
+def test_the_fem_world_delivers_the_contracts_impulse_and_tracks_the_mpm(pillow):
+    """The FEM world's mesh has the MPM's volume, its probe load the contract's total impulse,
+    and its Probe-A response follows the MPM's at the same theta within the discretization
+    gap (12 % measured at ci)."""
+    import skfem  # noqa: F401
+
+    from knockgs_core.fem import FemWorld, assemble_elasticity, fem_world_mesh, fem_world_rollout
+    from knockgs_core.fem._world import _cells, _probe_load
+    from knockgs_core.rollout import run_rollout
+
+    contract, particles = pillow
+    geo = fem_world_mesh(contract, particles)
+    m = contract.materials["base"]
+    system = assemble_elasticity(geo["mesh"], E=m.E, nu=m.nu, rho=m.rho, degree=2)
+    assert system.volume == pytest.approx(geo["volume"], rel=1e-9)
+    pr = contract.resolve_probes(particles)["standard_x"]
+    cells, counts = _cells(particles.positions, geo["dx"])
+    scale = contract.probe_reference_particles / len(particles.positions)
+    load = _probe_load(system, cells, counts, geo["dx"], np.asarray(pr.force) * scale)
+    comp = np.zeros(system.n_dofs, int)
+    for k in range(3):
+        comp[system.basis.nodal_dofs[k]] = k
+        if system.basis.edge_dofs.size:
+            comp[system.basis.edge_dofs[k]] = k
+    total = abs(pr.force[0]) * contract.probe_reference_particles
+    assert abs(load[comp == 0].sum()) == pytest.approx(total, rel=1e-9) and abs(load[comp == 1].sum()) < 1e-9 * total
+    pts = np.asarray(particles.positions[: particles.n_gs], np.float64)
+    Y = fem_world_rollout(contract, particles, (0.8, 1.2), "standard_x", pts)
+    X = np.asarray(run_rollout(contract, (0.8, 1.2), "standard_x", particles=particles).positions, np.float64)[:, : particles.n_gs]
+    u, v = Y - Y[0], X - X[0]
+    gap = np.sqrt(((u - v) ** 2).sum(-1).mean() / (v**2).sum(-1).mean())
+    assert 0.02 < gap < 0.25
+    assert np.sign(u[-1, :, 0].mean()) == np.sign(v[-1, :, 0].mean()) == -1.0
+    # Rayleigh damping takes energy out: the damped response is smaller, more so late
+    Yd = fem_world_rollout(contract, particles, (0.8, 1.2), "standard_x", pts, world=FemWorld(rayleigh_alpha=3.0))
+    ud = Yd - Yd[0]
+    assert np.abs(ud[-1]).mean() < np.abs(u[-1]).mean()
+
+
+def test_a_fem_case_is_observed_without_identity_and_its_truth_kept_apart(pillow, tmp_path):
+    contract, particles = pillow
+    spec = next(c for c in world_cases() if c.name == "fem_null")
+    truth = make_case(spec, contract, particles, measured_dir=tmp_path / "m", truth_dir=tmp_path / "t")
+    m = read_measured(tmp_path / "m" / "measured_calib.parquet")
+    assert m.particle is None and m.n_frames == contract.probes["standard_x"].export.n_frames
+    meta = json.loads(pq.read_schema(tmp_path / "m" / "measured_calib.parquet").metadata[b"knockgs_measurement"])
+    assert set(meta) <= {"object", "profile", "probe"} and meta["profile"] == "ci"
+    with np.load(tmp_path / "t" / "clean.npz") as z:
+        assert z["calib"].shape == (m.n_frames, particles.n_gs, 3) and z["heldout"].shape[1] == particles.n_gs
+    assert truth["world"] == "fem" and truth["world_description"]["cells"] > 100
+    assert not list((tmp_path / "m").glob("truth*")) and (tmp_path / "t" / "truth.json").exists()
+
+
+def test_world_acceptance_rule():
+    base = {"in_catalogue": True, "heldout_traj_rmse_before": 2.0, "heldout_traj_rmse_after": 1.0, "heldout_improvement": 2.0,
+            "theta_in_interval": True, "approximation": ""}
+    assert world_acceptance({**base, "planted_effect": "damping", "identified_effect": "damping"})[0]
+    assert not world_acceptance({**base, "planted_effect": "damping", "identified_effect": "damping",
+                                 "heldout_improvement": 1.3})[0]
+    assert world_acceptance({**base, "planted_effect": "none", "identified_effect": "none"})[0]
+    assert not world_acceptance({**base, "planted_effect": "none", "identified_effect": "none", "theta_in_interval": False})[0]
+    push = {**base, "planted_effect": "vertical_push", "in_catalogue": False}
+    assert world_acceptance({**push, "identified_effect": "none"})[0]
+    assert not world_acceptance({**push, "identified_effect": "gravity"})[0]
+    assert not world_acceptance({**push, "identified_effect": "none", "heldout_traj_rmse_after": 2.5})[0]
+
+
+def test_the_worlds_target_plans_every_world_case_and_stays_out_of_all(tmp_path):
+    from _workflow import scratch_copy, snakemake
+
+    work = scratch_copy(tmp_path)
+    out = snakemake(work, "-n", "discrepancy_worlds", "--configfile=config/ci.yaml")
+    assert out.returncode == 0, out.stderr[-3000:]
+    for c in world_cases():
+        assert f"case={c.name}" in out.stdout
+    assert "discrepancy_worlds_table" in out.stdout and "audit_discrepancy_worlds_truth" in out.stdout
+    sub = snakemake(work, "-n", "discrepancy_worlds", "--configfile=config/ci.yaml", "--config", "discrepancy={worlds: [fem_null]}")
+    assert sub.returncode == 0, sub.stderr[-3000:]
+    assert "case=fem_null" in sub.stdout and "case=finer_null" not in sub.stdout
+    bad = snakemake(work, "-n", "discrepancy_worlds", "--configfile=config/ci.yaml", "--config", "discrepancy={worlds: [moon]}")
+    assert bad.returncode != 0 and "discrepancy.worlds" in (bad.stderr + bad.stdout)
+    everything = snakemake(work, "-n", "all", "--configfile=config/ci.yaml")
+    assert everything.returncode == 0 and "discrepancy_worlds" not in everything.stdout
