@@ -245,9 +245,11 @@ def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loop
 def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, settings: LoopSettings, log: list) -> dict:
     """An interval on theta at the final model ``spec``: the statistical part (2 standard
     deviations of the linearized least squares in log theta, with the residual's own
-    variance) around the hull of theta fitted by the model (``estimate``) and by the refined
-    model (``refined``, linearized: the model at ``estimate`` moved by the theta change that
-    reproduces the refined model's change, ``ModelError.theta_shift``). Their first-order Richardson extrapolation to the continuum
+    variance) around theta fitted by the model (``estimate``), widened on both sides by its
+    distance in log theta to theta fitted by the refined model (``refined``, linearized: the
+    model at ``estimate`` moved by the theta change that reproduces the refined model's change,
+    ``ModelError.theta_shift``): the refinement's change gives the discretization uncertainty
+    its size, not its sign, where convergence is not monotone. Their first-order Richardson extrapolation to the continuum
     (``continuum``: ``refined + (refined - estimate) / (r - 1)`` in log theta) is reported,
     not included: where the convergence is not yet asymptotic (the Pillow's, docs/assets.md)
     it extrapolates past any plausible value."""
@@ -267,8 +269,11 @@ def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, se
         ref = logt - np.asarray(me.theta_shift, dtype=np.float64)
         points["refined"] = ref
         points["continuum"] = ref + (ref - logt) / (me.factor - 1.0)
-    P = np.array([v for k, v in points.items() if k != "continuum"])
-    lo, hi = P.min(axis=0) - 2 * sd, P.max(axis=0) + 2 * sd
+    # the refinement's change sets the size of the discretization uncertainty, not its sign:
+    # where convergence is not monotone (the Pillow's late response at n_grid 32, 48, 64) the
+    # data may lie on either side of the model's estimate
+    half = np.abs(points["refined"] - logt) if "refined" in points else np.zeros(2)
+    lo, hi = logt - half - 2 * sd, logt + half + 2 * sd
     return {
         "interval": [[float(math.exp(lo[k])), float(math.exp(hi[k]))] for k in range(2)],
         "statistical_sd_log": [float(x) for x in sd],
