@@ -69,7 +69,8 @@ def test_the_fem_world_delivers_the_contracts_impulse_and_tracks_the_mpm(pillow)
     assert abs(load[comp == 0].sum()) == pytest.approx(total, rel=1e-9) and abs(load[comp == 1].sum()) < 1e-9 * total
     pts = np.asarray(particles.positions[: particles.n_gs], np.float64)
     Y = fem_world_rollout(contract, particles, (0.8, 1.2), "standard_x", pts)
-    X = np.asarray(run_rollout(contract, (0.8, 1.2), "standard_x", particles=particles).positions, np.float64)[:, : particles.n_gs]
+    X = np.asarray(run_rollout(contract, (0.8, 1.2), "standard_x", particles=particles).positions, np.float64)
+    X = X[:, : particles.n_gs]
     u, v = Y - Y[0], X - X[0]
     gap = np.sqrt(((u - v) ** 2).sum(-1).mean() / (v**2).sum(-1).mean())
     assert 0.02 < gap < 0.25
@@ -117,7 +118,8 @@ def test_the_worlds_target_plans_every_world_case_and_stays_out_of_all(tmp_path)
     for c in world_cases():
         assert f"case={c.name}" in out.stdout
     assert "discrepancy_worlds_table" in out.stdout and "audit_discrepancy_worlds_truth" in out.stdout
-    sub = snakemake(work, "-n", "discrepancy_worlds", "--configfile=config/ci.yaml", "--config", "discrepancy={worlds: [fem_null]}")
+    sub = snakemake(work, "-n", "discrepancy_worlds", "--configfile=config/ci.yaml", "--config",
+                    "discrepancy={worlds: [fem_null]}")
     assert sub.returncode == 0, sub.stderr[-3000:]
     assert "case=fem_null" in sub.stdout and "case=finer_null" not in sub.stdout
     bad = snakemake(work, "-n", "discrepancy_worlds", "--configfile=config/ci.yaml", "--config", "discrepancy={worlds: [moon]}")

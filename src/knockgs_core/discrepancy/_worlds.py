@@ -129,7 +129,8 @@ class _World:
             X = np.asarray(run_rollout(self.wc, theta, probe, particles=self.wp, device=self.device,
                                        sim_overrides={"effects": p.effects, "boundaries": p.boundaries}).positions, np.float64)
             U = X - X[0]
-            L = self.loop_points[None] + displacement_at(X[0], U, self.loop_points, length=self.wc.sim.grid_lim / self.wc.sim.n_grid)
+            length = self.wc.sim.grid_lim / self.wc.sim.n_grid
+            L = self.loop_points[None] + displacement_at(X[0], U, self.loop_points, length=length)
             return L, X[:, self.surface]
         from ..fem import fem_world_rollout
 
