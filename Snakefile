@@ -25,11 +25,12 @@
 #                                                         render_{object}, objects, discrepancy,
 #                                                         convergence_{object} (Probe-A dt and n_grid study),
 #                                                         boundaries_{object}, loo_object (library boundaries)
-#                                                         verification_fem (MPM vs finite-element reference)
+#                                                         verification_fem (MPM vs finite-element reference),
+#                                                         discrepancy_worlds (target discrepancy_worlds)
 #   P/figures/{name}.png|gif                              reported figures: main_{object}, fill_{object},
 #                                                         qualitative_{object}, compare_{object} (gif),
 #                                                         objects, discrepancy, convergence_{object},
-#                                                         boundaries_{object}
+#                                                         boundaries_{object}, discrepancy_worlds
 #   P/audits/{name}.json                                  audit verdicts ({"passed": bool, ...})
 #   P/discrepancy/...                                     discrepancy cases, runs and reports (grammar at
 #                                                         the top of workflow/rules/discrepancy.smk)
