@@ -43,9 +43,7 @@ class AttributionRow:
     ``signature_share``, the smallest share of the candidate's contribution that the data
     hold in a third of the record where it is visible above the noise (:func:`_window_shares`),
     and ``signature_ok`` (at least ``LoopSettings.signature_min``): a load that stays on acts
-    from t = 0 to the end, a push that starts later or ends does not. ``explained_beyond_floor``: the energy it removes
-    as a share of the validation energy above the discretization floor (what the decision
-    uses; equal to ``explained_val`` without a term). ``refined_spec``: the refined model, used by the decision, never written.
+    from t = 0 to the end, a push that starts later or ends does not. ``refined_spec``: the refined model, used by the decision, never written.
     """
 
     key: str
@@ -67,7 +65,6 @@ class AttributionRow:
     delta_bic: float = math.nan
     signature_share: float = math.nan
     signature_ok: bool = True
-    explained_beyond_floor: float = -math.inf
     rank: int = 0
     refined_spec: ModelSpec | None = field(default=None, repr=False)
 
@@ -95,8 +92,6 @@ class AttributionRow:
                       "explained_val": self.explained_val, "delta_bic": self.delta_bic})
             if not math.isnan(self.signature_share):
                 d.update({"signature_share": self.signature_share, "signature_ok": self.signature_ok})
-            if math.isfinite(self.explained_beyond_floor) and self.explained_beyond_floor != self.explained_val:
-                d["explained_beyond_floor"] = self.explained_beyond_floor
         else:
             if self.refine_error is not None:
                 d["refine_error"] = self.refine_error
@@ -115,7 +110,9 @@ class AttributionRound:
     the same after the linearized theta fit; ``noise_floor_val`` [m^2]: the noise's share of
     the validation energy; ``model_floor_val`` [m^2]: the discretization floor there (the
     term's energy, 0 without one); ``excess_val``: validation energy over both floors, minus 1;
-    ``significant``: above ``LoopSettings.min_excess``; ``table``: the ranked rows;
+    ``significant``: above ``LoopSettings.min_excess`` (a residual beyond the model's
+    discretization error); ``excess_noise_val`` and ``visible``: the same against the noise
+    alone (a residual there is to attribute: candidates are refined and tried); ``table``: the ranked rows;
     ``decision``: what the loop did next; ``tried``: the joint recalibrations attempted;
     with a discretization term, ``term_coefficient`` (its profiled c at the theta-only
     refit) and ``rss_theta_val_without_term`` (the validation energy there with c = 0).
@@ -131,6 +128,8 @@ class AttributionRound:
     screen_rss_theta_val: float
     noise_floor_val: float
     excess_val: float
+    excess_noise_val: float
+    visible: bool
     significant: bool
     table: list[AttributionRow]
     decision: str | None = None
@@ -149,7 +148,8 @@ class AttributionRound:
             "theta": self.theta, "effects": self.effects, "n_fit": self.n_fit, "n_val": self.n_val,
             "rss_theta_fit": self.rss_theta_fit, "rss_theta_val": self.rss_theta_val, "theta_fit_window": self.theta_fit_window,
             "screen_rss_theta_val": self.screen_rss_theta_val, "noise_floor_val": self.noise_floor_val,
-            "excess_val": self.excess_val, "significant": self.significant,
+            "excess_val": self.excess_val, "excess_noise_val": self.excess_noise_val, "visible": self.visible,
+            "significant": self.significant,
             "table": [row.to_dict() for row in self.table], "decision": self.decision,
         }
         if self.tried is not None:
@@ -350,19 +350,19 @@ def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], fl
     floor_V = V.size * floor + model_floor_V
     excess = rss_nl_theta_V / floor_V - 1.0 if floor_V > 0 else math.inf
     significant = bool(excess > settings.min_excess)
+    noise_V = V.size * floor
+    excess_noise = rss_nl_theta_V / noise_V - 1.0 if noise_V > 0 else math.inf
+    visible = bool(excess_noise > settings.min_excess)
     screened = [row.key for row in rows if row.error is None]
     chosen = screened[: settings.refine_top]
     chosen += [key for key in screened if by_key[key].threshold and key not in chosen]
-    if not significant:  # nothing to explain: the screen is reported, no refinement is needed
+    if not visible:  # nothing above the noise to explain: the screen is reported, no refinement is needed
         chosen = []
-    beyond = max(rss_nl_theta_V - model_floor_V, 1e-300)
     for row in rows:
         if row.key in chosen:
             _refine(problem, spec, row, by_key[row.key], (rss_nl_theta_F, rss_nl_theta_V), settings, log, floor)
         else:
             row.explained_val = row.screen_explained_val
-        if math.isfinite(row.explained_val):
-            row.explained_beyond_floor = (rss_nl_theta_V * row.explained_val) / beyond if model_floor_V > 0 else row.explained_val
     rows.sort(key=lambda row: (not row.refined, -row.explained_val))
     for rank, row in enumerate(rows, 1):
         row.rank = rank
@@ -370,7 +370,7 @@ def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], fl
         theta=list(spec.theta), effects=[list(e) for e in spec.effects], n_fit=F.size, n_val=V.size,
         rss_theta_fit=rss_nl_theta_F, rss_theta_val=rss_nl_theta_V, theta_fit_window=list(theta_fit.theta),
         screen_rss_theta_val=lin.rss_val, noise_floor_val=V.size * floor, model_floor_val=model_floor_V, floor_weight=weight,
-        excess_val=excess,
+        excess_val=excess, excess_noise_val=excess_noise, visible=visible,
         significant=significant, table=rows,
         term_coefficient=term_c if problem.term is not None else None,
         rss_theta_val_without_term=rss_raw_V if problem.term is not None else None,

@@ -239,7 +239,16 @@ def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loop
     term = np.zeros_like(D)
     term[1:] = perp.reshape(D[1:].shape)
     me.spec, me.term, me.change = spec, term, D
-    return problem.with_term(term, me.c_max)
+    floor_shape = None
+    if me.second is not None:
+        # the floor: what one more refinement step changes that theta and the term cannot represent
+        D2 = me.difference(fw, spec, problem.probe, points, level=2)[problem.frames][1:].reshape(-1)
+        A = np.column_stack([J, flat])
+        floor_shape = D2 - A @ np.linalg.lstsq(A, D2, rcond=None)[0]
+        me.leftover = np.zeros_like(D)
+        me.leftover[1:] = floor_shape.reshape(D[1:].shape)
+        me.leftover_share = float(floor_shape @ floor_shape) / max(float(D2 @ D2), 1e-300)
+    return problem.with_term(term, me.c_max, floor_shape=floor_shape)
 
 
 def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, settings: LoopSettings, log: list) -> dict:
@@ -293,7 +302,7 @@ def _try_candidates(problem: Problem, spec: ModelSpec, att: AttributionRound, fl
     tried = []
     rss_cur = float(np.sum(problem.residual(spec) ** 2))
     for row in att.table[: settings.max_tries]:
-        if not row.refined or row.explained_beyond_floor < settings.min_explained or row.delta_bic >= 0 or not row.signature_ok:
+        if not row.refined or row.explained_val < settings.min_explained or row.delta_bic >= 0 or not row.signature_ok:
             continue
         key = row.key
         start_spec = row.refined_spec
@@ -304,8 +313,7 @@ def _try_candidates(problem: Problem, spec: ModelSpec, att: AttributionRound, fl
             tried.append({"key": key, "error": str(exc)[:200]})
             continue
         cost = float(rr @ rr)
-        excess_all = max(rss_cur - rr.size * floor - problem.model_floor(slice(None), att.floor_weight), 1e-12 * rss_cur)
-        gain = (rss_cur - cost) / excess_all
+        gain = (rss_cur - cost) / max(rss_cur - rr.size * floor, 1e-12 * rss_cur)
         new = ModelSpec(new.theta, tuple((k, u) for k, u in new.effects if u != 0.0 or k == key))
         tried.append({"key": key, "rss_before": rss_cur, "rss_after": cost, "gain_over_excess": gain, "theta": list(new.theta),
                       "effects": [list(e) for e in new.effects]})
@@ -327,14 +335,17 @@ def _augment(problem: Problem, spec: ModelSpec, candidates: list[Candidate], flo
         top = att.best
         say(f"round {len(rounds)}: excess over noise {att.excess_val:.3g}; best {top.key if top else '-'} "
             f"explains {top.explained_val if top else float('nan'):.3f}")
-        if not att.significant:
-            att.decision = "no significant residual left"
+        if not att.visible:
+            att.decision = "no residual above the noise left"
             return spec, rounds, False, "no_residual"
         if len(spec.effects) >= settings.max_effects:
             att.decision = f"stop: at most {settings.max_effects} effects are added"
-            return spec, rounds, True, "max_effects"
+            return spec, rounds, att.significant, "max_effects"
         accepted, att.tried = _try_candidates(problem, spec, att, floor, settings, log)
         if accepted is None:
+            if not att.significant:
+                att.decision = "no catalogue effect explains the residual, which is within the model's discretization floor"
+                return spec, rounds, False, "discretization"
             att.decision = "residual unexplained by the catalogue"
             return spec, rounds, True, "unexplained"
         key, spec = accepted
@@ -440,7 +451,7 @@ def _approximation(rounds: list[AttributionRound], unexplained: bool, settings: 
     if not unexplained or not rounds:
         return None
     for row in rounds[-1].table:
-        if row.refined and not row.signature_ok and row.explained_beyond_floor >= settings.min_explained and row.delta_bic < 0:
+        if row.refined and not row.signature_ok and row.explained_val >= settings.min_explained and row.delta_bic < 0:
             return {"key": row.key, "label": row.label, "explained_val": row.explained_val,
                     "signature_share": row.signature_share, "parameter": row.parameter, "value_estimate": row.value_estimate,
                     "note": (f"{row.label} would explain {100 * row.explained_val:.0f}% of the validation residual, but the "
@@ -543,7 +554,8 @@ def run_discrepancy(
     floor = noise["floor_per_scalar"]
     me = None
     if settings.model_error_refine is not None:
-        me = build_model_error(pb.forward, factor=settings.model_error_refine, c_max=settings.model_error_max)
+        me = build_model_error(pb.forward, factor=settings.model_error_refine, c_max=settings.model_error_max,
+                               second=settings.model_error_second)
         pb = _with_term(pb, me, base, settings)
     refit = _refit_theta(pb, base, library, settings, log)
     if me is not None:

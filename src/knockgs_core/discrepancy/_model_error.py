@@ -15,6 +15,12 @@ profiled out of every least-squares fit (one-sided, ``0 <= c <= c_max``), so an 
 judged on what it explains beyond the discretization error; the term sets the verdict
 "consistent with the model's discretization error" and widens the theta interval.
 
+How much of the data's discretization error a term of this one shape misses (the *floor*
+against which a residual is significant) is measured, not assumed: a second refinement, by
+``r^2`` (three grids, as in a grid-convergence study), gives ``D2``, the change two steps
+away; the part of ``D2`` that theta's sensitivities and ``c * D`` cannot represent
+(``leftover``) is the shape the term misses one step further, and its energy is the floor.
+
 The refined model is the loop's own contract with the grid and the interior fill refined by
 ``factor`` (the same Gaussians, a new fill, the contracts' time-step rule). Displacements of
 the two models are compared at the same points through one smoothing kernel (Gaussian
@@ -74,43 +80,63 @@ class ModelError:
     log theta that moves the model like the refinement does (least squares on D); ``refined`` the refined
     forward model; ``factor`` the refinement ratio r; ``c_max`` the bound of the coefficient;
     ``richardson`` ``r / (r - 1)``: the coefficient of the continuum limit under first-order
-    convergence; ``length`` the kernel length [m]."""
+    convergence; ``length`` the kernel length [m]. ``second``: the model refined by ``r^2``
+    (None: no floor measurement) and ``leftover`` [T, M, 3] (m): the part of its change that
+    theta and the term cannot represent, ``leftover_share``: its energy as a share of that
+    change's."""
 
     refined: ForwardModel
     factor: float
     c_max: float
     length: float
+    second: ForwardModel | None = None
     spec: ModelSpec | None = None
     term: np.ndarray | None = None
     change: np.ndarray | None = None
     theta_shift: np.ndarray | None = None
+    leftover: np.ndarray | None = None
+    leftover_share: float | None = None
 
     @property
     def richardson(self) -> float:
         return self.factor / (self.factor - 1.0)
 
-    def difference(self, model: ForwardModel, spec: ModelSpec, probe: str, points: np.ndarray) -> np.ndarray:
-        """D [T, P, 3] = refined minus model displacement at rest ``points`` [P, 3] under
-        ``probe`` at ``spec`` (effects included; both rollouts on the same kernel)."""
+    def difference(self, model: ForwardModel, spec: ModelSpec, probe: str, points: np.ndarray, *,
+                   level: int = 1) -> np.ndarray:
+        """D [T, P, 3] = refined (``level`` 1: by r; 2: by r^2) minus model displacement at rest
+        ``points`` [P, 3] under ``probe`` at ``spec`` (effects included; both rollouts on the
+        same kernel)."""
+        refined = self.refined if level == 1 else self.second
+        if refined is None:
+            raise InputError("LoopSettings", "model_error_second", "the second refinement was not built")
         X = np.asarray(model.rollout(spec, probe), dtype=np.float64)
-        Xr = np.asarray(self.refined.rollout(spec, probe), dtype=np.float64)
+        Xr = np.asarray(refined.rollout(spec, probe), dtype=np.float64)
         u = displacement_at(X[0], X - X[0], points, length=self.length)
         ur = displacement_at(Xr[0], Xr - Xr[0], points, length=self.length)
         return ur - u
 
     def to_dict(self) -> dict:
         c = self.refined.contract
-        return {"refine_factor": self.factor, "refined_n_grid": c.sim.n_grid, "refined_fill_resolution": c.fill.resolution,
-                "refined_dt": c.sim.dt, "refined_particles": len(self.refined.particles.positions),
-                "richardson_coefficient": self.richardson, "coefficient_max": self.c_max, "kernel_length": self.length}
+        d = {"refine_factor": self.factor, "refined_n_grid": c.sim.n_grid, "refined_fill_resolution": c.fill.resolution,
+             "refined_dt": c.sim.dt, "refined_particles": len(self.refined.particles.positions),
+             "richardson_coefficient": self.richardson, "coefficient_max": self.c_max, "kernel_length": self.length}
+        if self.second is not None:
+            c2 = self.second.contract
+            d.update({"second_n_grid": c2.sim.n_grid, "second_fill_resolution": c2.fill.resolution,
+                      "second_particles": len(self.second.particles.positions), "leftover_share": self.leftover_share})
+        return d
 
 
-def build_model_error(model: ForwardModel, *, factor: float, c_max: float) -> ModelError:
-    """The refined model of ``model`` (its contract refined by ``factor``, particles rebuilt)."""
+def build_model_error(model: ForwardModel, *, factor: float, c_max: float, second: bool = True) -> ModelError:
+    """The refined model of ``model`` (its contract refined by ``factor``, particles rebuilt)
+    and, with ``second``, the model refined by ``factor**2`` that measures the floor."""
     from ..assets import build_asset
 
-    contract = refined_contract(model.contract, factor)
-    particles = build_asset(contract).particles
-    refined = ForwardModel(contract, particles, catalogue=dict(model.catalogue), device=model.device)
-    length = contract.sim.grid_lim / contract.sim.n_grid
-    return ModelError(refined=refined, factor=float(factor), c_max=float(c_max), length=float(length))
+    def refine(f):
+        contract = refined_contract(model.contract, f)
+        return ForwardModel(contract, build_asset(contract).particles, catalogue=dict(model.catalogue), device=model.device)
+
+    refined = refine(factor)
+    length = refined.contract.sim.grid_lim / refined.contract.sim.n_grid
+    return ModelError(refined=refined, factor=float(factor), c_max=float(c_max), length=float(length),
+                      second=refine(factor * factor) if second else None)

@@ -34,6 +34,9 @@ class LoopSettings:
         the model's discretization error (``_model_error``); None: no discretization term.
     model_error_max: bound of the term's coefficient c (``r / (r - 1)`` is the continuum
         limit under first-order convergence: 3 at r = 1.5).
+    model_error_second: measure the discretization floor with a second refinement (ratio
+        r^2): the floor is the energy of what it changes that theta and the term cannot
+        represent; False: the term's own energy (a cruder, larger floor).
     model_error_updates: times the term is recomputed at the refitted theta (until theta moves
         less than 1%).
     model_error_ramp: (c0, c1): the discretization floor is the term's energy times a weight
@@ -63,6 +66,7 @@ class LoopSettings:
     catalogue: tuple[str, ...] | None = None
     model_error_refine: float | None = 1.5
     model_error_max: float = 6.0
+    model_error_second: bool = True
     model_error_updates: int = 4
     model_error_ramp: tuple[float, float] = (0.15, 0.4)
     signature_min: float = 0.5
