@@ -297,7 +297,9 @@ def _try_candidates(problem: Problem, spec: ModelSpec, att: AttributionRound, fl
                     log: list) -> tuple[tuple[str, ModelSpec] | None, list[dict]]:
     """Phase 4: jointly recalibrate (theta, strengths) with each of the best ``max_tries``
     rows that pass the screen, from its refined model, on all calibration frames; the first
-    that removes ``min_confirm`` of the residual energy above the noise is accepted.
+    that removes ``min_confirm`` of the residual energy above the noise and the discretization
+    floor (or, where the residual lies within that floor, lowers it at all: the validation
+    window has already shown that the effect explains most of it) is accepted.
     Returns (key, new model) or None, and the record of the tries."""
     tried = []
     rss_cur = float(np.sum(problem.residual(spec) ** 2))
@@ -313,11 +315,17 @@ def _try_candidates(problem: Problem, spec: ModelSpec, att: AttributionRound, fl
             tried.append({"key": key, "error": str(exc)[:200]})
             continue
         cost = float(rr @ rr)
-        gain = (rss_cur - cost) / max(rss_cur - rr.size * floor, 1e-12 * rss_cur)
+        # the share of the energy above the noise and the discretization floor that the joint fit
+        # removes (any gain when the residual lies within the floor: the validation window has
+        # already shown that the effect explains most of it)
+        excess_all = rss_cur - rr.size * floor - problem.model_floor(slice(None), att.floor_weight)
+        within = excess_all <= 0.0
+        gain = (rss_cur - cost) / excess_all if not within else None
         new = ModelSpec(new.theta, tuple((k, u) for k, u in new.effects if u != 0.0 or k == key))
-        tried.append({"key": key, "rss_before": rss_cur, "rss_after": cost, "gain_over_excess": gain, "theta": list(new.theta),
-                      "effects": [list(e) for e in new.effects]})
-        if gain >= settings.min_confirm and dict(new.effects)[key] != 0.0:
+        tried.append({"key": key, "rss_before": rss_cur, "rss_after": cost, "gain_over_excess": gain, "within_floor": within,
+                      "theta": list(new.theta), "effects": [list(e) for e in new.effects]})
+        confirmed = cost < rss_cur if within else gain >= settings.min_confirm
+        if confirmed and dict(new.effects)[key] != 0.0:
             return (key, new), tried
     return None, tried
 

@@ -204,8 +204,10 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
             if "error" in t:
                 L.append(f"\nTried {t['key']}: joint recalibration failed ({t['error']}).")
             else:
+                share = ("the residual lay within the noise and discretization floor" if t.get("within_floor")
+                         else f"{100 * t['gain_over_excess']:.1f}% of the excess over the noise and discretization floor")
                 L.append(f"\nTried {t['key']}: joint recalibration cut the residual energy from {t['rss_before']:.4g} to "
-                         f"{t['rss_after']:.4g} m^2 ({100 * t['gain_over_excess']:.1f}% of the excess over noise).")
+                         f"{t['rss_after']:.4g} m^2 ({share}).")
         L.append("")
     L += ["## Figures", ""]
     for probe, name in figs:
