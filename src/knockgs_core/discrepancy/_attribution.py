@@ -43,7 +43,8 @@ class AttributionRow:
     ``signature_share``, the smallest share of the candidate's contribution that the data
     hold in a third of the record where it is visible above the noise (:func:`_window_shares`),
     and ``signature_ok`` (at least ``LoopSettings.signature_min``): a load that stays on acts
-    from t = 0 to the end, a push that starts later or ends does not. ``refined_spec``: the refined model, used by the decision, never written.
+    from t = 0 to the end, a push that starts later or ends does not. ``refined_spec``: the
+    refined model, used by the decision, never written.
     """
 
     key: str
