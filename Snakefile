@@ -26,11 +26,16 @@
 #                                                         convergence_{object} (Probe-A dt and n_grid study),
 #                                                         boundaries_{object}, loo_object (library boundaries)
 #                                                         verification_fem (MPM vs finite-element reference),
-#                                                         discrepancy_worlds (target discrepancy_worlds)
+#                                                         discrepancy_worlds (target discrepancy_worlds),
+#                                                         splits_{object}, sensitivity_size_{object},
+#                                                         sensitivity_k_alpha_{object}, identifiability_{object}
+#                                                         (+ _pairs_): the paper's diagnostics (diagnostics.smk)
 #   P/figures/{name}.png|gif                              reported figures: main_{object}, fill_{object},
 #                                                         qualitative_{object}, compare_{object} (gif),
 #                                                         objects, discrepancy, convergence_{object},
-#                                                         boundaries_{object}, discrepancy_worlds
+#                                                         boundaries_{object}, discrepancy_worlds,
+#                                                         splits_{object}, sensitivity_{object},
+#                                                         identifiability_{object}
 #   P/audits/{name}.json                                  audit verdicts ({"passed": bool, ...})
 #   P/discrepancy/...                                     discrepancy cases, runs and reports (grammar at
 #                                                         the top of workflow/rules/discrepancy.smk)
@@ -60,6 +65,7 @@ include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/render.smk"
 include: "workflow/rules/report.smk"
 include: "workflow/rules/discrepancy.smk"
+include: "workflow/rules/diagnostics.smk"
 include: "workflow/rules/audit.smk"
 include: "workflow/rules/convergence.smk"
 include: "workflow/rules/boundaries.smk"
@@ -76,3 +82,4 @@ rule all:
         CONVERGENCE_IN_ALL,
         BOUNDARIES_IN_ALL,
         VERIFICATION_IN_ALL,
+        DIAGNOSTICS_IN_ALL,

@@ -51,9 +51,15 @@ def audit_leakage(
     candidates: pd.DataFrame,
     targets: pd.DataFrame,
     library_rollouts: Iterable = (),
+    sensitivity_grids: Iterable = (),
+    frozen: Mapping | None = None,
 ) -> dict:
     """Leakage from recorded inputs. ``calibration_probes``: object -> Probe-A name.
-    Estimate files live at ``.../estimates/{object}/{split}/{method}.json``."""
+    Estimate files live at ``.../estimates/{object}/{split}/{method}.json``.
+    ``sensitivity_grids``: k x alpha tables (``sensitivity_k_alpha_{object}.csv``), whose
+    held-out column must reach no selection: the row marked ``frozen`` is the configuration
+    ``frozen`` (the config's local-ridge k and alpha), and ``loo_best`` marks the lowest
+    leave-one-out error, whatever the held-out errors."""
     problems: list[str] = []
     checked = 0
     for f in estimate_files:
@@ -96,8 +102,22 @@ def audit_leakage(
             problems.append(f"{f}: library rollout under probe '{md['probe']['name']}', not Probe A '{want}'")
         if (round(md["theta"][0], 6), round(md["theta"][1], 6)) not in {(round(a, 6), round(b, 6)) for a, b in cand_pairs}:
             problems.append(f"{f}: library rollout at theta {md['theta']} is not a candidate")
+    n_grids = 0
+    for f in sensitivity_grids:
+        n_grids += 1
+        g = pd.read_csv(f)
+        fz = g[g["frozen"].astype(bool)]
+        if len(fz) != 1:
+            problems.append(f"{f}: {len(fz)} rows marked frozen (expected 1)")
+        elif frozen is not None and (int(fz["k"].iloc[0]) != int(frozen.get("k", 10))
+                                     or not np.isclose(float(fz["alpha"].iloc[0]), float(frozen.get("alpha", 1e-3)))):
+            problems.append(f"{f}: the frozen row (k = {fz['k'].iloc[0]}, alpha = {fz['alpha'].iloc[0]}) is not the "
+                            f"configuration {dict(frozen)}")
+        best = g[g["loo_best"].astype(bool)]
+        if len(best) != 1 or float(best["loo_joint_error_pct"].iloc[0]) != float(g["loo_joint_error_pct"].min()):
+            problems.append(f"{f}: loo_best does not mark the lowest leave-one-out error")
     return {"passed": not problems, "deployable_estimates_checked": checked, "library_rollouts_checked": n_lib,
-            "problems": problems}
+            "sensitivity_grids_checked": n_grids, "problems": problems}
 
 
 def _rollout_files(dirs: Sequence) -> list[Path]:

@@ -13,6 +13,10 @@ REPORTED_TABLES = (
 LIBRARY_ROLLOUTS = [path for o in OBJECTS for path in library_rollouts(o).values()]
 # the descriptor tables between the rollouts and the estimators, checked for non-finite cells too
 DESCRIPTOR_TABLES = [f"{P}/descriptors/{o}/{name}.csv" for o in OBJECTS for name in ("library", f"queries_{SPLIT}")]
+# the splits whose deployable estimates the leakage audit reads: the main one and, with the
+# diagnostics in `all`, the alternative splits (diagnostics.smk, included before this file)
+AUDITED_SPLITS = DIAGNOSTIC_SPLITS if DIAGNOSTICS["enabled"] else [SPLIT]
+DIAGNOSTIC_TABLES = [path for path in DIAGNOSTICS_IN_ALL if path.endswith(".csv")]
 
 # CONVERGENCE_IN_ALL (convergence.smk, included after this file) is read when the DAG is built,
 # hence the lambdas. The convergence tables' cells "not in the asymptotic range" are words by design.
@@ -22,8 +26,9 @@ rule audit_leakage:
     conda:
         "../envs/knockgs.yaml"
     input:
-        estimates=[f"{P}/estimates/{o}/{SPLIT}/{m}.json" for o in OBJECTS for m in METHODS],
+        estimates=[f"{P}/estimates/{o}/{s}/{m}.json" for o in OBJECTS for s in AUDITED_SPLITS for m in METHODS],
         library=folders(LIBRARY_ROLLOUTS),
+        sensitivity=[path for path in DIAGNOSTICS_IN_ALL if "/sensitivity_k_alpha_" in path and path.endswith(".csv")],
     output:
         f"{P}/audits/leakage.json",
     log:
@@ -32,6 +37,7 @@ rule audit_leakage:
         calibration={o: calibration_probe(o) for o in OBJECTS},
         library=LIBRARY_ROLLOUTS,
         split=SPLIT,
+        frozen=config["method_params"].get("local_ridge", {}),
     script:
         "../scripts/audit.py"
 
@@ -40,7 +46,8 @@ rule audit_nonfinite:
     conda:
         "../envs/knockgs.yaml"
     input:
-        tables=lambda wc: REPORTED_TABLES + DESCRIPTOR_TABLES + [path for path in CONVERGENCE_IN_ALL if path.endswith(".csv")],
+        tables=lambda wc: REPORTED_TABLES + DESCRIPTOR_TABLES + DIAGNOSTIC_TABLES
+        + [path for path in CONVERGENCE_IN_ALL if path.endswith(".csv")],
     output:
         f"{P}/audits/nonfinite.json",
     log:
@@ -108,13 +115,14 @@ rule audit_completion:
     input:
         tables=REPORTED_TABLES,
         convergence=lambda wc: CONVERGENCE_IN_ALL,
+        diagnostics=DIAGNOSTICS_IN_ALL,
     output:
         f"{P}/audits/completion.json",
     log:
         f"logs/{PROFILE}/audits/completion.log",
     params:
         expected=lambda wc: [path for path in REPORT_OUTPUTS + RENDER_OUTPUTS + DISCREPANCY_OUTPUTS + CONVERGENCE_IN_ALL
-                             if not path.startswith(f"{P}/audits/")],
+                             + DIAGNOSTICS_IN_ALL if not path.startswith(f"{P}/audits/")],
         methods=METHODS,
         mains=[f"{P}/tables/main_{o}.csv" for o in OBJECTS],
     script:

@@ -3,7 +3,10 @@
 Workflow scripts call one function here each. :mod:`._main` is the main benchmark
 (descriptor tables, frozen estimates, Probe-A/B write-back evaluation, rendered frames);
 :mod:`._convergence` the discretization study of the Probe-A response (time and space);
-:mod:`._boundaries` the library's discretization and object boundaries (leave-one-object-out).
+:mod:`._boundaries` the library's discretization and object boundaries (leave-one-object-out);
+the paper's generalization diagnostics: :mod:`._splits` (alternative target splits, strict
+gate), :mod:`._sensitivity` (library size, k x alpha) and :mod:`._identifiability`
+(descriptor ambiguity, condition numbers).
 """
 
 from ._boundaries import (
@@ -23,6 +26,18 @@ from ._boundaries import (
     loo_table,
     shared_library,
 )
+from ._identifiability import condition_table, identifiability_summary, pair_table, plot_identifiability
+from ._sensitivity import (
+    SensitivitySettings,
+    k_alpha_grid,
+    knn_reference,
+    nested_subsets,
+    plot_sensitivity,
+    prediction_counts,
+    size_sensitivity,
+    size_summary,
+)
+from ._splits import plot_splits, split_row, splits_note, splits_table
 from ._convergence import NOT_ASYMPTOTIC, convergence_note, convergence_study, observed_order, plot_convergence
 from ._main import (
     camera_from_contract,
@@ -72,4 +87,20 @@ __all__ = [
     "boundary_note",
     "shared_library",
     "loo_table",
+    "split_row",
+    "splits_table",
+    "splits_note",
+    "plot_splits",
+    "SensitivitySettings",
+    "nested_subsets",
+    "size_sensitivity",
+    "size_summary",
+    "knn_reference",
+    "k_alpha_grid",
+    "prediction_counts",
+    "plot_sensitivity",
+    "pair_table",
+    "condition_table",
+    "identifiability_summary",
+    "plot_identifiability",
 ]
