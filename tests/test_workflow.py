@@ -28,11 +28,14 @@ def _snakemake(workdir: Path, *targets: str, extra=()):
 
 @pytest.fixture(scope="module")
 def ci_run(tmp_path_factory):
-    """One ci-profile run of the Pillow main table, render table and audits in a scratch copy."""
+    """One ci-profile run of the Pillow main table, render table, audits and diagnostics in a
+    scratch copy."""
     work = scratch_copy(tmp_path_factory.mktemp("wf"))
     targets = [f"{CI}/tables/main_pillow.csv", f"{CI}/tables/render_pillow.csv", f"{CI}/figures/qualitative_pillow.png",
                f"{CI}/figures/compare_pillow.gif", f"{CI}/figures/main_pillow.png", f"{CI}/audits/leakage.json",
-               f"{CI}/audits/duplicates.json", f"{CI}/audits/nonfinite.json", f"{CI}/audits/missing_frames.json"]
+               f"{CI}/audits/duplicates.json", f"{CI}/audits/nonfinite.json", f"{CI}/audits/missing_frames.json",
+               f"{CI}/tables/splits_pillow.csv", f"{CI}/tables/sensitivity_size_pillow.csv",
+               f"{CI}/tables/identifiability_pillow.csv"]
     out = _snakemake(work, *targets)
     assert out.returncode == 0, out.stderr[-4000:]
     return work
@@ -97,9 +100,38 @@ def test_ci_audits_pass_and_rerun_is_a_no_op(ci_run):
         verdict = json.loads((ci_run / f"{CI}/audits/{name}.json").read_text())
         assert verdict["passed"], verdict
     leak = json.loads((ci_run / f"{CI}/audits/leakage.json").read_text())
-    assert leak["deployable_estimates_checked"] == 5 and leak["library_rollouts_checked"] == 54
+    # the main and the three alternative splits' estimates; the k x alpha grid's selection
+    assert leak["deployable_estimates_checked"] == 4 * 5 and leak["library_rollouts_checked"] == 54
+    assert leak["sensitivity_grids_checked"] == 1
     dry = _snakemake(ci_run, f"{CI}/tables/main_pillow.csv", extra=["-n"])
     assert dry.returncode == 0 and "Nothing to be done" in dry.stdout + dry.stderr
+
+
+@pytest.mark.slow
+def test_ci_diagnostics_tables(ci_run):
+    P = ci_run / CI
+    main = pd.read_csv(P / "tables/main_pillow.csv").set_index("method")["joint_error_pct"]
+    sp = pd.read_csv(P / "tables/splits_pillow.csv")
+    assert list(sp["split"]) == ["main", "alt_1", "alt_2", "alt_3"] and (sp["n_targets"] == 5).all()
+    # the main split's row is the main table's
+    row = sp.iloc[0]
+    assert row["local_ridge_pct"] == pytest.approx(main["local_ridge"], rel=1e-9)
+    assert row["strongest_pct"] == pytest.approx(main.drop(["local_ridge", "parameter_nearest_oracle"]).min(), rel=1e-9)
+    assert {"probe_b_gate_standard_y", "probe_b_gate_strong_x"} <= set(sp.columns)
+    assert "paper: 3/3, 2/3, 6/6" in (P / "tables/splits_pillow.md").read_text()
+    # the frozen configuration on the full library reproduces the main table's local ridge
+    size = pd.read_csv(P / "tables/sensitivity_size_pillow.csv")
+    assert list(size["size"]) == [18, 27, 36, 45, 54] and (size["n_nonfinite"] == 0).all()
+    assert size["mean_joint_error_pct"].iloc[-1] == pytest.approx(main["local_ridge"], rel=1e-9)
+    grid = pd.read_csv(P / "tables/sensitivity_k_alpha_pillow.csv")
+    frozen = grid.loc[grid["frozen"], "heldout_joint_error_pct"]
+    assert len(grid) == 30 and frozen.iloc[0] == pytest.approx(main["local_ridge"], rel=1e-9)
+    assert "2375 offline predictions" in (P / "tables/sensitivity_k_alpha_pillow.md").read_text()
+    ident = pd.read_csv(P / "tables/identifiability_pillow.csv").set_index("quantity")["value"]
+    assert ident["candidate pairs"] == 1431
+    assert len(pd.read_csv(P / "tables/identifiability_pairs_pillow.csv")) == 1431
+    for fig in ("splits_pillow", "sensitivity_pillow", "identifiability_pillow"):
+        assert (P / f"figures/{fig}.png").stat().st_size > 1000
 
 
 @pytest.mark.slow
