@@ -240,7 +240,12 @@ def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loop
     term[1:] = perp.reshape(D[1:].shape)
     me.spec, me.term, me.change = spec, term, D
     floor_shape = None
-    if me.second is not None:
+    with_term = problem.with_term(term, me.c_max)
+    c = with_term.coefficient(with_term.raw_residual(spec))
+    # the floor's shape is needed only where the data show the term: at the model's own
+    # resolution (c below half the ramp's start) the floor's weight is 0, and the second
+    # refinement is not run
+    if me.second is not None and c > 0.5 * settings.model_error_ramp[0]:
         # the floor: what one more refinement step changes that theta and the term cannot represent
         D2 = me.difference(fw, spec, problem.probe, points, level=2)[problem.frames][1:].reshape(-1)
         A = np.column_stack([J, flat])
