@@ -90,7 +90,8 @@ def plot_splits(table: pd.DataFrame, path, *, title: str = "") -> None:
         ax.text(i - 0.2, r.local_ridge_pct, "gate" if r.gate else "no gate", va="bottom", ha="center", fontsize=7)
     ax.set_xticks(x, [f"{s}\n({ni})" for s, ni in zip(table["split"], table["non_inferior"])])
     ax.set_ylabel("mean joint error [%]")
-    ax.legend(fontsize=8)
+    ax.set_ylim(0, 1.35 * float(max(table["local_ridge_pct"].max(), table["strongest_pct"].max())))
+    ax.legend(fontsize=8, loc="upper left")
     if title:
         ax.set_title(title, fontsize=10)
     fig.tight_layout()
