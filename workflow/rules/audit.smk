@@ -14,8 +14,8 @@ LIBRARY_ROLLOUTS = [path for o in OBJECTS for path in library_rollouts(o).values
 # the descriptor tables between the rollouts and the estimators, checked for non-finite cells too
 DESCRIPTOR_TABLES = [f"{P}/descriptors/{o}/{name}.csv" for o in OBJECTS for name in ("library", f"queries_{SPLIT}")]
 # the splits whose deployable estimates the leakage audit reads: the main one and, with the
-# diagnostics in `all`, the alternative splits (diagnostics.smk, included before this file)
-AUDITED_SPLITS = DIAGNOSTIC_SPLITS if DIAGNOSTICS["enabled"] else [SPLIT]
+# splits in `all`, the alternative splits (diagnostics.smk, included before this file)
+AUDITED_SPLITS = DIAGNOSTIC_SPLITS if DIAGNOSTICS["enabled"] and DIAGNOSTICS["splits_in_all"] else [SPLIT]
 DIAGNOSTIC_TABLES = [path for path in DIAGNOSTICS_IN_ALL if path.endswith(".csv")]
 
 # CONVERGENCE_IN_ALL (convergence.smk, included after this file) is read when the DAG is built,

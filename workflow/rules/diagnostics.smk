@@ -11,7 +11,8 @@
 # The sensitivity and identifiability studies read only the frozen descriptor tables (and the
 # library's Probe-A rollouts): no new rollout. The splits run the main protocol on every split
 # (rules estimate / rollout_eval / evaluate with the split wildcard). `snakemake diagnostics`
-# makes them all; `all` includes them when config diagnostics.enabled is true.
+# makes them all; `all` includes them when config diagnostics.enabled is true, the splits only
+# with diagnostics.splits_in_all too (`snakemake splits` makes them alone).
 
 DIAGNOSTICS = config["diagnostics"]
 DIAGNOSTIC_SPLITS = [SPLIT] + [s for s in DIAGNOSTICS["splits"] if s != SPLIT]
@@ -26,7 +27,11 @@ DIAGNOSTICS_OUTPUTS = [
         f"{P}/figures/identifiability_{o}.png",
     )
 ]
-DIAGNOSTICS_IN_ALL = DIAGNOSTICS_OUTPUTS if DIAGNOSTICS["enabled"] else []
+SPLITS_OUTPUTS = [path for path in DIAGNOSTICS_OUTPUTS if "/splits_" in path]
+# the splits re-run the main protocol three times (the default profile: about 60 more
+# evaluation rollouts per object), hence their own switch
+DIAGNOSTICS_IN_ALL = [path for path in DIAGNOSTICS_OUTPUTS if DIAGNOSTICS["splits_in_all"] or path not in SPLITS_OUTPUTS] \
+    if DIAGNOSTICS["enabled"] else []
 
 
 rule splits_table:
@@ -109,3 +114,9 @@ rule diagnostics:
     """Named target: every object's splits, sensitivity and identifiability tables and figures."""
     input:
         DIAGNOSTICS_OUTPUTS,
+
+
+rule splits:
+    """Named target: every object's splits table and figure."""
+    input:
+        SPLITS_OUTPUTS,
