@@ -338,15 +338,18 @@ def _try_candidates(problem: Problem, spec: ModelSpec, att: AttributionRound, fl
 def _augment(problem: Problem, spec: ModelSpec, candidates: list[Candidate], floor: float, settings: LoopSettings, log: list,
              say: Callable[[str], None]) -> tuple[ModelSpec, list[AttributionRound], bool, str]:
     """Phases 3-5 from the model ``spec``: attribute, add the best confirmed effect, repeat
-    until no significant residual is left, ``max_effects`` are in, or no candidate passes.
-    Returns the final model, the rounds, whether a residual stays unexplained, and why the
-    loop stopped (``no_residual``, ``max_effects``, ``unexplained``)."""
+    until no residual is visible above the noise, ``max_effects`` are in, or no candidate
+    passes. Returns the final model, the rounds, whether a residual stays unexplained (one
+    significant beyond the noise and the discretization floor), and why the loop stopped
+    (``no_residual``, ``max_effects``, ``discretization``: none passes and the residual is
+    within the floor, ``unexplained``)."""
     rounds = []
     while True:
         att = attribute(problem, spec, candidates, floor, settings, log)
         rounds.append(att)
         top = att.best
-        say(f"round {len(rounds)}: excess over noise {att.excess_val:.3g}; best {top.key if top else '-'} "
+        say(f"round {len(rounds)}: excess over noise {att.excess_noise_val:.3g}, over noise and floor {att.excess_val:.3g}; "
+            f"best {top.key if top else '-'} "
             f"explains {top.explained_val if top else float('nan'):.3f}")
         if not att.visible:
             att.decision = "no residual above the noise left"

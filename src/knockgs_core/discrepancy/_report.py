@@ -179,7 +179,10 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
             f"Residual energy on the validation window after re-tuning theta on the fit window: {rd['rss_theta_val']:.4g} m^2, "
             f"{1.0 + rd['excess_val']:.3g} x the floor (noise"
             + (f" + discretization {rd['model_floor_val']:.3g} m^2" if rd.get("model_floor_val") else "")
-            + f"; {'significant' if rd['significant'] else 'not significant'}). "
+            + f"; {'significant' if rd['significant'] else 'not significant'}"
+            + (f"; {1.0 + rd['excess_noise_val']:.3g} x the noise alone: {'visible' if rd['visible'] else 'not visible'}"
+               if rd.get("model_floor_val") and "excess_noise_val" in rd else "")
+            + "). "
             f"Decision: **{rd['decision']}**.",
             "",
             "| rank | effect | explained (validation) | explained (fit) | delta BIC (fit) | screen: explained (validation) "
