@@ -90,6 +90,11 @@ def test_coefficient_is_profiled_on_the_fit_window_and_bounded(rng):
         if c_true == expected:
             assert np.abs(pb.residual(spec)).max() < 1e-12
         assert pb.model_floor(pb.val_rows) == pytest.approx(float(np.sum(term[1:].reshape(-1)[pb.val_rows] ** 2)))
+        # a measured floor shape replaces the term's energy as the floor
+        shape = 0.5 * np.roll(term[1:], 1, axis=1).reshape(-1)
+        pf = Problem(m, fw, "p", LoopSettings()).with_term(term, c_max, floor_shape=shape)
+        assert pf.model_floor(pf.val_rows, 2.0) == pytest.approx(2.0 * float(np.sum(shape[pf.val_rows] ** 2)))
+        assert pf.coefficient(pf.raw_residual(spec)) == pb.coefficient(raw)
     # only the fit window sets it: a validation-window-only disturbance leaves c unchanged
     Y = fw.rollout(spec, "p") + 0.7 * term
     Y2 = Y.copy()
@@ -151,6 +156,9 @@ def test_a_finer_world_without_effect_is_consistent_with_the_discretization_erro
     res = run_discrepancy(m, contract, particles, settings=LoopSettings(catalogue=("damping", "gravity", "stiffness_gradient_z")))
     assert res.identified == [] and res.verdict_kind in ("discretization", "none"), res.verdict
     assert res.model_error["coefficient"] > 0.3 and res.model_error["floor_weight"] == 1.0
+    # the floor was measured by the second refinement: the share of its change the term misses
+    assert res.model_error["second_n_grid"] == round(contract.sim.n_grid * 2.25)
+    assert 0.0 < res.model_error["leftover_share"] < 1.0
     assert res.model_error["significant_without_term"] and not res.model_error["significant_with_term"]
     (lo_e, hi_e), (lo_r, hi_r) = res.theta_interval
     assert lo_e <= truth[0] <= hi_e and lo_r <= truth[1] <= hi_r, res.theta_interval
