@@ -152,7 +152,7 @@ def test_attribution_rows_serialize_in_the_order_their_stage_set_them():
     assert list(d)[-3:] == ["refined", "explained_val", "rank"] and d["explained_val"] == 0.8
     screened.refined, screened.theta_estimate, screened.explained_fit, screened.delta_bic = True, [1.0, 1.0], 0.95, -10.0
     assert list(screened.to_dict())[-6:] == ["refined", "theta_estimate", "explained_fit", "explained_val", "delta_bic", "rank"]
-    rd = AttributionRound([1.0, 1.0], [], 9, 3, 1.0, 1.0, [1.0, 1.0], 1.0, 0.5, 1.0, True, [failed]).to_dict()
+    rd = AttributionRound([1.0, 1.0], [], 9, 3, 1.0, 1.0, [1.0, 1.0], 1.0, 0.5, 1.0, 1.0, True, True, [failed]).to_dict()
     assert list(rd)[-2:] == ["table", "decision"] and "tried" not in rd and rd["table"][0]["error"] == "unstable"
 
 

@@ -28,7 +28,8 @@ rule audit_leakage:
     input:
         estimates=[f"{P}/estimates/{o}/{s}/{m}.json" for o in OBJECTS for s in AUDITED_SPLITS for m in METHODS],
         library=folders(LIBRARY_ROLLOUTS),
-        sensitivity=[path for path in DIAGNOSTICS_IN_ALL if "/sensitivity_k_alpha_" in path and path.endswith(".csv")],
+        sensitivity=[path for path in DIAGNOSTICS_IN_ALL
+                     if os.path.basename(path).startswith("sensitivity_k_alpha_") and path.endswith(".csv")],
     output:
         f"{P}/audits/leakage.json",
     log:

@@ -27,7 +27,7 @@ DIAGNOSTICS_OUTPUTS = [
         f"{P}/figures/identifiability_{o}.png",
     )
 ]
-SPLITS_OUTPUTS = [path for path in DIAGNOSTICS_OUTPUTS if "/splits_" in path]
+SPLITS_OUTPUTS = [path for path in DIAGNOSTICS_OUTPUTS if os.path.basename(path).startswith("splits_")]
 # the splits re-run the main protocol three times (the default profile: about 60 more
 # evaluation rollouts per object), hence their own switch
 DIAGNOSTICS_IN_ALL = [path for path in DIAGNOSTICS_OUTPUTS if DIAGNOSTICS["splits_in_all"] or path not in SPLITS_OUTPUTS] \
