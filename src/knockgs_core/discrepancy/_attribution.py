@@ -109,8 +109,8 @@ class AttributionRound:
     ``rss_theta_fit``, ``rss_theta_val`` [m^2]: residual energy after the nonlinear
     theta-only refit on the fit window (``theta_fit_window``); ``screen_rss_theta_val``:
     the same after the linearized theta fit; ``noise_floor_val`` [m^2]: the noise's share of
-    the validation energy; ``model_floor_val`` [m^2]: the discretization floor there (the
-    term's energy, 0 without one); ``excess_val``: validation energy over both floors, minus 1;
+    the validation energy; ``model_floor_val`` [m^2]: the discretization floor there
+    (:meth:`Problem.model_floor`, 0 without a term); ``excess_val``: validation energy over both floors, minus 1;
     ``significant``: above ``LoopSettings.min_excess`` (a residual beyond the model's
     discretization error); ``excess_noise_val`` and ``visible``: the same against the noise
     alone (a residual there is to attribute: candidates are refined and tried); ``table``: the ranked rows;

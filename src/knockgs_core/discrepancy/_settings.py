@@ -39,8 +39,8 @@ class LoopSettings:
         represent; False: the term's own energy (a cruder, larger floor).
     model_error_updates: times the term is recomputed at the refitted theta (until theta moves
         less than 1%).
-    model_error_ramp: (c0, c1): the discretization floor is the term's energy times a weight
-        that is 0 up to c = c0 and 1 from c = c1 (linear between): none for data at the
+    model_error_ramp: (c0, c1): the discretization floor is the floor shape's energy times a
+        weight that is 0 up to c = c0 and 1 from c = c1 (linear between): none for data at the
         model's own resolution, all of it from 0.4 of a refinement step on. c0 sits above the
         coefficients that planted effects alone project on the term in the standard cases
         (up to 0.09 at ci).
