@@ -239,21 +239,20 @@ def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loop
     term = np.zeros_like(D)
     term[1:] = perp.reshape(D[1:].shape)
     me.spec, me.term, me.change = spec, term, D
-    floor_shape = None
-    with_term = problem.with_term(term, me.c_max)
-    c = with_term.coefficient(with_term.raw_residual(spec))
+    out = problem.with_term(term, me.c_max)
+    me.leftover, me.leftover_share = None, None
     # the floor's shape is needed only where the data show the term: at the model's own
     # resolution (c below half the ramp's start) the floor's weight is 0, and the second
     # refinement is not run
-    if me.second is not None and c > 0.5 * settings.model_error_ramp[0]:
+    if me.second is not None and out.coefficient(out.raw_residual(spec)) > 0.5 * settings.model_error_ramp[0]:
         # the floor: what one more refinement step changes that theta and the term cannot represent
         D2 = me.difference(fw, spec, problem.probe, points, level=2)[problem.frames][1:].reshape(-1)
         A = np.column_stack([J, flat])
-        floor_shape = D2 - A @ np.linalg.lstsq(A, D2, rcond=None)[0]
+        out.floor_shape = D2 - A @ np.linalg.lstsq(A, D2, rcond=None)[0]
         me.leftover = np.zeros_like(D)
-        me.leftover[1:] = floor_shape.reshape(D[1:].shape)
-        me.leftover_share = float(floor_shape @ floor_shape) / max(float(D2 @ D2), 1e-300)
-    return problem.with_term(term, me.c_max, floor_shape=floor_shape)
+        me.leftover[1:] = out.floor_shape.reshape(D[1:].shape)
+        me.leftover_share = float(out.floor_shape @ out.floor_shape) / max(float(D2 @ D2), 1e-300)
+    return out
 
 
 def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, settings: LoopSettings, log: list) -> dict:
