@@ -29,14 +29,19 @@
 #                                                         discrepancy_worlds (target discrepancy_worlds),
 #                                                         splits_{object}, sensitivity_size_{object},
 #                                                         sensitivity_k_alpha_{object}, identifiability_{object}
-#                                                         (+ _pairs_): the paper's diagnostics (diagnostics.smk)
+#                                                         (+ _pairs_): the paper's diagnostics (diagnostics.smk),
+#                                                         duration_{object}, contact_{object},
+#                                                         passive_active_{object} (+ _targets_): probe
+#                                                         shifts, passive vs active (probe_shifts.smk)
 #   P/figures/{name}.png|gif                              reported figures: main_{object}, fill_{object},
 #                                                         qualitative_{object}, compare_{object} (gif),
 #                                                         objects, discrepancy, convergence_{object},
 #                                                         boundaries_{object}, discrepancy_worlds,
 #                                                         splits_{object}, sensitivity_{object},
-#                                                         identifiability_{object}
+#                                                         identifiability_{object}, passive_active_{object}
 #   P/audits/{name}.json                                  audit verdicts ({"passed": bool, ...})
+#   P/passive/...                                         passive protocol, descriptors and estimates (grammar at
+#                                                         the top of workflow/rules/probe_shifts.smk)
 #   P/discrepancy/...                                     discrepancy cases, runs and reports (grammar at
 #                                                         the top of workflow/rules/discrepancy.smk)
 #   P/boundaries/...                                      boundary conditions' assets, rollouts, estimates and
@@ -66,6 +71,7 @@ include: "workflow/rules/render.smk"
 include: "workflow/rules/report.smk"
 include: "workflow/rules/discrepancy.smk"
 include: "workflow/rules/diagnostics.smk"
+include: "workflow/rules/probe_shifts.smk"
 include: "workflow/rules/audit.smk"
 include: "workflow/rules/convergence.smk"
 include: "workflow/rules/boundaries.smk"
@@ -83,3 +89,4 @@ rule all:
         BOUNDARIES_IN_ALL,
         VERIFICATION_IN_ALL,
         DIAGNOSTICS_IN_ALL,
+        SHIFTS_IN_ALL,

@@ -28,14 +28,16 @@ def _snakemake(workdir: Path, *targets: str, extra=()):
 
 @pytest.fixture(scope="module")
 def ci_run(tmp_path_factory):
-    """One ci-profile run of the Pillow main table, render table, audits and diagnostics in a
-    scratch copy."""
+    """One ci-profile run of the Pillow main table, render table, audits, diagnostics, probe
+    shifts and the passive route in a scratch copy."""
     work = scratch_copy(tmp_path_factory.mktemp("wf"))
     targets = [f"{CI}/tables/main_pillow.csv", f"{CI}/tables/render_pillow.csv", f"{CI}/figures/qualitative_pillow.png",
                f"{CI}/figures/compare_pillow.gif", f"{CI}/figures/main_pillow.png", f"{CI}/audits/leakage.json",
                f"{CI}/audits/duplicates.json", f"{CI}/audits/nonfinite.json", f"{CI}/audits/missing_frames.json",
                f"{CI}/tables/splits_pillow.csv", f"{CI}/tables/sensitivity_size_pillow.csv",
-               f"{CI}/tables/identifiability_pillow.csv"]
+               f"{CI}/tables/identifiability_pillow.csv", f"{CI}/tables/duration_pillow.csv",
+               f"{CI}/tables/contact_pillow.csv", f"{CI}/tables/passive_active_pillow.csv",
+               f"{CI}/audits/rollout_metadata.json"]
     out = _snakemake(work, *targets)
     assert out.returncode == 0, out.stderr[-4000:]
     return work
@@ -96,12 +98,13 @@ def test_ci_candidate_probe_a_evaluation_is_the_library_rollout(ci_run):
 
 @pytest.mark.slow
 def test_ci_audits_pass_and_rerun_is_a_no_op(ci_run):
-    for name in ["leakage", "duplicates", "nonfinite", "missing_frames"]:
+    for name in ["leakage", "duplicates", "nonfinite", "missing_frames", "rollout_metadata"]:
         verdict = json.loads((ci_run / f"{CI}/audits/{name}.json").read_text())
         assert verdict["passed"], verdict
     leak = json.loads((ci_run / f"{CI}/audits/leakage.json").read_text())
-    # the main and the three alternative splits' estimates; the k x alpha grid's selection
-    assert leak["deployable_estimates_checked"] == 4 * 5 and leak["library_rollouts_checked"] == 54
+    # the main and the three alternative splits' estimates and the passive route's; the Probe-A
+    # and the passive libraries; the k x alpha grid's selection
+    assert leak["deployable_estimates_checked"] == 4 * 5 + 5 and leak["library_rollouts_checked"] == 2 * 54
     assert leak["sensitivity_grids_checked"] == 1
     dry = _snakemake(ci_run, f"{CI}/tables/main_pillow.csv", extra=["-n"])
     assert dry.returncode == 0 and "Nothing to be done" in dry.stdout + dry.stderr
@@ -132,6 +135,38 @@ def test_ci_diagnostics_tables(ci_run):
     assert len(pd.read_csv(P / "tables/identifiability_pairs_pillow.csv")) == 1431
     for fig in ("splits_pillow", "sensitivity_pillow", "identifiability_pillow"):
         assert (P / f"figures/{fig}.png").stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_ci_probe_shift_and_passive_tables(ci_run):
+    P = ci_run / CI
+    deployable = [m for m in METHODS if m != "parameter_nearest_oracle"]
+    main = pd.read_csv(P / "tables/main_pillow.csv").set_index("method")["joint_error_pct"]
+    d = pd.read_csv(P / "tables/duration_pillow.csv").set_index("method")
+    assert list(d.index) == deployable and (d["n_targets"] == 5).all()
+    # the frozen estimates are the main table's; evidence beats the fixed default under the new probe
+    assert d["joint_error_pct"].to_dict() == pytest.approx(main.drop("parameter_nearest_oracle").to_dict(), rel=1e-9)
+    rmse = d["traj_rmse_mean"]
+    assert rmse["local_ridge"] < rmse["response_nearest"] < rmse["fixed_default"]
+    # the two protocols differ measurably on the targets themselves
+    assert (d["protocol_distance_mean"] > 1e-5).all()
+    c = pd.read_csv(P / "tables/contact_pillow.csv")
+    assert len(c) == 2 * len(deployable) and set(c["target"]) == {"target_001"}
+    assert list(c["contact"].unique()) == ["local_center_x", "shifted_contact_x"]
+    assert "Single-target demonstration" in (P / "tables/contact_pillow.md").read_text()
+    # passive: the protocol is blind to a common scale, bit for bit, and Probe A is not
+    prot = json.loads((P / "passive/protocols/pillow.json").read_text())
+    assert prot["gravity"][2] < 0 and all(c["passive_bitwise_equal"] and c["active_max_abs_diff"] > 1e-3
+                                          for c in prot["invariance"])
+    pa = pd.read_csv(P / "tables/passive_active_pillow.csv").set_index(["protocol", "method"])
+    lr_a, lr_p = pa.loc[("active", "local_ridge")], pa.loc[("passive", "local_ridge")]
+    assert lr_a["joint_error_pct"] == pytest.approx(main["local_ridge"], rel=1e-9)
+    # passive recovers the ratio, not the scale: the scale-direction error dominates and exceeds the active one
+    assert lr_p["scale_error"] > 5 * lr_p["ratio_error"] and lr_p["scale_error"] > 5 * lr_a["scale_error"]
+    assert lr_p["joint_error_pct"] > 5 * lr_a["joint_error_pct"]
+    assert lr_p["ratio_span_true_pct"] == pytest.approx(162.5, abs=0.05)
+    assert len(pd.read_csv(P / "tables/passive_active_targets_pillow.csv")) == 2 * 5 * len(deployable)
+    assert (P / "figures/passive_active_pillow.png").stat().st_size > 1000
 
 
 @pytest.mark.slow

@@ -53,13 +53,18 @@ def audit_leakage(
     library_rollouts: Iterable = (),
     sensitivity_grids: Iterable = (),
     frozen: Mapping | None = None,
+    passive_library_rollouts: Iterable = (),
 ) -> dict:
     """Leakage from recorded inputs. ``calibration_probes``: object -> Probe-A name.
     Estimate files live at ``.../estimates/{object}/{split}/{method}.json``.
     ``sensitivity_grids``: k x alpha tables (``sensitivity_k_alpha_{object}.csv``), whose
     held-out column must reach no selection: the row marked ``frozen`` is the configuration
     ``frozen`` (the config's local-ridge k and alpha), and ``loo_best`` marks the lowest
-    leave-one-out error, whatever the held-out errors."""
+    leave-one-out error, whatever the held-out errors. An estimate of the passive route (under
+    a ``passive`` folder) reads only passive descriptor tables, an active one none;
+    ``passive_library_rollouts`` must all be candidates under the passive protocol."""
+    from .experiments import PASSIVE_PROBE
+
     problems: list[str] = []
     checked = 0
     for f in estimate_files:
@@ -79,6 +84,8 @@ def audit_leakage(
                 problems.append(f"{f}: deployable estimator read '{inp}' (only library.csv and queries_*.csv are allowed)")
             if "/eval/" in inp or "/rollouts/" in inp or "targets" in name or "ground_truth" in name:
                 problems.append(f"{f}: input '{inp}' is a rollout or label file")
+            if ("passive" in f.parts) != ("passive" in Path(inp).parts):
+                problems.append(f"{f}: input '{inp}' belongs to the other route (passive vs Probe A)")
         for inp in inputs:
             if Path(inp).name.startswith("queries_") and Path(inp).exists():
                 cols = set(pd.read_csv(inp, nrows=1).columns)
@@ -102,6 +109,15 @@ def audit_leakage(
             problems.append(f"{f}: library rollout under probe '{md['probe']['name']}', not Probe A '{want}'")
         if (round(md["theta"][0], 6), round(md["theta"][1], 6)) not in {(round(a, 6), round(b, 6)) for a, b in cand_pairs}:
             problems.append(f"{f}: library rollout at theta {md['theta']} is not a candidate")
+    for f in passive_library_rollouts:
+        n_lib += 1
+        md = _rollout_meta(f)
+        if md["probe"]["name"] != PASSIVE_PROBE:
+            problems.append(f"{f}: passive library rollout under probe '{md['probe']['name']}', not '{PASSIVE_PROBE}'")
+        if any(abs(float(x)) > 0 for x in md["probe"]["force"]):
+            problems.append(f"{f}: passive library rollout with a known force {md['probe']['force']}")
+        if (round(md["theta"][0], 6), round(md["theta"][1], 6)) not in {(round(a, 6), round(b, 6)) for a, b in cand_pairs}:
+            problems.append(f"{f}: passive library rollout at theta {md['theta']} is not a candidate")
     n_grids = 0
     for f in sensitivity_grids:
         n_grids += 1
@@ -196,17 +212,24 @@ def _theta_of_tag(tag: str) -> tuple[float, float] | None:
 
 def _expected_from_path(f: Path, root: Path, obj: Mapping) -> dict:
     """What the path grammar says a cached rollout is (see the Snakefile):
-    ``lib/chunk*/{theta}.parquet`` (Probe A) or ``eval/{theta}/{probe}.parquet``."""
+    ``lib/chunk*/{theta}.parquet`` (Probe A), ``eval/{theta}/{probe}.parquet`` or
+    ``shift/{theta}/{probe}.parquet`` (that probe), ``passive/{job}/{theta}.parquet`` (the
+    passive protocol, exported like Probe A)."""
+    from .experiments import PASSIVE_PROBE
+
     rel = f.relative_to(root).parts
     want = {"object": obj["object"], "profile": obj.get("profile"), "contract_hash": obj.get("contract_hash"),
             "n_particles": obj.get("n_particles")}
-    probe = None
+    probe, frames_of = None, None
     if len(rel) == 3 and rel[0] == "lib":
         want["theta"], probe = _theta_of_tag(rel[2].removesuffix(".parquet")), obj.get("calibration_probe")
-    elif len(rel) == 3 and rel[0] == "eval":
+    elif len(rel) == 3 and rel[0] in ("eval", "shift"):
         want["theta"], probe = _theta_of_tag(rel[1]), rel[2].removesuffix(".parquet")
+    elif len(rel) == 3 and rel[0] == "passive":
+        want["theta"], probe = _theta_of_tag(rel[2].removesuffix(".parquet")), PASSIVE_PROBE
+        frames_of = obj.get("calibration_probe")
     want["probe"] = probe
-    want["n_frames"] = obj.get("n_frames", {}).get(probe)
+    want["n_frames"] = obj.get("n_frames", {}).get(frames_of or probe)
     return want
 
 

@@ -12,7 +12,7 @@ from snakemake.utils import validate
 
 from knockgs_core.calibration import DEPLOYABLE_METHODS, METHOD_NAMES, ORACLE_METHOD
 from knockgs_core.contract import load_candidates, load_contract, load_targets
-from knockgs_core.experiments import BOUNDARY_LIBRARIES, BoundarySettings, boundary_condition, boundary_conditions
+from knockgs_core.experiments import BOUNDARY_LIBRARIES, PASSIVE_PROBE, BoundarySettings, boundary_condition, boundary_conditions
 from knockgs_core.rollout import theta_tag
 
 
@@ -27,6 +27,7 @@ SPLIT = config["split"]
 METHODS = list(config["methods"])
 RENDER = config["render"]
 DISCREPANCY = config["discrepancy"]
+SHIFTS = config["probe_shifts"]
 
 CANDIDATES = load_candidates()
 
@@ -319,3 +320,58 @@ def loo_writeback_rollouts(wc):
     probe = boundary_probe_b(wc.object)
     ths = _estimate_thetas(est) + list(target_thetas().values())
     return {f"{probe}/{theta_tag(th)}": eval_rollout(wc.object, probe, th) for th in ths}
+
+
+# ---------------------------------------------------------------- probe shifts and the passive route (probe_shifts.smk)
+
+# the config's deployable methods (every one but the oracle)
+CONFIG_DEPLOYABLE = [m for m in METHODS if m != ORACLE_METHOD]
+
+
+def passive_outputs(objects):
+    return [
+        path
+        for o in objects
+        for path in (f"{P}/tables/passive_active_{o}.csv", f"{P}/tables/passive_active_{o}.md",
+                     f"{P}/tables/passive_active_targets_{o}.csv", f"{P}/figures/passive_active_{o}.png")
+    ]
+
+
+def shift_rollout(obj, probe, theta):
+    return f"{P}/rollouts/{obj}/shift/{theta_tag(theta)}/{probe}.parquet"
+
+
+def shift_estimates(obj):
+    """method -> frozen estimate file of the split, for every deployable method."""
+    return {m: estimate_json(obj, SPLIT, m) for m in CONFIG_DEPLOYABLE}
+
+
+def shift_rollouts(obj, probes, targets):
+    """{"probe/theta": rollout} of every deployable estimate of ``targets`` and of the
+    targets themselves under ``probes``."""
+    truth = target_thetas()
+    thetas = [truth[t] for t in targets]
+    for m in shift_estimates(obj):
+        est = estimated_thetas(obj, SPLIT, m)
+        thetas += [est[t] for t in targets]
+    return {f"{pr}/{theta_tag(th)}": shift_rollout(obj, pr, th) for pr in probes for th in thetas}
+
+
+def duration_inputs(wc):
+    targets = list(target_thetas())
+    rollouts = shift_rollouts(wc.object, [SHIFTS["duration"]], targets)
+    probe_a = [eval_rollout(wc.object, calibration_probe(wc.object), th) for th in target_thetas().values()]
+    return {"estimates": list(shift_estimates(wc.object).values()), "targets": "config/targets.csv",
+            "rollouts": sorted(set(rollouts.values())), "probe_a": folders(probe_a)}
+
+
+def contact_inputs(wc):
+    rollouts = shift_rollouts(wc.object, SHIFTS["contact"], [SHIFTS["contact_target"]])
+    return {"estimates": list(shift_estimates(wc.object).values()), "targets": "config/targets.csv",
+            "rollouts": sorted(set(rollouts.values()))}
+
+
+def passive_target_rollouts(obj, split):
+    """target name -> its rollout under the passive protocol, in targets.csv order."""
+    return {name: f"{P}/rollouts/{obj}/passive/targets_{split}/{theta_tag(th)}.parquet"
+            for name, th in target_thetas(split).items()}

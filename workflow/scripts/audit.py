@@ -13,7 +13,8 @@ p = snakemake.params
 if name == "leakage":
     verdict = audits.audit_leakage(snakemake.input.estimates, calibration_probes=p.calibration, candidates=load_candidates(),
                                    targets=load_targets(p.split), library_rollouts=p.library,
-                                   sensitivity_grids=snakemake.input.sensitivity, frozen=p.frozen)
+                                   sensitivity_grids=snakemake.input.sensitivity, frozen=p.frozen,
+                                   passive_library_rollouts=p.passive_library)
 elif name == "nonfinite":
     verdict = audits.audit_nonfinite(p.rollout_dirs, snakemake.input.tables)
 elif name == "missing_frames":

@@ -6,7 +6,8 @@ Workflow scripts call one function here each. :mod:`._main` is the main benchmar
 :mod:`._boundaries` the library's discretization and object boundaries (leave-one-object-out);
 the paper's generalization diagnostics: :mod:`._splits` (alternative target splits, strict
 gate), :mod:`._sensitivity` (library size, k x alpha) and :mod:`._identifiability`
-(descriptor ambiguity, condition numbers).
+(descriptor ambiguity, condition numbers); :mod:`._probe_shifts` (the frozen estimates under
+another probe duration and contact) and :mod:`._passive` (passive versus active observation).
 """
 
 from ._boundaries import (
@@ -38,6 +39,26 @@ from ._sensitivity import (
     size_summary,
 )
 from ._splits import plot_splits, split_row, splits_note, splits_table
+from ._probe_shifts import (
+    contact_table,
+    duration_table,
+    evaluate_shift,
+    probe_impulse,
+    probe_total_force,
+    protocol_distance,
+    shift_note,
+)
+from ._passive import (
+    PASSIVE_PROBE,
+    PassiveProtocol,
+    error_directions,
+    passive_active_note,
+    passive_active_table,
+    passive_protocol,
+    passive_rollout,
+    plot_passive_active,
+    ratio_span_pct,
+)
 from ._convergence import NOT_ASYMPTOTIC, convergence_note, convergence_study, observed_order, plot_convergence
 from ._main import (
     camera_from_contract,
@@ -103,4 +124,20 @@ __all__ = [
     "condition_table",
     "identifiability_summary",
     "plot_identifiability",
+    "protocol_distance",
+    "duration_table",
+    "contact_table",
+    "evaluate_shift",
+    "shift_note",
+    "probe_impulse",
+    "probe_total_force",
+    "PASSIVE_PROBE",
+    "PassiveProtocol",
+    "passive_protocol",
+    "passive_rollout",
+    "error_directions",
+    "passive_active_table",
+    "passive_active_note",
+    "ratio_span_pct",
+    "plot_passive_active",
 ]
