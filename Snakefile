@@ -14,6 +14,7 @@
 #                                                         theta under every evaluation probe (a candidate's:
 #                                                         the held-out probes only), so every method that
 #                                                         lands on the same theta shares them
+#   P/rollouts/{object}/diag/{theta}/{probe}.parquet      a diagnostics' rollout (probe shifts, ladder), one per job
 #   P/descriptors/{object}/library.csv                    candidate descriptors + labels
 #   P/descriptors/{object}/queries_{split}.csv            target Probe-A descriptors, no labels
 #   P/estimates/{object}/{split}/{method}.json            frozen estimates (checkpoint)
@@ -32,7 +33,8 @@
 #                                                         (+ _pairs_): the paper's diagnostics (diagnostics.smk),
 #                                                         duration_{object}, contact_{object},
 #                                                         passive_active_{object} (+ _targets_): probe
-#                                                         shifts, passive vs active (probe_shifts.smk)
+#                                                         shifts, passive vs active (probe_shifts.smk),
+#                                                         ladder_{object} (ladder.smk), cmaes_{object} (cmaes.smk)
 #   P/figures/{name}.png|gif                              reported figures: main_{object}, fill_{object},
 #                                                         qualitative_{object}, compare_{object} (gif),
 #                                                         objects, discrepancy, convergence_{object},
@@ -40,6 +42,11 @@
 #                                                         splits_{object}, sensitivity_{object},
 #                                                         identifiability_{object}, passive_active_{object}
 #   P/audits/{name}.json                                  audit verdicts ({"passed": bool, ...})
+#   P/ladder/...                                          the observation ladder's observations, descriptors and
+#                                                         estimates (grammar at the top of workflow/rules/ladder.smk)
+#   P/cmaes/...                                           the CMA-ES video route's frozen estimates, one file per
+#                                                         (object, split, seed) (grammar at the top of
+#                                                         workflow/rules/cmaes.smk); its table tables/cmaes_{object}
 #   P/passive/...                                         passive protocol, descriptors and estimates (grammar at
 #                                                         the top of workflow/rules/probe_shifts.smk)
 #   P/discrepancy/...                                     discrepancy cases, runs and reports (grammar at
@@ -51,7 +58,7 @@
 #
 # Wildcards: object, probe, split, case (names), theta (above), method (knockgs_core.calibration
 # METHOD_NAMES), chunk (library job index), res (a profile: the discrepancy cases' resolution),
-# condition, library (boundaries.smk).
+# condition, library (boundaries.smk), rung (ladder.smk), seed (cmaes.smk).
 
 from snakemake.utils import min_version
 
@@ -72,6 +79,8 @@ include: "workflow/rules/report.smk"
 include: "workflow/rules/discrepancy.smk"
 include: "workflow/rules/diagnostics.smk"
 include: "workflow/rules/probe_shifts.smk"
+include: "workflow/rules/ladder.smk"
+include: "workflow/rules/cmaes.smk"
 include: "workflow/rules/audit.smk"
 include: "workflow/rules/convergence.smk"
 include: "workflow/rules/boundaries.smk"
@@ -90,3 +99,5 @@ rule all:
         VERIFICATION_IN_ALL,
         DIAGNOSTICS_IN_ALL,
         SHIFTS_IN_ALL,
+        LADDER_IN_ALL,
+        CMAES_IN_ALL,

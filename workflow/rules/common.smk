@@ -6,13 +6,22 @@
 
 import json
 import os
+import re
 from functools import cache
 
 from snakemake.utils import validate
 
 from knockgs_core.calibration import DEPLOYABLE_METHODS, METHOD_NAMES, ORACLE_METHOD
 from knockgs_core.contract import load_candidates, load_contract, load_targets
-from knockgs_core.experiments import BOUNDARY_LIBRARIES, PASSIVE_PROBE, BoundarySettings, boundary_condition, boundary_conditions
+from knockgs_core.experiments import (
+    BOUNDARY_LIBRARIES,
+    PASSIVE_PROBE,
+    BoundarySettings,
+    LadderSettings,
+    boundary_condition,
+    boundary_conditions,
+    ladder_rungs,
+)
 from knockgs_core.rollout import theta_tag
 
 
@@ -159,6 +168,11 @@ def evaluation_runs(wc):
          "F": eval_rollout(wc.object, probe, theta, ".F.parquet")}
         for probe in simulated_probes(wc.object, wc.theta)
     ]
+
+
+def diag_rollout(obj, probe, theta):
+    """A diagnostics' rollout of (probe, theta): one job each (simulate.smk: rollout_diag)."""
+    return f"{P}/rollouts/{obj}/diag/{theta_tag(theta)}/{probe}.parquet"
 
 
 def frames_file(obj, probe, theta):
@@ -337,16 +351,12 @@ def passive_outputs(objects):
     ]
 
 
-def shift_rollout(obj, probe, theta):
-    return f"{P}/rollouts/{obj}/shift/{theta_tag(theta)}/{probe}.parquet"
-
-
 def shift_estimates(obj):
     """method -> frozen estimate file of the split, for every deployable method."""
     return {m: estimate_json(obj, SPLIT, m) for m in CONFIG_DEPLOYABLE}
 
 
-def shift_rollouts(obj, probes, targets):
+def diag_rollouts(obj, probes, targets):
     """{"probe/theta": rollout} of every deployable estimate of ``targets`` and of the
     targets themselves under ``probes``."""
     truth = target_thetas()
@@ -354,19 +364,19 @@ def shift_rollouts(obj, probes, targets):
     for m in shift_estimates(obj):
         est = estimated_thetas(obj, SPLIT, m)
         thetas += [est[t] for t in targets]
-    return {f"{pr}/{theta_tag(th)}": shift_rollout(obj, pr, th) for pr in probes for th in thetas}
+    return {f"{pr}/{theta_tag(th)}": diag_rollout(obj, pr, th) for pr in probes for th in thetas}
 
 
 def duration_inputs(wc):
     targets = list(target_thetas())
-    rollouts = shift_rollouts(wc.object, [SHIFTS["duration"]], targets)
+    rollouts = diag_rollouts(wc.object, [SHIFTS["duration"]], targets)
     probe_a = [eval_rollout(wc.object, calibration_probe(wc.object), th) for th in target_thetas().values()]
     return {"estimates": list(shift_estimates(wc.object).values()), "targets": "config/targets.csv",
             "rollouts": sorted(set(rollouts.values())), "probe_a": folders(probe_a)}
 
 
 def contact_inputs(wc):
-    rollouts = shift_rollouts(wc.object, SHIFTS["contact"], [SHIFTS["contact_target"]])
+    rollouts = diag_rollouts(wc.object, SHIFTS["contact"], [SHIFTS["contact_target"]])
     return {"estimates": list(shift_estimates(wc.object).values()), "targets": "config/targets.csv",
             "rollouts": sorted(set(rollouts.values()))}
 
@@ -375,3 +385,74 @@ def passive_target_rollouts(obj, split):
     """target name -> its rollout under the passive protocol, in targets.csv order."""
     return {name: f"{P}/rollouts/{obj}/passive/targets_{split}/{theta_tag(th)}.parquet"
             for name, th in target_thetas(split).items()}
+
+
+# ---------------------------------------------------------------- the observation ladder (ladder.smk)
+
+
+def ladder_thetas(obj, split):
+    """(rung, method) -> {target: frozen theta} of every rung's deployable estimates."""
+    out = {}
+    for rung in LADDER_RUNGS:
+        for m in CONFIG_DEPLOYABLE:
+            path = checkpoints.ladder_estimate.get(object=obj, split=split, rung=rung, method=m).output.json
+            with open(path) as fh:
+                doc = json.load(fh)
+            out[(rung, m)] = {p["case_name"]: (p["E_scale"], p["density_scale"]) for p in doc["predictions"]}
+    return out
+
+
+def ladder_probe_b_rollouts(wc):
+    """{"theta tag": rollout} under the first Probe B of every rung's estimates (diagnostics'
+    rollouts) and of the targets (their evaluation rollouts)."""
+    probe = heldout_probes(wc.object)[0]
+    out = {theta_tag(th): eval_rollout(wc.object, probe, th) for th in target_thetas(SPLIT).values()}
+    for est in ladder_thetas(wc.object, SPLIT).values():
+        for th in est.values():
+            out.setdefault(theta_tag(th), diag_rollout(wc.object, probe, th))
+    return out
+
+
+def ladder_table_inputs(wc):
+    rollouts = ladder_probe_b_rollouts(wc)
+    return {
+        "estimates": [f"{P}/ladder/estimates/{wc.object}/{SPLIT}/{rung}/{m}.json" for rung in LADDER_RUNGS
+                      for m in CONFIG_DEPLOYABLE],
+        "observations": [f"{P}/ladder/observations/{wc.object}/lib/chunk{k}.csv" for k in range(len(LIBRARY_CHUNKS))]
+        + [f"{P}/ladder/observations/{wc.object}/targets_{SPLIT}.csv"],
+        "targets": "config/targets.csv",
+        "rollouts": sorted({p for p in rollouts.values() if "/diag/" in p} | set(folders(p for p in rollouts.values()
+                                                                                          if "/diag/" not in p))),
+    }
+
+
+# ---------------------------------------------------------------- the CMA-ES video route (cmaes.smk)
+
+
+def cmaes_target_rollouts(obj, split):
+    """target name -> {"rollout", "F"}: its Probe-A evaluation rollout and deformation
+    gradients (the video CMA-ES fits), in targets.csv order."""
+    probe = calibration_probe(obj)
+    return {name: {"rollout": eval_rollout(obj, probe, th), "F": eval_rollout(obj, probe, th, ".F.parquet")}
+            for name, th in target_thetas(split).items()}
+
+
+def cmaes_estimate_file(obj, split, seed):
+    """The CMA-ES estimate file of (object, split, seed), as a plain path: listing every seed's
+    file as an input schedules the seeds' jobs side by side."""
+    return f"{P}/cmaes/estimates/{obj}/{split}/seed{seed}.json"
+
+
+def cmaes_json(obj, split, seed):
+    """The same file through its checkpoint, for input functions that read its thetas (they are
+    evaluated again once it exists)."""
+    return checkpoints.cmaes_estimate.get(object=obj, split=split, seed=str(seed)).output.json
+
+
+def cmaes_eval_paths(obj, split, seeds, path_of):
+    """{"probe/theta": path_of(obj, probe, theta)} of every seed's frozen CMA-ES estimates and of
+    the split's targets under every evaluation probe (path_of: eval_rollout or frames_file)."""
+    thetas = list(target_thetas(split).values())
+    for seed in seeds:
+        thetas += _estimate_thetas(cmaes_json(obj, split, seed))
+    return {f"{pr}/{theta_tag(th)}": path_of(obj, pr, th) for pr in eval_probes(obj) for th in thetas}

@@ -1,7 +1,6 @@
 # Probe shifts and passive versus active observation (docs/probe_shifts.md):
-#   P/rollouts/{object}/shift/{theta}/{probe}.parquet   a target or frozen estimate under a shift probe
-#                                                       (one job per rollout: which thetas need which
-#                                                       probe is known only once the estimates exist)
+#   P/rollouts/{object}/diag/{theta}/{probe}.parquet    a target or frozen estimate under a shift probe
+#                                                       (rule rollout_diag, simulate.smk)
 #   P/tables/duration_{object}.csv|md                   every deployable method's frozen Probe-A estimates
 #                                                       under the duration-shift probe, five targets
 #   P/tables/contact_{object}.csv|md                    the same under two contact locations, one target
@@ -30,33 +29,6 @@ SHIFTS_IN_ALL = (SHIFT_OUTPUTS + passive_outputs([o for o in OBJECTS if o in SHI
 PASSIVE_LIBRARY = {o: [f"{P}/rollouts/{o}/passive/chunk{k}" for k in range(len(LIBRARY_CHUNKS))] for o in OBJECTS}
 
 
-rule rollout_shift:
-    """One theta (a target or a frozen estimate) under one shift probe."""
-    conda:
-        "../envs/knockgs.yaml"
-    input:
-        particles=f"{P}/assets/{{object}}.particles.npz",
-    output:
-        rollout=f"{P}/rollouts/{{object}}/shift/{{theta}}/{{probe}}.parquet",
-    log:
-        f"logs/{PROFILE}/rollouts/{{object}}/shift/{{theta}}/{{probe}}.log",
-    benchmark:
-        f"{P}/benchmarks/rollouts/{{object}}/shift/{{theta}}/{{probe}}.tsv"
-    params:
-        profile=PROFILE,
-        object=lambda wc: wc.object,
-        runs=lambda wc: [{"theta": parse_theta(wc.theta), "probe": wc.probe,
-                          "rollout": f"{P}/rollouts/{wc.object}/shift/{wc.theta}/{wc.probe}.parquet", "F": None}],
-        device=DEVICE,
-    resources:
-        mem_mb=16000 if PROFILE == "paper" else 2000,
-        runtime=60 if PROFILE == "paper" else 20,
-        gpu=1 if ON_GPU else 0,
-    threads: 1
-    script:
-        "../scripts/rollout.py"
-
-
 rule duration_table:
     """Every deployable method's frozen estimates under the duration-shift probe."""
     conda:
@@ -75,7 +47,7 @@ rule duration_table:
         probe_a=lambda wc: calibration_probe(wc.object),
         split=SPLIT,
         methods=lambda wc: list(shift_estimates(wc.object)),
-        rollouts=lambda wc: shift_rollouts(wc.object, [SHIFTS["duration"]], list(target_thetas())),
+        rollouts=lambda wc: diag_rollouts(wc.object, [SHIFTS["duration"]], list(target_thetas())),
         probe_a_rollouts=lambda wc: {theta_tag(th): eval_rollout(wc.object, calibration_probe(wc.object), th)
                                      for th in target_thetas().values()},
         targets=lambda wc: list(target_thetas()),
@@ -100,7 +72,7 @@ rule contact_table:
         probes=SHIFTS["contact"],
         split=SPLIT,
         methods=lambda wc: list(shift_estimates(wc.object)),
-        rollouts=lambda wc: shift_rollouts(wc.object, SHIFTS["contact"], [SHIFTS["contact_target"]]),
+        rollouts=lambda wc: diag_rollouts(wc.object, SHIFTS["contact"], [SHIFTS["contact_target"]]),
         targets=[SHIFTS["contact_target"]],
     script:
         "../scripts/shift_table.py"

@@ -63,3 +63,32 @@ rule rollout_eval:
     threads: 1
     script:
         "../scripts/rollout.py"
+
+
+rule rollout_diag:
+    """One theta under one probe, without deformation gradients: the diagnostics' rollouts
+    (one job per rollout: which thetas need which probe is known only once the estimates
+    exist)."""
+    conda:
+        "../envs/knockgs.yaml"
+    input:
+        particles=f"{P}/assets/{{object}}.particles.npz",
+    output:
+        rollout=f"{P}/rollouts/{{object}}/diag/{{theta}}/{{probe}}.parquet",
+    log:
+        f"logs/{PROFILE}/rollouts/{{object}}/diag/{{theta}}/{{probe}}.log",
+    benchmark:
+        f"{P}/benchmarks/rollouts/{{object}}/diag/{{theta}}/{{probe}}.tsv"
+    params:
+        profile=PROFILE,
+        object=lambda wc: wc.object,
+        runs=lambda wc: [{"theta": parse_theta(wc.theta), "probe": wc.probe,
+                          "rollout": f"{P}/rollouts/{wc.object}/diag/{wc.theta}/{wc.probe}.parquet", "F": None}],
+        device=DEVICE,
+    resources:
+        mem_mb=16000 if PROFILE == "paper" else 2000,
+        runtime=60 if PROFILE == "paper" else 20,
+        gpu=1 if ON_GPU else 0,
+    threads: 1
+    script:
+        "../scripts/rollout.py"

@@ -29,7 +29,7 @@ from ..errors import InputWarning, KnockGSError
 __all__ = ["main", "build_parser"]
 
 #: subcommand modules, in the order they appear in ``knockgs --help``
-_COMMANDS = ("simulate", "asset", "calibrate", "render", "discrepancy")
+_COMMANDS = ("simulate", "asset", "calibrate", "render", "observe", "discrepancy")
 
 
 class _Parser(argparse.ArgumentParser):

@@ -2,6 +2,7 @@
 
 from ._descriptor import (
     FEATURE_NAMES,
+    curve_descriptor,
     descriptor,
     descriptor_from_rollout,
     descriptor_table,
@@ -13,6 +14,7 @@ __all__ = [
     "FEATURE_NAMES",
     "rms_curves",
     "descriptor",
+    "curve_descriptor",
     "read_positions",
     "descriptor_from_rollout",
     "descriptor_table",

@@ -20,6 +20,7 @@ __all__ = [
     "FEATURE_NAMES",
     "rms_curves",
     "descriptor",
+    "curve_descriptor",
     "read_positions",
     "descriptor_from_rollout",
     "descriptor_table",
@@ -152,6 +153,19 @@ def descriptor(positions, *, n_frames: int | None = 31, source: object = "positi
     """
     x = _checked_positions(positions, source, n_frames)
     r, v = _curves(x, _bbox_diagonal(x[0], source))
+    return curve_descriptor(r, v, source=source)
+
+
+def curve_descriptor(r, v, *, source: object = "curves") -> np.ndarray:
+    """phi from the normalized curves ``r`` and ``v`` (shape (T,), T >= 6, ``v[0] = 0``): the
+    last step of :func:`descriptor`, shared with descriptors of point sets without
+    correspondence (:func:`knockgs_core.observe.pointset_descriptor`)."""
+    r = np.asarray(r, dtype=_F32)
+    v = np.asarray(v, dtype=_F32)
+    if r.shape != v.shape or r.ndim != 1 or r.size < _MIN_FRAMES:
+        raise InputError(source, "frame", f"need two curves of the same length >= {_MIN_FRAMES}, got {r.shape}, {v.shape}")
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(v))):
+        raise InputError(source, "positions", "non-finite displacement curve")
     v_sum = np.sum(v, dtype=_F32)
     if not v_sum > 0:
         raise InputError(

@@ -7,7 +7,9 @@ Workflow scripts call one function here each. :mod:`._main` is the main benchmar
 the paper's generalization diagnostics: :mod:`._splits` (alternative target splits, strict
 gate), :mod:`._sensitivity` (library size, k x alpha) and :mod:`._identifiability`
 (descriptor ambiguity, condition numbers); :mod:`._probe_shifts` (the frozen estimates under
-another probe duration and contact) and :mod:`._passive` (passive versus active observation).
+another probe duration and contact) and :mod:`._passive` (passive versus active observation);
+:mod:`._ladder` (the observation ladder, from simulator particles to ID-free video tracks) and
+:mod:`._cmaes` (CMA-ES direct video optimization, the alternative inverse route).
 """
 
 from ._boundaries import (
@@ -48,6 +50,22 @@ from ._probe_shifts import (
     protocol_distance,
     shift_note,
 )
+from ._cmaes import (
+    CMAES_METHOD,
+    DEPTH_WEIGHT,
+    VideoScene,
+    candidate_bounds,
+    cmaes_calibrate,
+    cmaes_estimate,
+    cmaes_note,
+    cmaes_rows,
+    cmaes_table,
+    rollout_video,
+    video_depth_scale,
+    video_loss,
+    video_simulator,
+)
+from ._ladder import LadderSettings, ladder_note, ladder_rungs, ladder_table, plot_ladder, rung_descriptors
 from ._passive import (
     PASSIVE_PROBE,
     PassiveProtocol,
@@ -140,4 +158,23 @@ __all__ = [
     "passive_active_note",
     "ratio_span_pct",
     "plot_passive_active",
+    "LadderSettings",
+    "ladder_rungs",
+    "rung_descriptors",
+    "ladder_table",
+    "ladder_note",
+    "plot_ladder",
+    "CMAES_METHOD",
+    "DEPTH_WEIGHT",
+    "VideoScene",
+    "candidate_bounds",
+    "cmaes_calibrate",
+    "cmaes_estimate",
+    "cmaes_note",
+    "cmaes_rows",
+    "cmaes_table",
+    "rollout_video",
+    "video_depth_scale",
+    "video_loss",
+    "video_simulator",
 ]

@@ -197,8 +197,16 @@ def render_rollout(gaussians, static_mask, gaussian_index, positions, F, camera,
     ``static_mask`` [G] bool and ``gaussian_index`` [n_gs] (which must equal
     ``flatnonzero(~static_mask)``) come from the asset's scene file; ``positions`` (T, N, 3)
     (the first ``n_gs`` rows are GS particles), ``F`` (T, n_gs, 3, 3).
-    Returns ``rgb`` (T, H, W, 3) and ``alpha`` (T, H, W), float32.
+    Returns ``rgb`` (T, H, W, 3) and ``alpha`` (T, H, W), float32
+    (:func:`knockgs_core.observe.render_rgbd` adds the depth).
     """
+    outs = render_outputs(gaussians, static_mask, gaussian_index, positions, F, camera, device=device)
+    return np.stack([o.rgb for o in outs]), np.stack([o.alpha for o in outs])
+
+
+def render_outputs(gaussians, static_mask, gaussian_index, positions, F, camera, *, device: str = "cpu") -> list:
+    """The :class:`knockgs_core.render.RenderOutput` of every frame of a rollout
+    (:func:`render_rollout` says how the scene deforms)."""
     from ..render import deformed_scene, render
 
     means0 = np.asarray(gaussians.means, dtype=np.float64)
@@ -213,12 +221,8 @@ def render_rollout(gaussians, static_mask, gaussian_index, positions, F, camera,
     if F is None or F.shape[1] != n_gs:
         got = "no deformation gradients" if F is None else f"{F.shape[1]} deformation gradients"
         raise InputError("deformation", "F", f"{got} for {n_gs} Gaussian-associated particles")
-    rgbs, alphas = [], []
-    for t in range(positions.shape[0]):
-        out = render(*deformed_scene(means0, cov0, colors, opac, positions[t, :n_gs], F[t], mask), camera, device=device)
-        rgbs.append(out.rgb)
-        alphas.append(out.alpha)
-    return np.stack(rgbs), np.stack(alphas)
+    return [render(*deformed_scene(means0, cov0, colors, opac, positions[t, :n_gs], F[t], mask), camera, device=device)
+            for t in range(positions.shape[0])]
 
 
 def render_metrics_rows(estimate: Mapping, targets: pd.DataFrame, render_path, probes: Sequence[str]) -> pd.DataFrame:

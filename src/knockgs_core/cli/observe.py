@@ -1,0 +1,109 @@
+"""``knockgs observe``: RGB-D frames -> tracked points without identity.
+
+``knockgs observe rgbd`` renders a rollout as an RGB-D sequence (``.npz``: colour, coverage,
+expected depth, the camera's intrinsics and pose, the frame interval), the format a calibrated
+RGB-D capture is stored in too. ``knockgs observe tracks`` follows frame-0 features through
+such a sequence by optical flow, lifts them to 3-D by the depth and writes them in the
+tracked-points format that ``knockgs discrepancy run`` reads (``frame, track, x, y, z``, no
+particle identity; docs/ladder.md).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from ..errors import InputError
+from ._common import image_side
+
+__all__ = ["register", "run_rgbd", "run_tracks"]
+
+
+def register(sub) -> None:
+    p = sub.add_parser("observe", help="RGB-D frames of a rollout, and ID-free tracks from RGB-D frames",
+                       description=__doc__.splitlines()[0])
+    s = p.add_subparsers(dest="observe_command", required=True)
+    rg = s.add_parser("rgbd", help="render a rollout as an RGB-D sequence (.npz) with the object's camera")
+    rg.add_argument("--asset", required=True, help="the asset's normalized 3DGS PLY (knockgs asset make --normalized)")
+    rg.add_argument("--rollout", required=True, help="a rollout .parquet (knockgs simulate ... --export-F)")
+    rg.add_argument("--deformation", help="its deformation gradients (default: R.F.parquet next to R.parquet)")
+    rg.add_argument("--scene", help="the asset's scene file (default: <asset>.scene.npz next to the PLY)")
+    rg.add_argument("--object", required=True, help="object whose contract camera is used")
+    rg.add_argument("--profile", default="default", help="resolution profile of the contract (ci, default, paper)")
+    rg.add_argument("--width", type=image_side, help="image width in pixels (default: the contract camera's)")
+    rg.add_argument("--height", type=image_side, help="image height in pixels (default: the contract camera's)")
+    rg.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
+    rg.add_argument("--config-dir", help="folder holding objects/ (default: the project's config/)")
+    rg.add_argument("-o", "--output", required=True, help="output .npz")
+    rg.set_defaults(func=run_rgbd)
+    tr = s.add_parser("tracks", help="optical-flow tracks of an RGB-D sequence, lifted by its depth")
+    tr.add_argument("frames", help="an RGB-D sequence .npz (knockgs observe rgbd, or a capture in the same format)")
+    tr.add_argument("--object", help="object of the measurement's metadata")
+    tr.add_argument("--profile", help="profile of the measurement's metadata")
+    tr.add_argument("--probe", help="probe of the measurement's metadata (the frames are its export frames 0, 1, ...)")
+    tr.add_argument("--method", choices=("ilk", "tvl1"), default="ilk", help="optical flow (default ilk: Lucas-Kanade)")
+    tr.add_argument("--max-seeds", type=int, default=400, help="frame-0 corners tracked at most (default 400)")
+    tr.add_argument("--radius", type=int, default=5, help="Lucas-Kanade window radius in pixels (default 5)")
+    tr.add_argument("--depth-noise", type=float, default=0.0, help="Gaussian depth noise std added [m] (default 0)")
+    tr.add_argument("--seed", type=int, default=0, help="seed of the depth noise")
+    tr.add_argument("-o", "--output", required=True, help="output tracked points (.parquet, .csv or .npz)")
+    tr.set_defaults(func=run_tracks)
+
+
+def run_rgbd(args) -> int:
+    from .._io import check_outputs
+    from .._warp import warp_device
+    from ..contract import load_contract
+    from ..experiments import camera_from_contract
+    from ..observe import render_rgbd, write_rgbd
+    from ._common import contract_inputs
+    from .render import _load, _paths
+
+    if not str(args.output).endswith(".npz"):
+        raise InputError(str(args.output), "--output", "an RGB-D sequence is written as .npz")
+    contract = load_contract(args.object, args.profile, config_dir=args.config_dir)
+    paths = _paths(args)
+    check_outputs({"--output": args.output}, {**paths, **contract_inputs(contract)})
+    warp_device(args.device)
+    gaussians, gaussian_index, static_mask, ro, F = _load(args, paths, contract)
+    camera = camera_from_contract(contract.camera, width=args.width, height=args.height)
+    frame_dt = float(ro.meta["probe"]["export"]["frame_dt"])
+    frames = render_rgbd(gaussians, static_mask, gaussian_index, ro.positions, F, camera, frame_dt=frame_dt,
+                         device=args.device)
+    write_rgbd(args.output, frames)
+    print(f"{frames.n_frames} RGB-D frames {camera.width}x{camera.height} -> {args.output}", file=sys.stderr)
+    return 0
+
+
+def run_tracks(args) -> int:
+    import numpy as np
+
+    from .._io import check_outputs
+    from ..discrepancy import Measurement, write_measured
+    from ..observe import TrackSettings, read_rgbd, track_points
+
+    out = Path(args.output)
+    if out.suffix.lower() not in (".parquet", ".csv", ".npz"):
+        raise InputError(str(out), "--output", "tracked points are written as .parquet, .csv or .npz")
+    check_outputs({"--output": out}, {"frames": args.frames})
+    frames = read_rgbd(args.frames)
+    settings = TrackSettings(method=args.method, max_seeds=args.max_seeds, radius=args.radius, depth_noise=args.depth_noise,
+                             seed=args.seed)
+    points, info = track_points(frames, settings)
+    meta = {k: v for k, v in (("object", args.object), ("profile", args.profile), ("probe", args.probe)) if v}
+    if args.probe and args.object:
+        from ..contract import load_contract
+
+        probe = load_contract(args.object, args.profile or "default").probes.get(args.probe)
+        if probe is None:
+            raise InputError(args.frames, "--probe", f"the contract of '{args.object}' has no probe '{args.probe}'")
+        if abs(probe.export.frame_dt - frames.frame_dt) > 1e-9 * probe.export.frame_dt:
+            raise InputError(args.frames, "frame_dt", f"{frames.frame_dt} s between frames, but probe '{args.probe}' "
+                             f"exports every {probe.export.frame_dt} s")
+    meta["observation"] = {"kind": "optical-flow tracks lifted by depth", **info}
+    m = Measurement(points=points, frames=np.arange(frames.n_frames), times=None, particle=None,
+                    track=np.arange(1, points.shape[1] + 1), meta=meta, source=str(out))
+    write_measured(out, m)
+    print(f"{info['tracks']} tracks of {info['seeds']} seeds over {frames.n_frames} frames "
+          f"(median flow {info['median_flow_px']:.3g} px) -> {out}", file=sys.stderr)
+    return 0

@@ -1,0 +1,136 @@
+"""RGB-D frame sequences: rendered from a rollout, stored, and read back (private).
+
+A sequence is what a calibrated RGB-D camera gives: colour, coverage and depth per pixel,
+the camera's intrinsics and pose, and the frame interval. No particle identity.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import InputError
+from ..render import Camera
+
+__all__ = ["RGBDFrames", "render_rgbd", "write_rgbd", "read_rgbd", "project", "unproject"]
+
+
+@dataclass(frozen=True)
+class RGBDFrames:
+    """``rgb`` [T, H, W, 3] in [0, 1]; ``alpha`` [T, H, W] coverage in [0, 1]; ``depth``
+    [T, H, W] the expected camera depth [m] of the covered part (0 where ``alpha`` is 0);
+    ``camera`` the :class:`~knockgs_core.render.Camera` (same for every frame); ``frame_dt``
+    [s] between frames. Arrays are float32."""
+
+    rgb: np.ndarray
+    alpha: np.ndarray
+    depth: np.ndarray
+    camera: Camera
+    frame_dt: float
+    source: str = "frames"
+
+    def __post_init__(self):
+        src = self.source
+        rgb = np.asarray(self.rgb, dtype=np.float32)
+        alpha = np.asarray(self.alpha, dtype=np.float32)
+        depth = np.asarray(self.depth, dtype=np.float32)
+        if rgb.ndim != 4 or rgb.shape[-1] != 3:
+            raise InputError(src, "rgb", f"expected [T, H, W, 3], got {list(rgb.shape)}")
+        T, H, W = rgb.shape[:3]
+        for name, a in (("alpha", alpha), ("depth", depth)):
+            if a.shape != (T, H, W):
+                raise InputError(src, name, f"expected [{T}, {H}, {W}], got {list(a.shape)}")
+            if not np.all(np.isfinite(a)):
+                raise InputError(src, name, "non-finite values")
+        if not np.all(np.isfinite(rgb)):
+            raise InputError(src, "rgb", "non-finite values")
+        if (H, W) != (self.camera.height, self.camera.width):
+            raise InputError(src, "camera", f"image {W}x{H} but camera {self.camera.width}x{self.camera.height}")
+        if T < 2:
+            raise InputError(src, "frame", f"need at least 2 frames, got {T}")
+        if not (math.isfinite(float(self.frame_dt)) and float(self.frame_dt) > 0):
+            raise InputError(src, "frame_dt", f"must be a positive number of seconds, got {self.frame_dt!r}")
+        object.__setattr__(self, "rgb", rgb)
+        object.__setattr__(self, "alpha", alpha)
+        object.__setattr__(self, "depth", depth)
+        object.__setattr__(self, "frame_dt", float(self.frame_dt))
+
+    @property
+    def n_frames(self) -> int:
+        return self.rgb.shape[0]
+
+
+def render_rgbd(gaussians, static_mask, gaussian_index, positions, F, camera: Camera, *, frame_dt: float,
+                device: str = "cpu") -> RGBDFrames:
+    """Render every frame of a rollout with depth (as
+    :func:`knockgs_core.experiments.render_rollout`, which returns the same colour and
+    coverage): ``positions`` (T, N, 3), ``F`` (T, n_gs, 3, 3)."""
+    from ..experiments._main import render_outputs
+
+    outs = render_outputs(gaussians, static_mask, gaussian_index, positions, F, camera, device=device)
+    rgb = np.stack([o.rgb for o in outs])
+    alpha = np.stack([o.alpha for o in outs])
+    wdepth = np.stack([o.depth for o in outs])
+    depth = np.where(alpha > 1e-6, wdepth / np.maximum(alpha, 1e-6), 0.0).astype(np.float32)
+    return RGBDFrames(rgb=rgb, alpha=alpha, depth=depth, camera=camera, frame_dt=frame_dt, source="render")
+
+
+def write_rgbd(path, frames: RGBDFrames) -> None:
+    """Store a sequence as ``.npz`` (colour and coverage float16, depth float32, the camera's
+    intrinsics and pose, the frame interval), atomically."""
+    from .._io import write_npz
+
+    c = frames.camera
+    write_npz(path, rgb=frames.rgb.astype(np.float16), alpha=frames.alpha.astype(np.float16), depth=frames.depth,
+              intrinsics=np.array([c.width, c.height, c.fx, c.fy, c.cx, c.cy], dtype=np.float64),
+              world_to_camera=np.asarray(c.world_to_camera, dtype=np.float64), frame_dt=np.float64(frames.frame_dt))
+
+
+def read_rgbd(path) -> RGBDFrames:
+    """Read a sequence written by :func:`write_rgbd` (or any ``.npz`` with the same fields:
+    ``rgb`` [T, H, W, 3], ``alpha`` and ``depth`` [T, H, W], ``intrinsics`` [width, height, fx,
+    fy, cx, cy], ``world_to_camera`` [4, 4], ``frame_dt``); errors name the file and field."""
+    src = str(path)
+    try:
+        data = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise InputError(src, "file", "not found") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(src, "file", f"not a readable .npz ({exc})") from None
+    with data:
+        for name in ("rgb", "alpha", "depth", "intrinsics", "world_to_camera", "frame_dt"):
+            if name not in data.files:
+                raise InputError(src, name, "missing")
+        k = np.asarray(data["intrinsics"], dtype=np.float64)
+        if k.shape != (6,):
+            raise InputError(src, "intrinsics", f"expected [width, height, fx, fy, cx, cy], got shape {list(k.shape)}")
+        cam = Camera(width=int(k[0]), height=int(k[1]), fx=k[2], fy=k[3], cx=k[4], cy=k[5],
+                     world_to_camera=np.asarray(data["world_to_camera"], dtype=np.float64))
+        return RGBDFrames(rgb=data["rgb"], alpha=data["alpha"], depth=data["depth"], camera=cam,
+                          frame_dt=float(data["frame_dt"]), source=src)
+
+
+def project(camera: Camera, points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World points [..., 3] -> (row, col, z): pixel coordinates (pixel centres at integers)
+    and camera depth [m]."""
+    P = np.asarray(points, dtype=np.float64)
+    M = np.asarray(camera.world_to_camera, dtype=np.float64)
+    xc = P @ M[:3, :3].T + M[:3, 3]
+    z = xc[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = camera.fx * xc[..., 0] / z + camera.cx
+        v = camera.fy * xc[..., 1] / z + camera.cy
+    return v - 0.5, u - 0.5, z
+
+
+def unproject(camera: Camera, rows, cols, depth) -> np.ndarray:
+    """Pixel coordinates (pixel centres at integers) and camera depth [m] -> world points
+    [..., 3]; the inverse of :func:`project`."""
+    rows, cols, z = (np.asarray(a, dtype=np.float64) for a in (rows, cols, depth))
+    x = (cols + 0.5 - camera.cx) / camera.fx * z
+    y = (rows + 0.5 - camera.cy) / camera.fy * z
+    xc = np.stack([x, y, z], axis=-1)
+    M = np.asarray(camera.world_to_camera, dtype=np.float64)
+    return (xc - M[:3, 3]) @ M[:3, :3]

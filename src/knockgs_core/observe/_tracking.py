@@ -1,0 +1,215 @@
+"""ID-free observations from RGB-D frames: optical-flow tracks, depth point sets, and the
+Gaussian particles a camera sees (private).
+
+``track_points``: seeds on frame-0 corners (Harris, inside the object's coverage), carried
+frame to frame by dense optical flow (scikit-image's ``optical_flow_ilk``, Lucas-Kanade, or
+``optical_flow_tvl1``) between consecutive frames, lifted to 3-D by the rendered depth at the
+tracked pixel (bilinear), optionally with Gaussian depth noise. A track that leaves the
+image or the object's coverage is dropped; the tracks kept follow one image feature each, not
+a material particle. ``depth_point_sets``: every covered pixel back-projected, per frame,
+without any correspondence. ``visible_particles``: the particles a camera sees in every frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import InputError
+from ._rgbd import RGBDFrames, project, unproject
+
+__all__ = ["TrackSettings", "PixelTracks", "track_pixels", "track_points",
+            "depth_point_sets", "visible_particles", "pointset_descriptor"]
+
+
+@dataclass(frozen=True)
+class TrackSettings:
+    """``max_seeds`` strongest Harris corners of frame 0 at least ``min_distance`` px apart
+    where the coverage is at least ``alpha_min``; flow ``method`` (``ilk``: window radius
+    ``radius`` px; ``tvl1``); Gaussian depth noise of std ``depth_noise`` [m] (seeded by
+    ``seed``); at least ``min_tracks`` must survive every frame."""
+
+    max_seeds: int = 400
+    min_distance: int = 2
+    alpha_min: float = 0.9
+    method: str = "ilk"
+    radius: int = 5
+    depth_noise: float = 0.0
+    seed: int = 0
+    min_tracks: int = 8
+
+    def __post_init__(self):
+        if self.method not in ("ilk", "tvl1"):
+            raise InputError("TrackSettings", "method", f"must be 'ilk' or 'tvl1', got {self.method!r}")
+        if not (self.depth_noise >= 0):
+            raise InputError("TrackSettings", "depth_noise", f"must be >= 0, got {self.depth_noise!r}")
+        if self.max_seeds < 1 or self.min_tracks < 1:
+            raise InputError("TrackSettings", "max_seeds", "max_seeds and min_tracks must be >= 1")
+
+
+def _gray(rgb: np.ndarray) -> np.ndarray:
+    return (0.299 * rgb[..., 0] + 0.587 * rgb[..., 1] + 0.114 * rgb[..., 2]).astype(np.float32)
+
+
+def _bilinear(img: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``img`` [H, W] (or [H, W, C]) sampled at fractional pixel coordinates (clamped)."""
+    H, W = img.shape[:2]
+    r = np.clip(rows, 0.0, H - 1.0)
+    c = np.clip(cols, 0.0, W - 1.0)
+    r0, c0 = np.floor(r).astype(int), np.floor(c).astype(int)
+    r1, c1 = np.minimum(r0 + 1, H - 1), np.minimum(c0 + 1, W - 1)
+    fr, fc = r - r0, c - c0
+    if img.ndim == 3:
+        fr, fc = fr[:, None], fc[:, None]
+    return ((1 - fr) * (1 - fc) * img[r0, c0] + (1 - fr) * fc * img[r0, c1]
+            + fr * (1 - fc) * img[r1, c0] + fr * fc * img[r1, c1])
+
+
+def _seeds(frames: RGBDFrames, s: TrackSettings) -> np.ndarray:
+    from skimage.feature import corner_harris, corner_peaks
+
+    gray = _gray(frames.rgb[0])
+    response = corner_harris(gray)
+    mask = frames.alpha[0] >= s.alpha_min
+    peaks = corner_peaks(response, min_distance=s.min_distance, threshold_rel=0.01, exclude_border=2)
+    peaks = peaks[mask[peaks[:, 0], peaks[:, 1]]] if len(peaks) else peaks
+    if len(peaks) > s.max_seeds:
+        order = np.argsort(-response[peaks[:, 0], peaks[:, 1]], kind="stable")
+        peaks = peaks[np.sort(order[: s.max_seeds])]
+    return peaks.astype(np.float64)
+
+
+@dataclass(frozen=True)
+class PixelTracks:
+    """Tracks in the image: ``rows``, ``cols`` [T, M] (pixel centres at integers) and the
+    rendered ``depth`` [T, M] [m] there, seen by ``camera``; ``info`` as :func:`track_points`."""
+
+    rows: np.ndarray
+    cols: np.ndarray
+    depth: np.ndarray
+    camera: object
+    info: dict
+
+    def to_world(self, *, depth_noise: float = 0.0, seed: int = 0) -> np.ndarray:
+        """World points [T, M, 3] [m], with Gaussian depth noise of std ``depth_noise`` [m]."""
+        depth = self.depth
+        if depth_noise > 0:
+            depth = depth + np.random.default_rng(seed).normal(0.0, depth_noise, size=depth.shape)
+        return unproject(self.camera, self.rows, self.cols, depth)
+
+
+def track_pixels(frames: RGBDFrames, settings: TrackSettings = TrackSettings()) -> PixelTracks:
+    """Frame-0 features followed through every frame by optical flow (module docs); the
+    tracks alive in every frame. Raises :class:`InputError` (naming the frames' source) when
+    fewer than ``min_tracks`` survive."""
+    from skimage.registration import optical_flow_ilk, optical_flow_tvl1
+
+    s = settings
+    seeds = _seeds(frames, s)
+    T = frames.n_frames
+    rows = np.empty((T, len(seeds)))
+    cols = np.empty((T, len(seeds)))
+    alive = np.ones(len(seeds), dtype=bool)
+    if len(seeds):
+        rows[0], cols[0] = seeds[:, 0], seeds[:, 1]
+    H, W = frames.alpha.shape[1:]
+    gray = [_gray(f) for f in frames.rgb]
+    flow_px = []
+    for t in range(1, T):
+        if s.method == "ilk":
+            flow = optical_flow_ilk(gray[t - 1], gray[t], radius=s.radius)
+        else:
+            flow = optical_flow_tvl1(gray[t - 1], gray[t])
+        dr = _bilinear(flow[0], rows[t - 1], cols[t - 1])
+        dc = _bilinear(flow[1], rows[t - 1], cols[t - 1])
+        rows[t], cols[t] = rows[t - 1] + dr, cols[t - 1] + dc
+        flow_px.append(np.hypot(dr, dc)[alive])
+        inside = (rows[t] >= 0) & (rows[t] <= H - 1) & (cols[t] >= 0) & (cols[t] <= W - 1)
+        alive &= inside
+        alive &= _bilinear(frames.alpha[t], rows[t], cols[t]) >= 0.5
+    n = int(alive.sum())
+    if n < s.min_tracks:
+        raise InputError(frames.source, "tracks", f"{n} of {len(seeds)} tracks survive every frame (need {s.min_tracks})")
+    rows, cols = rows[:, alive], cols[:, alive]
+    depth = np.stack([_bilinear(frames.depth[t], rows[t], cols[t]) for t in range(T)])
+    fp = np.concatenate(flow_px) if flow_px else np.zeros(0)
+    info = {"seeds": int(len(seeds)), "tracks": n, "method": s.method,
+            "median_flow_px": float(np.median(fp)) if fp.size else 0.0}
+    return PixelTracks(rows=rows, cols=cols, depth=depth, camera=frames.camera, info=info)
+
+
+def track_points(frames: RGBDFrames, settings: TrackSettings = TrackSettings()) -> tuple[np.ndarray, dict]:
+    """Tracks of frame-0 features through every frame, in world coordinates
+    (:func:`track_pixels`, lifted with ``settings.depth_noise``).
+
+    Returns (points [T, M, 3] float64: the M tracks alive in every frame, metres; info: seeds,
+    tracks kept, the flow method, the depth noise, median flow magnitude [px])."""
+    tracks = track_pixels(frames, settings)
+    points = tracks.to_world(depth_noise=settings.depth_noise, seed=settings.seed)
+    return points, {**tracks.info, "depth_noise": settings.depth_noise}
+
+
+def depth_point_sets(frames: RGBDFrames, *, alpha_min: float = 0.5, stride: int = 1) -> list[np.ndarray]:
+    """Per frame, every ``stride``-th covered pixel (coverage at least ``alpha_min``)
+    back-projected to world coordinates: a list of [M_t, 3] arrays, no correspondence."""
+    out = []
+    for t in range(frames.n_frames):
+        r, c = np.nonzero(frames.alpha[t][::stride, ::stride] >= alpha_min)
+        r, c = r * stride, c * stride
+        if len(r) == 0:
+            raise InputError(frames.source, "alpha", f"frame {t} covers no pixel")
+        out.append(unproject(frames.camera, r, c, frames.depth[t][r, c]))
+    return out
+
+
+def visible_particles(positions, frames: RGBDFrames, *, alpha_min: float = 0.5, depth_tol: float = 0.02) -> np.ndarray:
+    """[N] bool: particles (``positions`` [T, N, 3], the frames' rollout) that the camera sees
+    in every frame: in front of the camera, inside the image, on a pixel covered at least
+    ``alpha_min``, and no more than ``depth_tol`` [m] behind that pixel's rendered depth."""
+    X = np.asarray(positions, dtype=np.float64)
+    if X.ndim != 3 or X.shape[0] != frames.n_frames:
+        raise InputError(frames.source, "frame", f"{frames.n_frames} frames but positions of shape {list(X.shape)}")
+    H, W = frames.alpha.shape[1:]
+    vis = np.ones(X.shape[1], dtype=bool)
+    for t in range(X.shape[0]):
+        r, c, z = project(frames.camera, X[t])
+        ri, ci = np.rint(r).astype(np.int64), np.rint(c).astype(np.int64)
+        ok = (z > 0) & (ri >= 0) & (ri < H) & (ci >= 0) & (ci < W)
+        ri, ci = np.clip(ri, 0, H - 1), np.clip(ci, 0, W - 1)
+        ok &= frames.alpha[t][ri, ci] >= alpha_min
+        ok &= z <= frames.depth[t][ri, ci] + depth_tol
+        vis &= ok
+    return vis
+
+
+def pointset_descriptor(point_sets, *, source: object = "point sets") -> np.ndarray:
+    """The descriptor of point sets without correspondence (``point_sets``: T arrays [M_t, 3]).
+
+    The displacement of a point is replaced by its distance to the nearest point of the other
+    set, symmetrically: ``r^t = sqrt((mean_{p in S_t} d(p, S_0)^2 + mean_{q in S_0} d(q, S_t)^2) / 2) / D``
+    (a root-mean-square chamfer distance) and ``v^t`` the same between ``S_t`` and ``S_{t-1}``;
+    ``D`` the diagonal of ``S_0``'s bounding box; then phi as for tracked points
+    (:func:`knockgs_core.descriptors.curve_descriptor`). A surface moving along itself is
+    invisible to it, as to any observation without identities."""
+    from scipy.spatial import cKDTree
+
+    from ..descriptors import curve_descriptor
+
+    sets = [np.asarray(p, dtype=np.float64) for p in point_sets]
+    if len(sets) < 6 or any(p.ndim != 2 or p.shape[1] != 3 or len(p) == 0 for p in sets):
+        raise InputError(source, "points", "need at least 6 frames of non-empty [M, 3] point sets")
+    D = float(np.linalg.norm(sets[0].max(axis=0) - sets[0].min(axis=0)))
+    if not D > 0:
+        raise InputError(source, "points", "degenerate frame-0 bounding box")
+    trees = [cKDTree(p) for p in sets]
+
+    def chamfer(a: int, b: int) -> float:
+        dab = trees[b].query(sets[a])[0]
+        dba = trees[a].query(sets[b])[0]
+        return float(np.sqrt(0.5 * (np.mean(dab**2) + np.mean(dba**2))))
+
+    T = len(sets)
+    r = np.array([0.0] + [chamfer(t, 0) for t in range(1, T)]) / D
+    v = np.array([0.0] + [chamfer(t, t - 1) for t in range(1, T)]) / D
+    return curve_descriptor(r, v, source=source)
