@@ -57,7 +57,8 @@ def test_readme_commands_run_in_order(tmp_path):
         assert proc.returncode == 0, f"{shlex.join(args)}\n{proc.stderr[-2000:]}"
         assert "Warp CUDA warning" not in proc.stderr  # a CPU run prints no Warp start-up message
     demo = tmp_path / "demo"
-    for name in ("pillow.ply", "pillow.scene.npz", "pillow.particles.npz", "r.parquet", "r.F.parquet", "est.json"):
+    for name in ("pillow.ply", "pillow.scene.npz", "pillow.particles.npz", "r.parquet", "r.F.parquet", "est.json",
+                 "r.rgbd.npz", "tracks.parquet", "tracks_queries.csv"):
         assert (demo / name).stat().st_size > 0, name
     assert sorted(p.name for p in (demo / "frames").iterdir()) == ["frame_0000.png", "frame_0015.png", "frame_0030.png"]
     assert len(list((demo / "ply").glob("frame_*.ply"))) == 31

@@ -29,7 +29,7 @@ def _snakemake(workdir: Path, *targets: str, extra=()):
 @pytest.fixture(scope="module")
 def ci_run(tmp_path_factory):
     """One ci-profile run of the Pillow main table, render table, audits, diagnostics, probe
-    shifts and the passive route in a scratch copy."""
+    shifts, the passive route and the observation ladder in a scratch copy."""
     work = scratch_copy(tmp_path_factory.mktemp("wf"))
     targets = [f"{CI}/tables/main_pillow.csv", f"{CI}/tables/render_pillow.csv", f"{CI}/figures/qualitative_pillow.png",
                f"{CI}/figures/compare_pillow.gif", f"{CI}/figures/main_pillow.png", f"{CI}/audits/leakage.json",
@@ -37,7 +37,7 @@ def ci_run(tmp_path_factory):
                f"{CI}/tables/splits_pillow.csv", f"{CI}/tables/sensitivity_size_pillow.csv",
                f"{CI}/tables/identifiability_pillow.csv", f"{CI}/tables/duration_pillow.csv",
                f"{CI}/tables/contact_pillow.csv", f"{CI}/tables/passive_active_pillow.csv",
-               f"{CI}/audits/rollout_metadata.json"]
+               f"{CI}/audits/rollout_metadata.json", f"{CI}/tables/ladder_pillow.csv"]
     out = _snakemake(work, *targets)
     assert out.returncode == 0, out.stderr[-4000:]
     return work
@@ -167,6 +167,29 @@ def test_ci_probe_shift_and_passive_tables(ci_run):
     assert lr_p["ratio_span_true_pct"] == pytest.approx(162.5, abs=0.05)
     assert len(pd.read_csv(P / "tables/passive_active_targets_pillow.csv")) == 2 * 5 * len(deployable)
     assert (P / "figures/passive_active_pillow.png").stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_ci_observation_ladder(ci_run):
+    P = ci_run / CI
+    deployable = [m for m in METHODS if m != "parameter_nearest_oracle"]
+    main = pd.read_csv(P / "tables/main_pillow.csv").set_index("method")
+    lad = pd.read_csv(P / "tables/ladder_pillow.csv")
+    rungs = ["particles", "gaussians", "visible", "depth", "flow", "flow_noise_0.001", "flow_noise_0.005", "flow_noise_0.01"]
+    assert list(dict.fromkeys(lad["rung"])) == rungs and len(lad) == len(rungs) * len(deployable)
+    # rung 1 is the main route: the same descriptor tables, the same estimates, the same errors
+    lib = pd.read_csv(P / "descriptors/pillow/library.csv")
+    assert lib.equals(pd.read_csv(P / "ladder/descriptors/pillow/particles/library.csv"))
+    q = pd.read_csv(P / "descriptors/pillow/queries_main.csv")
+    assert q.equals(pd.read_csv(P / "ladder/descriptors/pillow/particles/queries_main.csv"))
+    first = lad[lad["rung"] == "particles"].set_index("method")
+    for m in deployable:
+        assert first.loc[m, "joint_error_pct"] == pytest.approx(main.loc[m, "joint_error_pct"], rel=1e-12)
+        assert first.loc[m, "traj_rmse_probe_b"] == pytest.approx(main.loc[m, "traj_rmse_standard_y"], rel=1e-6)
+    # evidence degrades up the ladder: ID-free noisy tracks lose local ridge's accuracy
+    lr = lad[lad["method"] == "local_ridge"].set_index("rung")["joint_error_pct"]
+    assert lr["particles"] < 2.0 and lr["flow_noise_0.01"] > 3 * lr["particles"]
+    assert (P / "figures/ladder_pillow.png").stat().st_size > 1000
 
 
 @pytest.mark.slow

@@ -16,7 +16,10 @@ DESCRIPTOR_TABLES = [f"{P}/descriptors/{o}/{name}.csv" for o in OBJECTS for name
 # the splits whose deployable estimates the leakage audit reads: the main one and, with the
 # splits in `all`, the alternative splits (diagnostics.smk, included before this file)
 AUDITED_SPLITS = DIAGNOSTIC_SPLITS if DIAGNOSTICS["enabled"] and DIAGNOSTICS["splits_in_all"] else [SPLIT]
-DIAGNOSTIC_TABLES = [path for path in DIAGNOSTICS_IN_ALL + SHIFTS_IN_ALL if path.endswith(".csv")]
+# the studies `all` makes besides the main tables (diagnostics, probe shifts, passive route,
+# ladder, CMA-ES: each behind its config switch)
+STUDIES_IN_ALL = DIAGNOSTICS_IN_ALL + SHIFTS_IN_ALL + LADDER_IN_ALL + CMAES_IN_ALL
+DIAGNOSTIC_TABLES = [path for path in STUDIES_IN_ALL if path.endswith(".csv")]
 # the objects whose passive route is in `all` (probe_shifts.smk): their passive estimates and
 # library are audited like the active ones
 PASSIVE_AUDITED = [o for o in OBJECTS if f"{P}/tables/passive_active_{o}.csv" in SHIFTS_IN_ALL]
@@ -30,7 +33,9 @@ rule audit_leakage:
         "../envs/knockgs.yaml"
     input:
         estimates=[f"{P}/estimates/{o}/{s}/{m}.json" for o in OBJECTS for s in AUDITED_SPLITS for m in METHODS]
-        + [f"{P}/passive/estimates/{o}/{SPLIT}/{m}.json" for o in PASSIVE_AUDITED for m in CONFIG_DEPLOYABLE],
+        + [f"{P}/passive/estimates/{o}/{SPLIT}/{m}.json" for o in PASSIVE_AUDITED for m in CONFIG_DEPLOYABLE]
+        + [f"{P}/ladder/estimates/{o}/{SPLIT}/{rung}/{m}.json" for o in (OBJECTS if LADDER["in_all"] else [])
+           for rung in LADDER_RUNGS for m in CONFIG_DEPLOYABLE],
         library=folders(LIBRARY_ROLLOUTS),
         passive_library=[folder for o in PASSIVE_AUDITED for folder in PASSIVE_LIBRARY[o]],
         sensitivity=[path for path in DIAGNOSTICS_IN_ALL
@@ -122,14 +127,14 @@ rule audit_completion:
     input:
         tables=REPORTED_TABLES,
         convergence=lambda wc: CONVERGENCE_IN_ALL,
-        diagnostics=DIAGNOSTICS_IN_ALL + SHIFTS_IN_ALL,
+        diagnostics=STUDIES_IN_ALL,
     output:
         f"{P}/audits/completion.json",
     log:
         f"logs/{PROFILE}/audits/completion.log",
     params:
         expected=lambda wc: [path for path in REPORT_OUTPUTS + RENDER_OUTPUTS + DISCREPANCY_OUTPUTS + CONVERGENCE_IN_ALL
-                             + DIAGNOSTICS_IN_ALL + SHIFTS_IN_ALL if not path.startswith(f"{P}/audits/")],
+                             + STUDIES_IN_ALL if not path.startswith(f"{P}/audits/")],
         methods=METHODS,
         mains=[f"{P}/tables/main_{o}.csv" for o in OBJECTS],
     script:

@@ -5,7 +5,9 @@ expected depth, the camera's intrinsics and pose, the frame interval), the forma
 RGB-D capture is stored in too. ``knockgs observe tracks`` follows frame-0 features through
 such a sequence by optical flow, lifts them to 3-D by the depth and writes them in the
 tracked-points format that ``knockgs discrepancy run`` reads (``frame, track, x, y, z``, no
-particle identity; docs/ladder.md).
+particle identity; docs/ladder.md). ``knockgs observe describe`` computes their query
+descriptors for ``knockgs calibrate --queries``, to be used with a library described through
+the same observation (the observation ladder's ``flow`` tables).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from pathlib import Path
 from ..errors import InputError
 from ._common import image_side
 
-__all__ = ["register", "run_rgbd", "run_tracks"]
+__all__ = ["register", "run_rgbd", "run_tracks", "run_describe"]
 
 
 def register(sub) -> None:
@@ -48,6 +50,11 @@ def register(sub) -> None:
     tr.add_argument("--seed", type=int, default=0, help="seed of the depth noise")
     tr.add_argument("-o", "--output", required=True, help="output tracked points (.parquet, .csv or .npz)")
     tr.set_defaults(func=run_tracks)
+    de = s.add_parser("describe", help="query descriptors (a CSV for `knockgs calibrate --queries`) of tracked points")
+    de.add_argument("tracks", nargs="+", metavar="[NAME=]FILE", help="tracked points (.parquet, .csv, .npz); NAME: the "
+                    "query's case name (default: the file's stem)")
+    de.add_argument("-o", "--output", required=True, help="output query CSV (case_name + the five descriptor columns)")
+    de.set_defaults(func=run_describe)
 
 
 def run_rgbd(args) -> int:
@@ -100,10 +107,41 @@ def run_tracks(args) -> int:
         if abs(probe.export.frame_dt - frames.frame_dt) > 1e-9 * probe.export.frame_dt:
             raise InputError(args.frames, "frame_dt", f"{frames.frame_dt} s between frames, but probe '{args.probe}' "
                              f"exports every {probe.export.frame_dt} s")
-    meta["observation"] = {"kind": "optical-flow tracks lifted by depth", **info}
+    meta["description"] = (f"optical-flow tracks ({info['method']}) lifted by depth from {Path(args.frames).name}: "
+                           f"{info['tracks']} of {info['seeds']} seeds, depth noise {args.depth_noise:g} m")
     m = Measurement(points=points, frames=np.arange(frames.n_frames), times=None, particle=None,
                     track=np.arange(1, points.shape[1] + 1), meta=meta, source=str(out))
     write_measured(out, m)
     print(f"{info['tracks']} tracks of {info['seeds']} seeds over {frames.n_frames} frames "
           f"(median flow {info['median_flow_px']:.3g} px) -> {out}", file=sys.stderr)
+    return 0
+
+
+def run_describe(args) -> int:
+    import pandas as pd
+
+    from .._io import check_outputs, write_text
+    from ..descriptors import FEATURE_NAMES, descriptor
+    from ..discrepancy import read_measured
+
+    named = []
+    for item in args.tracks:
+        name, sep, path = item.partition("=")
+        if not sep:
+            name, path = Path(item).stem, item
+        if not name:
+            raise InputError(item, "tracks", "empty case name before '='")
+        named.append((name, path))
+    if len({n for n, _ in named}) != len(named):
+        raise InputError("tracks", "case_name", "case names must be unique (use NAME=FILE)")
+    check_outputs({"--output": args.output}, {f"tracks {n}": p for n, p in named})
+    rows, frames = [], set()
+    for name, path in named:
+        m = read_measured(path)
+        frames.add(m.n_frames)
+        rows.append({"case_name": name, **dict(zip(FEATURE_NAMES, descriptor(m.points, n_frames=None, source=path)))})
+    if len(frames) > 1:
+        raise InputError("tracks", "frame", f"the files have different frame counts {sorted(frames)}")
+    write_text(args.output, pd.DataFrame(rows).to_csv(index=False, float_format="%.10g", lineterminator="\n"))
+    print(f"{len(rows)} query descriptor(s) -> {args.output}", file=sys.stderr)
     return 0

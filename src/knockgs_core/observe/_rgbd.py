@@ -22,7 +22,9 @@ class RGBDFrames:
     """``rgb`` [T, H, W, 3] in [0, 1]; ``alpha`` [T, H, W] coverage in [0, 1]; ``depth``
     [T, H, W] the expected camera depth [m] of the covered part (0 where ``alpha`` is 0);
     ``camera`` the :class:`~knockgs_core.render.Camera` (same for every frame); ``frame_dt``
-    [s] between frames. Arrays are float32."""
+    [s] between frames; ``mask`` [H, W] bool, optional: the object's segmentation in frame 0
+    (pixels it covers at least half; a rendered sequence has it, a capture may bring one).
+    Arrays are float32."""
 
     rgb: np.ndarray
     alpha: np.ndarray
@@ -30,6 +32,7 @@ class RGBDFrames:
     camera: Camera
     frame_dt: float
     source: str = "frames"
+    mask: np.ndarray | None = None
 
     def __post_init__(self):
         src = self.source
@@ -52,6 +55,11 @@ class RGBDFrames:
             raise InputError(src, "frame", f"need at least 2 frames, got {T}")
         if not (math.isfinite(float(self.frame_dt)) and float(self.frame_dt) > 0):
             raise InputError(src, "frame_dt", f"must be a positive number of seconds, got {self.frame_dt!r}")
+        if self.mask is not None:
+            mask = np.asarray(self.mask)
+            if mask.shape != (H, W):
+                raise InputError(src, "mask", f"expected [{H}, {W}], got {list(mask.shape)}")
+            object.__setattr__(self, "mask", mask.astype(bool))
         object.__setattr__(self, "rgb", rgb)
         object.__setattr__(self, "alpha", alpha)
         object.__setattr__(self, "depth", depth)
@@ -69,12 +77,20 @@ def render_rgbd(gaussians, static_mask, gaussian_index, positions, F, camera: Ca
     coverage): ``positions`` (T, N, 3), ``F`` (T, n_gs, 3, 3)."""
     from ..experiments._main import render_outputs
 
+    from ..render import render
+
     outs = render_outputs(gaussians, static_mask, gaussian_index, positions, F, camera, device=device)
+    # the object's frame-0 segmentation: its own Gaussians (the static support left out)
+    dyn = ~np.asarray(static_mask)
+    obj = render(np.asarray(gaussians.means, dtype=np.float64)[dyn], np.asarray(gaussians.covariances(), dtype=np.float64)[dyn],
+                 np.asarray(gaussians.colors(), dtype=np.float64)[dyn], np.asarray(gaussians.opacities, dtype=np.float64)[dyn],
+                 camera, device=device)
     rgb = np.stack([o.rgb for o in outs])
     alpha = np.stack([o.alpha for o in outs])
     wdepth = np.stack([o.depth for o in outs])
     depth = np.where(alpha > 1e-6, wdepth / np.maximum(alpha, 1e-6), 0.0).astype(np.float32)
-    return RGBDFrames(rgb=rgb, alpha=alpha, depth=depth, camera=camera, frame_dt=frame_dt, source="render")
+    return RGBDFrames(rgb=rgb, alpha=alpha, depth=depth, camera=camera, frame_dt=frame_dt, source="render",
+                      mask=obj.alpha >= 0.5)
 
 
 def write_rgbd(path, frames: RGBDFrames) -> None:
@@ -83,9 +99,10 @@ def write_rgbd(path, frames: RGBDFrames) -> None:
     from .._io import write_npz
 
     c = frames.camera
+    extra = {} if frames.mask is None else {"mask": frames.mask}
     write_npz(path, rgb=frames.rgb.astype(np.float16), alpha=frames.alpha.astype(np.float16), depth=frames.depth,
               intrinsics=np.array([c.width, c.height, c.fx, c.fy, c.cx, c.cy], dtype=np.float64),
-              world_to_camera=np.asarray(c.world_to_camera, dtype=np.float64), frame_dt=np.float64(frames.frame_dt))
+              world_to_camera=np.asarray(c.world_to_camera, dtype=np.float64), frame_dt=np.float64(frames.frame_dt), **extra)
 
 
 def read_rgbd(path) -> RGBDFrames:
@@ -109,7 +126,7 @@ def read_rgbd(path) -> RGBDFrames:
         cam = Camera(width=int(k[0]), height=int(k[1]), fx=k[2], fy=k[3], cx=k[4], cy=k[5],
                      world_to_camera=np.asarray(data["world_to_camera"], dtype=np.float64))
         return RGBDFrames(rgb=data["rgb"], alpha=data["alpha"], depth=data["depth"], camera=cam,
-                          frame_dt=float(data["frame_dt"]), source=src)
+                          frame_dt=float(data["frame_dt"]), source=src, mask=data["mask"] if "mask" in data.files else None)
 
 
 def project(camera: Camera, points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

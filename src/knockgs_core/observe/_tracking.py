@@ -1,13 +1,14 @@
 """ID-free observations from RGB-D frames: optical-flow tracks, depth point sets, and the
 Gaussian particles a camera sees (private).
 
-``track_points``: seeds on frame-0 corners (Harris, inside the object's coverage), carried
+``track_points``: seeds on frame-0 corners (Harris, inside the object's segmentation), carried
 frame to frame by dense optical flow (scikit-image's ``optical_flow_ilk``, Lucas-Kanade, or
 ``optical_flow_tvl1``) between consecutive frames, lifted to 3-D by the rendered depth at the
 tracked pixel (bilinear), optionally with Gaussian depth noise. A track that leaves the
-image or the object's coverage is dropped; the tracks kept follow one image feature each, not
-a material particle. ``depth_point_sets``: every covered pixel back-projected, per frame,
-without any correspondence. ``visible_particles``: the particles a camera sees in every frame.
+image or the object's coverage, or whose depth jumps across a depth edge, is dropped; the
+tracks kept follow one image feature each, not a material particle. ``depth_point_sets``:
+every covered pixel back-projected, per frame, without any correspondence.
+``visible_particles``: the particles a camera sees in every frame.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from ..errors import InputError
 from ._rgbd import RGBDFrames, project, unproject
 
 __all__ = ["TrackSettings", "PixelTracks", "track_pixels", "track_points",
-            "depth_point_sets", "visible_particles", "pointset_descriptor"]
+           "depth_point_sets", "visible_particles", "pointset_descriptor"]
 
 
 @dataclass(frozen=True)
@@ -28,7 +29,9 @@ class TrackSettings:
     """``max_seeds`` strongest Harris corners of frame 0 at least ``min_distance`` px apart
     where the coverage is at least ``alpha_min``; flow ``method`` (``ilk``: window radius
     ``radius`` px; ``tvl1``); Gaussian depth noise of std ``depth_noise`` [m] (seeded by
-    ``seed``); at least ``min_tracks`` must survive every frame."""
+    ``seed``); at least ``min_tracks`` must survive every frame; seeds stay ``edge_margin`` px
+    from the silhouette and off depth edges (a depth range above ``depth_edge`` [m] in their
+    window)."""
 
     max_seeds: int = 400
     min_distance: int = 2
@@ -38,6 +41,8 @@ class TrackSettings:
     depth_noise: float = 0.0
     seed: int = 0
     min_tracks: int = 8
+    edge_margin: int = 1
+    depth_edge: float = 0.05
 
     def __post_init__(self):
         if self.method not in ("ilk", "tvl1"):
@@ -67,13 +72,28 @@ def _bilinear(img: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray
 
 
 def _seeds(frames: RGBDFrames, s: TrackSettings) -> np.ndarray:
+    """Harris corners of frame 0 inside the covered region (and the object's segmentation when
+    the frames carry one), ``edge_margin`` px inside it and where the depth varies by at most
+    ``depth_edge`` over the same window, at least 1 % of the strongest response there."""
     from skimage.feature import corner_harris, corner_peaks
 
-    gray = _gray(frames.rgb[0])
-    response = corner_harris(gray)
-    mask = frames.alpha[0] >= s.alpha_min
-    peaks = corner_peaks(response, min_distance=s.min_distance, threshold_rel=0.01, exclude_border=2)
-    peaks = peaks[mask[peaks[:, 0], peaks[:, 1]]] if len(peaks) else peaks
+    from scipy.ndimage import binary_erosion, maximum_filter, minimum_filter
+
+    response = corner_harris(_gray(frames.rgb[0]))
+    region = frames.alpha[0] >= s.alpha_min
+    if frames.mask is not None:
+        region &= frames.mask
+    # away from the silhouette and from depth edges, where the lifted depth mixes surfaces
+    region = binary_erosion(region, iterations=s.edge_margin)
+    d0 = frames.depth[0]
+    region &= (maximum_filter(d0, size=2 * s.edge_margin + 1) - minimum_filter(d0, size=2 * s.edge_margin + 1)) <= s.depth_edge
+    if not region.any():
+        raise InputError(frames.source, "mask", "no covered pixel of the object in frame 0 to seed tracks on")
+    top = float(response[region].max())
+    if not top > 0:
+        return np.zeros((0, 2))
+    peaks = corner_peaks(np.where(region, response, 0.0), min_distance=s.min_distance, threshold_abs=0.01 * top,
+                         exclude_border=2)
     if len(peaks) > s.max_seeds:
         order = np.argsort(-response[peaks[:, 0], peaks[:, 1]], kind="stable")
         peaks = peaks[np.sort(order[: s.max_seeds])]
@@ -128,11 +148,15 @@ def track_pixels(frames: RGBDFrames, settings: TrackSettings = TrackSettings()) 
         inside = (rows[t] >= 0) & (rows[t] <= H - 1) & (cols[t] >= 0) & (cols[t] <= W - 1)
         alive &= inside
         alive &= _bilinear(frames.alpha[t], rows[t], cols[t]) >= 0.5
+    # a track whose lifted depth jumps by more than depth_edge between frames has slipped across
+    # a depth edge (onto another surface): dropped
+    depth = np.stack([_bilinear(frames.depth[t], rows[t], cols[t]) for t in range(T)]) if len(seeds) else np.zeros((T, 0))
+    if T > 1 and len(seeds):
+        alive &= np.max(np.abs(np.diff(depth, axis=0)), axis=0) <= s.depth_edge
     n = int(alive.sum())
     if n < s.min_tracks:
         raise InputError(frames.source, "tracks", f"{n} of {len(seeds)} tracks survive every frame (need {s.min_tracks})")
-    rows, cols = rows[:, alive], cols[:, alive]
-    depth = np.stack([_bilinear(frames.depth[t], rows[t], cols[t]) for t in range(T)])
+    rows, cols, depth = rows[:, alive], cols[:, alive], depth[:, alive]
     fp = np.concatenate(flow_px) if flow_px else np.zeros(0)
     info = {"seeds": int(len(seeds)), "tracks": n, "method": s.method,
             "median_flow_px": float(np.median(fp)) if fp.size else 0.0}
