@@ -181,3 +181,18 @@ def test_leakage_audit_keeps_the_routes_apart(tmp_path):
     bad = audit_leakage([estimate("c/passive", active_in), estimate("d", passive_in[:1] + active_in[1:])], **kw)
     assert not bad["passed"] and len(bad["problems"]) == 3
     assert all("other route" in p for p in bad["problems"])
+
+
+@pytest.mark.slow
+def test_passive_protocol_gravity_search(pillow_ci):
+    """The rule: the passive response at (1, 1) as large as Probe A's, within 10 %, from a
+    rollout at 1 m/s^2 by secant steps; the record says how it got there and holds the
+    invariance check (bit for bit on the Pillow)."""
+    from knockgs_core.experiments import passive_protocol
+
+    c, ps = pillow_ci
+    prot, rec = passive_protocol(c, ps)
+    assert rec["gravity_search"][0]["g"] == 1.0 and 2 <= len(rec["gravity_search"]) <= 4
+    assert abs(rec["passive_mean_rms"] / rec["probe_a_mean_rms"] - 1.0) < 0.1
+    assert prot.gravity == (0.0, 0.0, -rec["gravity_magnitude"])  # the camera's up is +z
+    assert all(chk["passive_bitwise_equal"] and chk["active_max_abs_diff"] > 1e-3 for chk in rec["invariance"])

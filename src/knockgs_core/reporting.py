@@ -29,14 +29,19 @@ __all__ = [
     "comparison_gif",
     "save_figure",
     "CURVE_METRICS",
+    "sample_sd",
 ]
 
 CURVE_METRICS = ("curve_rmse", "peak_abs_diff", "auc_abs_diff", "final_abs_diff")
 
 
-def _sd(x) -> float:
+def sample_sd(x) -> float:
+    """Sample standard deviation (ddof = 1) of ``x``; 0 for a single value."""
     x = np.asarray(x, dtype=float)
     return float(np.std(x, ddof=1)) if len(x) > 1 else 0.0
+
+
+_sd = sample_sd
 
 
 def main_table(evals: pd.DataFrame, methods: Sequence[str], probes: Sequence[str]) -> pd.DataFrame:

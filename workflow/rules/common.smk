@@ -200,11 +200,16 @@ def estimate_json(obj, split, method):
     return cp.get(object=obj, split=split, method=method).output.json
 
 
-def estimated_thetas(obj, split, method):
-    """target name -> frozen (s_E, s_rho) of a method."""
-    with open(estimate_json(obj, split, method)) as fh:
+def thetas_of(path):
+    """target name -> frozen (s_E, s_rho) of an estimate file."""
+    with open(path) as fh:
         doc = json.load(fh)
     return {p["case_name"]: (p["E_scale"], p["density_scale"]) for p in doc["predictions"]}
+
+
+def estimated_thetas(obj, split, method):
+    """target name -> frozen (s_E, s_rho) of a method."""
+    return thetas_of(estimate_json(obj, split, method))
 
 
 def writeback_thetas(wc):
@@ -395,10 +400,7 @@ def ladder_thetas(obj, split):
     out = {}
     for rung in LADDER_RUNGS:
         for m in CONFIG_DEPLOYABLE:
-            path = checkpoints.ladder_estimate.get(object=obj, split=split, rung=rung, method=m).output.json
-            with open(path) as fh:
-                doc = json.load(fh)
-            out[(rung, m)] = {p["case_name"]: (p["E_scale"], p["density_scale"]) for p in doc["predictions"]}
+            out[(rung, m)] = thetas_of(checkpoints.ladder_estimate.get(object=obj, split=split, rung=rung, method=m).output.json)
     return out
 
 

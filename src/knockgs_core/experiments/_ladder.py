@@ -28,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import InputError
+from ..reporting import sample_sd
 
 __all__ = ["LadderSettings", "ladder_rungs", "rung_descriptors", "ladder_table", "ladder_note", "plot_ladder"]
 
@@ -85,9 +86,6 @@ def ladder_table(rows: pd.DataFrame, rungs: Sequence[str], methods: Sequence[str
     """One row per (rung, method): mean and sd (ddof 1) over targets of the joint error [%]
     and of the Probe-B trajectory RMSE [m]. ``rows``: per (rung, method, target)
     ``joint_error_pct`` and ``traj_rmse_probe_b``."""
-    def sd(s: pd.Series) -> float:
-        return float(s.std(ddof=1)) if len(s) > 1 else 0.0
-
     out = []
     for rung in rungs:
         for m in methods:
@@ -95,9 +93,9 @@ def ladder_table(rows: pd.DataFrame, rungs: Sequence[str], methods: Sequence[str
             if e.empty:
                 raise InputError("ladder table", "rung", f"no rows for ({rung}, {m})")
             out.append({"rung": rung, "method": m, "n_targets": len(e),
-                        "joint_error_pct": float(e["joint_error_pct"].mean()), "joint_error_sd": sd(e["joint_error_pct"]),
+                        "joint_error_pct": float(e["joint_error_pct"].mean()), "joint_error_sd": sample_sd(e["joint_error_pct"]),
                         "traj_rmse_probe_b": float(e["traj_rmse_probe_b"].mean()),
-                        "traj_rmse_probe_b_sd": sd(e["traj_rmse_probe_b"])})
+                        "traj_rmse_probe_b_sd": sample_sd(e["traj_rmse_probe_b"])})
     return pd.DataFrame(out)
 
 

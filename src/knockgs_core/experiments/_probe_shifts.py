@@ -23,6 +23,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import InputError
+from ..reporting import sample_sd
 from ..metrics import trajectory_rmse
 
 __all__ = ["protocol_distance", "duration_table", "contact_table", "shift_note", "probe_impulse", "probe_total_force"]
@@ -63,7 +64,7 @@ def protocol_distance(pairs: Sequence[tuple[np.ndarray, float, np.ndarray, float
     ``pairs``: (positions under Probe A [T, n_gs, 3], its frame interval [s], positions under
     the shifted probe, its frame interval)."""
     d = [trajectory_rmse(*_common_frames(a, adt, b, bdt)) for a, adt, b, bdt in pairs]
-    return {"mean": float(np.mean(d)), "sd": float(np.std(d, ddof=1)) if len(d) > 1 else 0.0, "n_targets": len(d),
+    return {"mean": float(np.mean(d)), "sd": sample_sd(d), "n_targets": len(d),
             "per_target": [float(x) for x in d]}
 
 
@@ -71,9 +72,6 @@ def duration_table(evals: pd.DataFrame, methods: Sequence[str]) -> pd.DataFrame:
     """One row per method (in ``methods`` order): mean and sd (ddof 1) over targets of the
     trajectory and curve RMSE under the duration-shift probe, and the joint error of the
     frozen estimates. ``evals``: write-back rows with a ``method`` column."""
-    def sd(s: pd.Series) -> float:
-        return float(s.std(ddof=1)) if len(s) > 1 else 0.0
-
     rows = []
     for m in methods:
         e = evals[evals["method"] == m]
@@ -81,8 +79,8 @@ def duration_table(evals: pd.DataFrame, methods: Sequence[str]) -> pd.DataFrame:
             raise InputError("duration table", "method", f"no rows for method {m!r}")
         rows.append({"method": m, "n_targets": int(e["target"].nunique()),
                      "joint_error_pct": float(e.drop_duplicates("target")["joint_error_pct"].mean()),
-                     "traj_rmse_mean": float(e["traj_rmse"].mean()), "traj_rmse_sd": sd(e["traj_rmse"]),
-                     "curve_rmse_mean": float(e["curve_rmse"].mean()), "curve_rmse_sd": sd(e["curve_rmse"])})
+                     "traj_rmse_mean": float(e["traj_rmse"].mean()), "traj_rmse_sd": sample_sd(e["traj_rmse"]),
+                     "curve_rmse_mean": float(e["curve_rmse"].mean()), "curve_rmse_sd": sample_sd(e["curve_rmse"])})
     return pd.DataFrame(rows)
 
 
