@@ -1,0 +1,131 @@
+"""The workflow on a real Slurm cluster (issue 22): the ci-profile Pillow main table made by
+Snakemake's Slurm executor on a single-node cluster (``scripts/slurm-single-node.sh``)
+equals the local run's byte for byte, and a library job killed with ``scancel`` while it
+runs is submitted again (``profiles/slurm``: ``retries``) with nothing lost.
+
+It needs root, Debian's munge and Slurm packages and the executor plugin: ``.ci/run``
+installs them (``scripts/slurm-single-node.sh install``); where any is missing the test is
+skipped and says which.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from _workflow import ROOT, scratch_copy, snakemake
+
+SCRIPT = ROOT / "scripts" / "slurm-single-node.sh"
+P = "results/ci"
+TABLE = f"{P}/tables/main_pillow.csv"
+ARGS = ("--configfile=config/ci.yaml", "--config", "objects=[pillow]", "--")
+
+
+def _cluster_or_skip() -> bool:
+    """Start the single-node cluster (True when this call started it)."""
+    if importlib.util.find_spec("snakemake_executor_plugin_slurm") is None:
+        pytest.skip("the Slurm executor plugin is not installed: pip install -e '.[slurm]'")
+    if os.geteuid() != 0:
+        pytest.skip("starting a Slurm cluster needs root (scripts/slurm-single-node.sh start)")
+    if shutil.which("slurmctld") is None and not Path("/usr/sbin/slurmctld").exists():
+        pytest.skip("Slurm is not installed: sudo scripts/slurm-single-node.sh install")
+    was_up = subprocess.run(["scontrol", "ping"], capture_output=True).returncode == 0
+    out = subprocess.run(["bash", str(SCRIPT), "start"], capture_output=True, text=True, timeout=180)
+    if out.returncode != 0:
+        pytest.skip(f"the single-node Slurm cluster did not start: {out.stderr.strip()}")
+    return not was_up
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    started = _cluster_or_skip()
+    yield
+    if started:  # a cluster that was already up is left as it was found
+        subprocess.run(["bash", str(SCRIPT), "stop"], capture_output=True, timeout=120)
+
+
+def _our_jobs(work: Path) -> list[tuple[str, str, str]]:
+    """(job id, state, comment) of the Slurm jobs started from ``work``."""
+    out = subprocess.run(["squeue", "-h", "-o", "%i|%T|%k|%Z"], capture_output=True, text=True)
+    rows = [line.split("|") for line in out.stdout.splitlines() if line.count("|") == 3]
+    return [(i, s, k) for i, s, k, z in rows if Path(z).resolve() == work.resolve()]
+
+
+@pytest.mark.slow
+def test_the_ci_main_table_through_slurm_equals_the_local_run_and_survives_a_scancel(cluster, tmp_path):
+    local = scratch_copy(tmp_path / "local")
+    out = snakemake(local, "--cores", "2", *ARGS, TABLE)
+    assert out.returncode == 0, out.stderr[-3000:]
+
+    work = scratch_copy(tmp_path / "slurm")
+    shutil.copytree(ROOT / "profiles", work / "profiles")
+    # the profile as a user runs it; status checks every few seconds instead of every 20
+    # (the single node runs two short jobs at a time)
+    proc = subprocess.Popen([sys.executable, "-m", "snakemake", "--workflow-profile", "profiles/slurm",
+                             "--slurm-init-seconds-before-status-checks", "2", *ARGS, TABLE],
+                            cwd=work, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    killed = None
+    deadline = time.monotonic() + 300
+    try:
+        while killed is None and time.monotonic() < deadline and proc.poll() is None:
+            for job, state, comment in _our_jobs(work):
+                if state == "RUNNING" and comment.startswith("rule_rollout_library"):
+                    time.sleep(1.0)  # let it get into its rollouts
+                    subprocess.run(["scancel", job], check=True)
+                    killed = (job, comment)
+                    break
+            time.sleep(0.2)
+        log, _ = proc.communicate(timeout=1200)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            for job, _, _ in _our_jobs(work):
+                subprocess.run(["scancel", job])
+    assert killed is not None, "no library job was seen running under Slurm"
+    assert proc.returncode == 0, log[-4000:]
+
+    # every job went through Slurm: each rule's jobs have Slurm logs
+    slurm_logs = {p.parent.parent.name for p in (work / ".snakemake" / "slurm_logs").rglob("*.log")}
+    assert {"rule_asset", "rule_rollout_library", "rule_rollout_eval", "rule_main_table"} <= slurm_logs, slurm_logs
+    # the cancelled job failed and was submitted again
+    job, comment = killed
+    assert f"SLURM jobid {job}" in log
+    assert "CANCELLED" in log or "cancelled" in log.lower(), log[-4000:]
+    wildcards = comment.removeprefix("rule_rollout_library_wildcards_")
+    attempts = list((work / ".snakemake" / "slurm_logs" / "rule_rollout_library" / wildcards).glob("*.log"))
+    assert len(attempts) >= 2, attempts
+
+    # nothing lost: the same library, the same table, no temporary file left
+    assert (work / TABLE).read_bytes() == (local / TABLE).read_bytes()
+    lib = sorted(p.relative_to(work) for p in (work / P / "rollouts/pillow/lib").rglob("*.parquet"))
+    assert lib == sorted(p.relative_to(local) for p in (local / P / "rollouts/pillow/lib").rglob("*.parquet"))
+    assert [p for p in (work / P).rglob("*") if ".tmp" in p.name] == []
+    t = pd.read_csv(work / TABLE)
+    assert t["joint_error_pct"].notna().all()
+
+
+def test_the_script_refuses_clearly_without_root_or_a_command(tmp_path):
+    # an unknown command: usage, exit 2
+    out = subprocess.run(["bash", str(SCRIPT), "restart"], capture_output=True, text=True)
+    assert out.returncode == 2 and "usage:" in out.stderr
+    if os.geteuid() == 0:
+        # as root, a slurm.conf that the script did not write is never overwritten
+        fake = tmp_path / "etc"
+        env = {**os.environ, "SLURM_CONF": str(fake / "slurm.conf")}
+        fake.mkdir()
+        (fake / "slurm.conf").write_text("ClusterName=theirs\n")
+        out = subprocess.run(["bash", str(SCRIPT), "config"], capture_output=True, text=True, env=env)
+        assert out.returncode == 2, out
+        assert "not written by this script" in out.stderr
+        assert (fake / "slurm.conf").read_text() == "ClusterName=theirs\n"
+    else:
+        out = subprocess.run(["bash", str(SCRIPT), "start"], capture_output=True, text=True)
+        assert out.returncode == 2 and "needs root" in out.stderr
