@@ -87,6 +87,17 @@ include: "workflow/rules/boundaries.smk"
 include: "workflow/rules/verification.smk"
 
 
+# Rules that read a few small tables and write one: on a cluster (profiles/slurm) they run on
+# the submitting host instead of waiting in the queue; a local run is the same either way.
+localrules:
+    estimate,
+    oracle_estimate,
+    main_table,
+    main_figure,
+    objects_table,
+    render_table,
+
+
 rule all:
     default_target: True
     input:
