@@ -219,12 +219,14 @@ def write_json(path, obj: Any, *, indent: int | None = 2, sort_keys: bool = Fals
     write_text(path, json.dumps(json_safe(obj), indent=indent, sort_keys=sort_keys, allow_nan=False) + "\n")
 
 
-def write_parquet(path, table, *, compression: str = "zstd") -> None:
-    """Write a ``pyarrow.Table`` to ``path`` atomically."""
+def write_parquet(path, table, *, compression: str = "zstd", column_encoding: dict[str, str] | None = None) -> None:
+    """Write a ``pyarrow.Table`` to ``path`` atomically. ``column_encoding`` (column name ->
+    Parquet encoding) switches dictionary encoding off for the whole file."""
     import pyarrow.parquet as pq
 
+    kw = {} if column_encoding is None else {"use_dictionary": False, "column_encoding": column_encoding}
     with atomic_write(path, mode="wb") as fh:
-        pq.write_table(table, fh, compression=compression)
+        pq.write_table(table, fh, compression=compression, **kw)
 
 
 def write_npz(path, *, compressed: bool = True, **arrays) -> None:

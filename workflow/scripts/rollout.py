@@ -9,7 +9,7 @@ from pathlib import Path
 from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.experiments import PassiveProtocol
-from knockgs_core.rollout import run_rollout, write_deformation, write_rollout
+from knockgs_core.rollout import BackgroundWriter, run_rollout
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
@@ -28,18 +28,18 @@ if "protocol" in snakemake.input.keys():
     with open(snakemake.input.protocol) as fh:
         passive = PassiveProtocol.from_dict(json.load(fh), snakemake.input.protocol)
 
-for i, run in enumerate(p.runs):
-    theta, probe = run["theta"], run["probe"]
-    tag = f"[{i + 1}/{len(p.runs)}] theta ({theta[0]:.6f}, {theta[1]:.6f}) probe {probe}"
+# each finished rollout is written on a background thread while the next one simulates
+with BackgroundWriter() as writer:
+    for i, run in enumerate(p.runs):
+        theta, probe = run["theta"], run["probe"]
+        tag = f"[{i + 1}/{len(p.runs)}] theta ({theta[0]:.6f}, {theta[1]:.6f}) probe {probe}"
 
-    def progress(frame, n_frames, stats, tag=tag):
-        if frame % 5 == 0 or frame == n_frames - 1:
-            print(f"{tag}: frame {frame}/{n_frames - 1} cfl {stats['cfl']:.3g}", file=log, flush=True)
+        def progress(frame, n_frames, stats, tag=tag):
+            if frame % 5 == 0 or frame == n_frames - 1:
+                print(f"{tag}: frame {frame}/{n_frames - 1} cfl {stats['cfl']:.3g}", file=log, flush=True)
 
-    extra = {} if passive is None else passive.run_kwargs()
-    ro = run_rollout(contract, theta, probe, particles=particles, device=p.device, export_F=run["F"] is not None,
-                     progress=progress, **extra)
-    write_rollout(run["rollout"], ro)
-    if run["F"] is not None:
-        write_deformation(run["F"], ro)
-    print(f"{tag}: done, {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s", file=log, flush=True)
+        extra = {} if passive is None else passive.run_kwargs()
+        ro = run_rollout(contract, theta, probe, particles=particles, device=p.device, export_F=run["F"] is not None,
+                         progress=progress, **extra)
+        writer.submit(run["rollout"], ro, run["F"])
+        print(f"{tag}: done, {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s", file=log, flush=True)
