@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -20,6 +21,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+import yaml
 
 from _workflow import ROOT, scratch_copy, snakemake
 
@@ -130,3 +132,46 @@ def test_the_script_refuses_clearly_without_root_or_a_command(tmp_path):
     else:
         out = subprocess.run(["bash", str(SCRIPT), "start"], capture_output=True, text=True)
         assert out.returncode == 2 and "needs root" in out.stderr
+
+
+def _gpu_rules() -> set[str]:
+    """The rules whose resources request a GPU on a CUDA profile (``gpu=1 if ON_GPU``)."""
+    rules = set()
+    for smk in (ROOT / "workflow" / "rules").glob("*.smk"):
+        for block in re.split(r"^(?=(?:rule|checkpoint) )", smk.read_text(), flags=re.M):
+            head = re.match(r"(?:rule|checkpoint) (\w+):", block)
+            if head and "gpu=1 if ON_GPU" in block:
+                rules.add(head.group(1))
+    return rules
+
+
+def _dry_run_jobs(stdout: str) -> dict[str, list[str]]:
+    """rule -> the ``resources:`` lines of its planned jobs in a dry run's output."""
+    jobs: dict[str, list[str]] = {}
+    for block in re.split(r"^(?=(?:rule|checkpoint) \w+:$)", stdout, flags=re.M):
+        head = re.match(r"(?:rule|checkpoint) (\w+):", block)
+        res = re.search(r"^\s+resources: (.*)$", block, flags=re.M)
+        if head and res:
+            jobs.setdefault(head.group(1), []).append(res.group(1))
+    return jobs
+
+
+def test_the_gpu_profile_sends_exactly_the_gpu_rules_to_the_gpu_partition(tmp_path):
+    if importlib.util.find_spec("snakemake_executor_plugin_slurm") is None:
+        pytest.skip("the Slurm executor plugin is not installed: pip install -e '.[slurm]'")
+    profile = yaml.safe_load((ROOT / "profiles/slurm-gpu/config.yaml").read_text())
+    assert set(profile["set-resources"]) == _gpu_rules()
+    for name in ("slurm", "slurm-gpu"):
+        cfg = yaml.safe_load((ROOT / f"profiles/{name}/config.yaml").read_text())
+        assert cfg["executor"] == "slurm" and cfg["retries"] >= 1 and cfg["slurm-status-command"] == "squeue"
+    # the paper profile planned through the GPU profile (no cluster needed for a dry run)
+    work = scratch_copy(tmp_path / "w")
+    shutil.copytree(ROOT / "profiles", work / "profiles")
+    out = snakemake(work, "-n", "--workflow-profile", "profiles/slurm-gpu", "--configfile=config/paper.yaml", "all")
+    assert out.returncode == 0, out.stderr[-3000:]
+    jobs = _dry_run_jobs(out.stdout + out.stderr)
+    assert {"rollout_library", "rollout_eval"} <= set(jobs)
+    for rule, lines in jobs.items():
+        for line in lines:
+            on_gpu = "gpu=1" in line.split(", ") and "slurm_partition=gpu" in line.split(", ")
+            assert on_gpu == (rule in _gpu_rules()), (rule, line)
