@@ -169,3 +169,45 @@ def test_the_background_writer_writes_the_same_bytes_and_raises_a_failed_write(t
     with pytest.raises(InputError, match="non-finite"):
         w.close()
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("bad")) == []
+
+
+def test_rollouts_simulated_together_equal_separate_rollouts_bit_for_bit():
+    from knockgs_core.rollout import run_rollouts
+
+    contract = load_contract("pillow", "ci")
+    ps = build_asset(contract).particles
+    runs = [((0.95, 1.35), "standard_x"), ((1.6, 0.8), "standard_x"), ((0.7, 1.1), "standard_y")]
+    together = run_rollouts(contract, runs, particles=ps, export_F=True)
+    for (theta, probe), ro in zip(runs, together):
+        alone = run_rollout(contract, theta, probe, particles=ps, export_F=True)
+        assert ro.positions.tobytes() == alone.positions.tobytes()
+        assert ro.F.tobytes() == alone.F.tobytes()
+        assert ro.meta["theta"] == list(theta) and ro.meta["probe"] == alone.meta["probe"]
+        assert ro.meta["stats"] == alone.meta["stats"] and ro.meta["simulated_with"] == 3
+
+
+def test_rollouts_simulated_together_refuse_mixed_schedules_and_stop_a_blow_up():
+    from knockgs_core.errors import SimulationError
+    from knockgs_core.rollout import run_rollouts
+
+    contract = load_contract("pillow", "ci")
+    ps = build_asset(contract).particles
+    with pytest.raises(InputError, match="one export schedule"):
+        _mixed(contract, ps)
+    # a time step far beyond the stable one: the guard stops the batch with a message
+    with pytest.raises(SimulationError, match="CFL|outran|non-finite|left the simulation"):
+        run_rollouts(contract, [((1.0, 1.0), "standard_x"), ((5.0, 0.2), "standard_x")], particles=ps,
+                     sim_overrides={"dt": 0.02})
+
+
+def _mixed(contract, ps):
+    """Two probes whose export schedules differ (the second one's frames halved)."""
+    import dataclasses
+
+    from knockgs_core.rollout import run_rollouts
+
+    pa_ = contract.probes["standard_x"]
+    other = dataclasses.replace(pa_, export=dataclasses.replace(pa_.export, n_frames=pa_.export.n_frames // 2))
+    probes = dict(contract.probes, other=other)
+    c2 = dataclasses.replace(contract, probes=probes)
+    return run_rollouts(c2, [((1.0, 1.0), "standard_x"), ((1.0, 1.0), "other")], particles=ps)

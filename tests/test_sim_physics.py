@@ -352,3 +352,50 @@ def test_pic_relaxation_time_damps_towards_apic():
     flip, apic = run(), run(transfer="apic")
     gap = [np.linalg.norm(run(pic_relaxation_time=tau) - apic) for tau in (0.3, 0.03)]
     assert np.linalg.norm(flip - apic) > gap[0] > gap[1] > 0.0
+
+
+# -------------------------------------------------------------------------------------
+# P2G by cells (the GPU path) against the scatter P2G, on the CPU
+# -------------------------------------------------------------------------------------
+@pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
+def test_p2g_by_cells_is_the_scatter_up_to_rounding(rng, transfer):
+    # a dense shell of particles (many to a cell, as on a paper-scale asset) around a lattice
+    # block, a probe on one end, a support below: the two P2G variants sum the same terms
+    params = SimParams(n_grid=32, dt=5e-4, transfer=transfer,
+                       boundaries=(DomainWalls(padding=3),
+                                   FixedCuboid(box=Box(center=(1.0, 1.0, 0.55), half_size=(0.4, 0.4, 0.1)))))
+    core = block((0.8, 0.8, 0.7), (1.2, 1.2, 1.0), 1 / 64, jitter=0.3, rng=rng)
+    u = rng.normal(size=(6000, 3))
+    shell = (np.array([1.0, 1.0, 0.85]) + 0.2 * u / np.linalg.norm(u, axis=1, keepdims=True)).astype(np.float32)
+    X = np.concatenate([core, shell])
+    probe = Probe("p", (0.0, 2e-2, 0.0), box=Box(center=(1.15, 1.0, 0.85), half_size=(0.06, 0.25, 0.2)), n_steps=5,
+                  dt_ref=5e-4)
+    runs = {}
+    for variant in ("scatter", "cells"):
+        model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, probe=probe)
+        state = make_state(model, X)
+        solver = MPMSolver(model, p2g=variant)
+        assert solver.p2g == variant
+        solver.check(state)
+        m0 = solver.momentum(state)
+        for _ in range(150):
+            solver.step(state)
+            if state.step % 50 == 0:
+                solver.check(state)
+        # P2G moved all the mass to the grid (the last substep's grid holds it)
+        assert state.grid_m.numpy().sum() == pytest.approx(model.mass_host.astype(np.float64).sum(), rel=1e-5)
+        runs[variant] = (state.positions(), solver.momentum(state) - m0)
+    (xs, dps), (xc, dpc) = runs["scatter"], runs["cells"]
+    disp = np.sqrt(((xs - X) ** 2).sum(-1).mean())
+    assert disp > 1e-4  # the body moved
+    assert np.sqrt(((xc - xs) ** 2).sum(-1).mean()) < 1e-5 * disp
+    np.testing.assert_allclose(dpc, dps, rtol=1e-4, atol=1e-6 * np.linalg.norm(dps))
+
+
+def test_p2g_variant_is_checked_and_the_cpu_keeps_the_scatter():
+    params = SimParams(n_grid=16, dt=1e-3, boundaries=())
+    X = block((0.9, 0.9, 0.9), (1.1, 1.1, 1.1), 1 / 16)
+    model = build_model(X, E=1e4, nu=0.3, rho=1000.0, params=params, device="cpu")
+    assert MPMSolver(model).p2g == "scatter"  # CPU rollouts stay bitwise what they were
+    with pytest.raises(Exception, match="p2g"):
+        MPMSolver(model, p2g="gather")

@@ -32,11 +32,12 @@ from ._io import json_safe, write_parquet
 from ._long_format import (POSITION_COLUMNS, _has_field, _meta_field, check_rollout_meta, read_long_values, read_metadata,
                            theta_tag)
 from .errors import InputError
-from .sim import Probe, SimResult, build_model, make_state, simulate
+from .sim import Probe, SimResult, build_model, make_state, simulate_many
 
 __all__ = [
     "Rollout",
     "run_rollout",
+    "run_rollouts",
     "write_rollout",
     "read_rollout",
     "read_rollout_meta",
@@ -78,58 +79,98 @@ def run_rollout(
     contract's asset. ``probe`` overrides the contract's probe of that name (diagnostics).
     ``sim_overrides`` replaces fields of the contract's :class:`~knockgs_core.sim.SimParams`.
     """
+    report = None if progress is None else (lambda run, frame, n, stats: progress(frame, n, stats))
+    return run_rollouts(contract, [(theta, probe_name)], particles=particles, device=device, export_F=export_F,
+                        probe=probe, progress=report, sim_overrides=sim_overrides, concurrent=False)[0]
+
+
+def run_rollouts(
+    contract,
+    runs: list[tuple[tuple[float, float], str]],
+    *,
+    particles=None,
+    device: str | None = None,
+    export_F: bool = False,
+    probe: Probe | None = None,
+    progress: Callable[[int, int, int, dict], None] | None = None,
+    sim_overrides: dict | None = None,
+    concurrent: bool = True,
+) -> list[Rollout]:
+    """Several rollouts of one contract, ``runs`` = [(theta, probe_name), ...], simulated
+    together (:func:`knockgs_core.sim.simulate_many`): each is what :func:`run_rollout` makes
+    of it (bit for bit on the CPU), and on a CUDA device the runs overlap on their own
+    streams (``concurrent``). The runs' probes must share one export schedule.
+    ``progress(run, frame, n_frames, stats)`` after each exported frame of each run."""
     import warp as wp
 
-    s_e, s_rho = (float(t) for t in theta)
-    if not (s_e > 0 and s_rho > 0 and math.isfinite(s_e) and math.isfinite(s_rho)):
-        raise InputError(f"object {contract.name}", "theta", f"scales must be positive and finite, got {theta}")
-    if probe is None and probe_name not in contract.probes:
-        raise InputError(contract.source, "probes", f"unknown probe '{probe_name}'; known: {sorted(contract.probes)}")
     if particles is None:
         from .assets import build_asset
 
         particles = build_asset(contract).particles
-    if probe is None:  # contact boxes checked and matched-total-force probes rescaled
-        probe = contract.resolve_probes(particles)[probe_name]
     params = contract.sim
     if sim_overrides:
         params = dataclasses.replace(params, **sim_overrides)
-    E, nu, rho = contract.particle_materials(particles, (s_e, s_rho))
+    resolved = None
     n = len(particles.positions)
     ref = getattr(contract, "probe_reference_particles", None)
     force_scale = float(ref) / n if ref else 1.0
+    setups = []
+    for theta, probe_name in runs:
+        s_e, s_rho = (float(t) for t in theta)
+        if not (s_e > 0 and s_rho > 0 and math.isfinite(s_e) and math.isfinite(s_rho)):
+            raise InputError(f"object {contract.name}", "theta", f"scales must be positive and finite, got {theta}")
+        if probe is None and probe_name not in contract.probes:
+            raise InputError(contract.source, "probes", f"unknown probe '{probe_name}'; known: {sorted(contract.probes)}")
+        if probe is None:  # contact boxes checked and matched-total-force probes rescaled
+            resolved = resolved or contract.resolve_probes(particles)
+            run_probe = resolved[probe_name]
+        else:
+            run_probe = probe
+        E, nu, rho = contract.particle_materials(particles, (s_e, s_rho))
+        setups.append(((s_e, s_rho), run_probe, E, nu, rho))
+    exports = {(pr.export.frame_dt, pr.export.n_frames) for _, pr, *_ in setups}
+    if len(exports) > 1:
+        raise InputError(f"object {contract.name}", "probes",
+                         f"rollouts run together must share one export schedule, got {sorted(exports)}")
+    (frame_dt, n_frames), = exports
     t0 = time.perf_counter()
-    model = build_model(
-        particles.positions, E=E, nu=nu, rho=rho, params=params, volumes=particles.volumes,
-        probe=probe, probe_force_scale=force_scale, device=device,
-    )
-    state = make_state(model, particles.positions)
-    result: SimResult = simulate(
-        model, state, frame_dt=probe.export.frame_dt, n_frames=probe.export.n_frames,
-        export_F=particles.n_gs if export_F else 0, progress=progress,
-    )
+    models = []
+    for _, run_probe, E, nu, rho in setups:
+        model = build_model(
+            particles.positions, E=E, nu=nu, rho=rho, params=params, volumes=particles.volumes,
+            probe=run_probe, probe_force_scale=force_scale, device=device,
+        )
+        models.append((model, make_state(model, particles.positions)))
+    results: list[SimResult] = simulate_many(models, frame_dt=frame_dt, n_frames=n_frames,
+                                             export_F=particles.n_gs if export_F else 0, progress=progress,
+                                             concurrent=concurrent)
     wall = time.perf_counter() - t0
-    meta = {
-        "object": contract.name,
-        "profile": contract.profile,
-        "contract_hash": contract.hash,
-        "theta": [s_e, s_rho],
-        "probe": json_safe(probe),
-        "probe_force_scale": force_scale,
-        "probe_selected_count": model.probe_count,
-        "probe_force_per_particle_step": list(model.probe_force),
-        "total_probe_force": list(model.total_probe_force),
-        "probe_impulse": list(model.probe_impulse),
-        "export_times": result.times.tolist(),
-        "n_gs": int(particles.n_gs),
-        "n_fill": int(n - particles.n_gs),
-        "sim": json_safe(params),
-        "stats": json_safe(result.stats),
-        "device": model.device,
-        "wall_seconds": wall,
-        "versions": {"knockgs": __version__, "warp": wp.config.version, "numpy": np.__version__},
-    }
-    return Rollout(positions=result.positions, F=result.F, meta=meta)
+    out = []
+    for ((s_e, s_rho), run_probe, *_), (model, _), result in zip(setups, models, results):
+        meta = {
+            "object": contract.name,
+            "profile": contract.profile,
+            "contract_hash": contract.hash,
+            "theta": [s_e, s_rho],
+            "probe": json_safe(run_probe),
+            "probe_force_scale": force_scale,
+            "probe_selected_count": model.probe_count,
+            "probe_force_per_particle_step": list(model.probe_force),
+            "total_probe_force": list(model.total_probe_force),
+            "probe_impulse": list(model.probe_impulse),
+            "export_times": result.times.tolist(),
+            "n_gs": int(particles.n_gs),
+            "n_fill": int(n - particles.n_gs),
+            "sim": json_safe(params),
+            "stats": json_safe(result.stats),
+            "device": model.device,
+            "wall_seconds": wall,
+            "versions": {"knockgs": __version__, "warp": wp.config.version, "numpy": np.__version__},
+        }
+        if len(runs) > 1:
+            meta["simulated_with"] = len(runs)  # wall_seconds is then the batch's
+        out.append(Rollout(positions=result.positions, F=result.F, meta=meta))
+    return out
 
 
 #: codec of the long-format files: LZ4 writes a paper-scale rollout about 4x faster than zstd's

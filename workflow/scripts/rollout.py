@@ -9,7 +9,7 @@ from pathlib import Path
 from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.experiments import PassiveProtocol
-from knockgs_core.rollout import BackgroundWriter, run_rollout
+from knockgs_core.rollout import BackgroundWriter, run_rollouts
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
@@ -28,18 +28,34 @@ if "protocol" in snakemake.input.keys():
     with open(snakemake.input.protocol) as fh:
         passive = PassiveProtocol.from_dict(json.load(fh), snakemake.input.protocol)
 
-# each finished rollout is written on a background thread while the next one simulates
+
+def schedule(run):
+    """Runs simulated together must share the export schedule and whether F is exported."""
+    export = passive.probe().export if passive is not None else contract.probes[run["probe"]].export
+    return (export.frame_dt, export.n_frames, run["F"] is not None)
+
+
+# On a GPU the runs of one schedule are simulated together, each on its own CUDA stream
+# (P2G's atomics on separate grids overlap); on the CPU one after the other (the results are
+# the same bit for bit either way). Each finished rollout is written on a background thread.
+groups = [[]]
+for i, run in enumerate(p.runs):
+    if groups[-1] and (not p.device.startswith("cuda") or schedule(groups[-1][0][1]) != schedule(run)):
+        groups.append([])
+    groups[-1].append((i, run))
+extra = {} if passive is None else passive.run_kwargs()
 with BackgroundWriter() as writer:
-    for i, run in enumerate(p.runs):
-        theta, probe = run["theta"], run["probe"]
-        tag = f"[{i + 1}/{len(p.runs)}] theta ({theta[0]:.6f}, {theta[1]:.6f}) probe {probe}"
+    for group in groups:
+        tags = [f"[{i + 1}/{len(p.runs)}] theta ({run['theta'][0]:.6f}, {run['theta'][1]:.6f}) probe {run['probe']}"
+                for i, run in group]
 
-        def progress(frame, n_frames, stats, tag=tag):
+        def progress(k, frame, n_frames, stats, tags=tags):
             if frame % 5 == 0 or frame == n_frames - 1:
-                print(f"{tag}: frame {frame}/{n_frames - 1} cfl {stats['cfl']:.3g}", file=log, flush=True)
+                print(f"{tags[k]}: frame {frame}/{n_frames - 1} cfl {stats['cfl']:.3g}", file=log, flush=True)
 
-        extra = {} if passive is None else passive.run_kwargs()
-        ro = run_rollout(contract, theta, probe, particles=particles, device=p.device, export_F=run["F"] is not None,
-                         progress=progress, **extra)
-        writer.submit(run["rollout"], ro, run["F"])
-        print(f"{tag}: done, {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s", file=log, flush=True)
+        rollouts = run_rollouts(contract, [(run["theta"], run["probe"]) for _, run in group], particles=particles,
+                                device=p.device, export_F=group[0][1]["F"] is not None, progress=progress, **extra)
+        for tag, (_, run), ro in zip(tags, group, rollouts):
+            writer.submit(run["rollout"], ro, run["F"])
+            print(f"{tag}: done, {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s"
+                  f"{' (the batch of %d)' % len(group) if len(group) > 1 else ''}", file=log, flush=True)

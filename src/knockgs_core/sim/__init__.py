@@ -34,7 +34,8 @@ from ._effects import (
     with_effects,
 )
 from ._protocol import Effect
-from ._solver import MPMSolver, Model, SimResult, State, build_model, default_device, make_state, particle_volumes, simulate
+from ._solver import (MPMSolver, Model, SimResult, State, build_model, default_device, make_state, particle_volumes, simulate,
+                      simulate_many)
 
 __all__ = [
     "BoundaryCondition",
@@ -56,6 +57,7 @@ __all__ = [
     "make_state",
     "particle_volumes",
     "simulate",
+    "simulate_many",
     "Effect",
     "VelocityDamping",
     "Gravity",

@@ -22,7 +22,8 @@ from . import _kernels as K
 from ._config import DomainWalls, FixedCuboid, ParticleTranslation, Probe, SimParams
 from ._protocol import Effect
 
-__all__ = ["Model", "State", "MPMSolver", "SimResult", "build_model", "particle_volumes", "default_device", "simulate"]
+__all__ = ["Model", "State", "MPMSolver", "SimResult", "build_model", "particle_volumes", "default_device", "simulate",
+           "simulate_many"]
 
 def default_device() -> str:
     """The Warp device used when none is given: ``$KNOCKGS_DEVICE`` or ``"cpu"``."""
@@ -260,6 +261,31 @@ def make_state(model: Model, positions: np.ndarray, velocities: np.ndarray | Non
     )
 
 
+@dataclass
+class _CellScratch:
+    """Scratch of the P2G by cells (``MPMSolver(p2g="cells")``): per particle the position in
+    its base cell ``fx`` [cells], the affine matrices ``affine`` and ``mC``; the sort ``keys``
+    and ``order`` (twice the particle count, as the radix sort needs); ``none_key`` (a key above
+    every cell's) and ``end_bit`` (the bits the sort looks at)."""
+
+    fx: wp.array
+    affine: wp.array
+    mC: wp.array
+    keys: wp.array
+    order: wp.array
+    none_key: int
+    end_bit: int
+
+    @classmethod
+    def make(cls, model: Model) -> _CellScratch:
+        n, dev, g = model.particle_count, model.device, model.params.n_grid
+        none_key = g * g * g
+        return cls(fx=wp.zeros(n, dtype=wp.vec3, device=dev), affine=wp.zeros(n, dtype=wp.mat33, device=dev),
+                   mC=wp.zeros(n, dtype=wp.mat33, device=dev), keys=wp.zeros(2 * n, dtype=wp.int32, device=dev),
+                   order=wp.zeros(2 * n, dtype=wp.int32, device=dev), none_key=none_key,
+                   end_bit=max(1, int(none_key).bit_length()))
+
+
 class MPMSolver:
     """Advances a :class:`State` of a :class:`Model` by substeps of ``params.dt``.
 
@@ -277,9 +303,15 @@ class MPMSolver:
     #: 6.5 % per halving (docs/assets.md). tests/test_sim_physics.py checks that it never binds.
     polar_iters = 32
 
-    def __init__(self, model: Model):
+    def __init__(self, model: Model, *, p2g: str = "auto"):
         self.model = model
         p = model.params
+        if p2g == "auto":  # by cells on a GPU (atomics on shared nodes serialize there); the scatter on the CPU
+            p2g = "cells" if wp.get_device(model.device).is_cuda else "scatter"
+        if p2g not in ("scatter", "cells"):
+            raise InputError("MPMSolver", "p2g", f"must be 'auto', 'scatter' or 'cells', got {p2g!r}")
+        self.p2g = p2g
+        self._cells = _CellScratch.make(model) if p2g == "cells" else None
         self._inv_dx = 1.0 / p.dx
         self._lo = (0, 0, 0)
         self._hi = (p.n_grid, p.n_grid, p.n_grid)
@@ -365,15 +397,28 @@ class MPMSolver:
         cmds = {}
         cmds["zero"] = wp.launch(K.grid_zero, dim=dims, inputs=[lo, flip],
                                  outputs=[state.grid_mv, state.grid_m, state.grid_mv_old], **rec)
-        cmds["p2g"] = wp.launch(
-            K.p2g,
-            dim=m.particle_count,
-            inputs=[state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
-                    m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
-                    m.probe_mask, wp.vec3(*m.probe_force), 0, self._inv_dx, dt, self.polar_iters, lo, hi, flip],
-            outputs=[state.particle_v, state.particle_rot, state.grid_mv, state.grid_m, state.grid_mv_old, self._overrun],
-            **rec,
-        )
+        if self._cells is not None:
+            c = self._cells
+            cmds["p2g"] = wp.launch(
+                K.p2g_prepare,
+                dim=m.particle_count,
+                inputs=[state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
+                        m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
+                        m.probe_mask, wp.vec3(*m.probe_force), 0, self._inv_dx, dt, self.polar_iters, lo, hi, p.n_grid,
+                        c.none_key],
+                outputs=[state.particle_v, state.particle_rot, c.fx, c.affine, c.mC, c.keys, c.order, self._overrun],
+                **rec,
+            )
+            cmds["p2g_cells"] = wp.launch(
+                K.p2g_cells,
+                dim=(m.particle_count, 27),
+                inputs=[c.keys, c.order, m.particle_count, p.n_grid, c.none_key, self._inv_dx, flip, m.particle_mass,
+                        state.particle_v, c.fx, c.affine, c.mC],
+                outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
+                **rec,
+            )
+        else:
+            cmds["p2g"] = self._record_scatter(state, lo, hi, flip, rec)
         damping = p.grid_v_damping_scale ** (dt / p.damping_dt_ref) if p.grid_v_damping_scale < 1.0 else 1.0
         # domain walls listed first are applied in the update pass (same order, one pass less)
         fused = p.boundaries[0] if p.boundaries and isinstance(p.boundaries[0], DomainWalls) else None
@@ -404,6 +449,19 @@ class MPMSolver:
         self._cmds_key = (id(state), self._lo, self._hi)
         self._box = (lo, dims)  # the active box as the effects' grid hooks take it
 
+    def _record_scatter(self, state: State, lo, hi, flip: int, rec: dict):
+        """The recorded scatter P2G launch (one float atomic per particle and stencil node)."""
+        m, p = self.model, self.model.params
+        return wp.launch(
+            K.p2g,
+            dim=m.particle_count,
+            inputs=[state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
+                    m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
+                    m.probe_mask, wp.vec3(*m.probe_force), 0, self._inv_dx, p.dt, self.polar_iters, lo, hi, flip],
+            outputs=[state.particle_v, state.particle_rot, state.grid_mv, state.grid_m, state.grid_mv_old, self._overrun],
+            **rec,
+        )
+
     def step(self, state: State) -> None:
         """Advance ``state`` by one substep: P2G (probe force included), grid update, boundary
         conditions, effects on the grid, G2P (particle translation included), effects on the
@@ -418,6 +476,10 @@ class MPMSolver:
         cmds["zero"].launch()
         cmds["p2g"].set_param_by_name("probe_on", probe_on)
         cmds["p2g"].launch()
+        if self._cells is not None:
+            c = self._cells
+            wp.utils.radix_sort_pairs(c.keys, c.order, m.particle_count, end_bit=c.end_bit)
+            cmds["p2g_cells"].launch()
         cmds["update"].launch()
         for bc, cmd in cmds["bcs"]:
             if isinstance(bc, DomainWalls) or bc.start_time <= t < bc.end_time:
@@ -461,36 +523,87 @@ def simulate(
     the first at t = 0. ``export_F`` > 0 also exports the deformation gradient of the first
     ``export_F`` particles (the Gaussian-associated ones). ``progress(frame, n_frames, stats)``
     is called after each exported frame."""
-    p = model.params
-    ratio = frame_dt / p.dt
+    report = None if progress is None else (lambda run, frame, n, stats: progress(frame, n, stats))
+    return simulate_many([(model, state)], frame_dt=frame_dt, n_frames=n_frames, export_F=export_F, progress=report)[0]
+
+
+def simulate_many(
+    runs: list[tuple[Model, State]],
+    *,
+    frame_dt: float,
+    n_frames: int,
+    export_F: int = 0,
+    progress: Callable[[int, int, int, dict], None] | None = None,
+    concurrent: bool = False,
+) -> list[SimResult]:
+    """Run several independent simulations (``runs``: (model, state) pairs, all with the same
+    time step) in lockstep and export the same frames from each, as :func:`simulate` does.
+
+    Every substep steps each run in turn, then runs the guard checks that are due, so each run
+    sees exactly the operations it would see alone: on the CPU the results equal those of
+    separate :func:`simulate` calls bit for bit. With ``concurrent`` on a CUDA device each run
+    gets its own stream, so the GPU overlaps the runs' kernels (P2G's atomics on different
+    grids do not wait for each other); a guard check waits only for its own run's stream.
+    ``progress(run, frame, n_frames, stats)`` is called after each exported frame of each
+    run. Returns one :class:`SimResult` per run, in order."""
+    import contextlib
+
+    if not runs:
+        return []
+    dts = {m.params.dt for m, _ in runs}
+    if len(dts) != 1:
+        raise InputError("simulation", "dt", f"runs simulated together must share one time step, got {sorted(dts)}")
+    p0 = runs[0][0].params
+    ratio = frame_dt / p0.dt
     steps_per_frame = int(round(ratio))
     if steps_per_frame < 1 or abs(ratio - steps_per_frame) > 1e-6 * max(1.0, ratio):
-        raise InputError("simulation", "frame_dt", f"frame_dt = {frame_dt:g} s must be a whole multiple of dt = {p.dt:g} s")
-    solver = MPMSolver(model)
-    n = model.particle_count
-    positions = np.empty((n_frames, n, 3), dtype=np.float32)
-    Fs = np.empty((n_frames, export_F, 3, 3), dtype=np.float32) if export_F else None
-    stats = solver.check(state)
-    positions[0] = state.positions()
-    if Fs is not None:
-        Fs[0] = state.particle_F.numpy()[:export_F].astype(np.float32)
+        raise InputError("simulation", "frame_dt", f"frame_dt = {frame_dt:g} s must be a whole multiple of dt = {p0.dt:g} s")
+    streams = None
+    if concurrent and len(runs) > 1 and wp.get_device(runs[0][0].device).is_cuda:
+        device = runs[0][0].device
+        wp.synchronize_device(device)  # the models' arrays are ready before other streams read them
+        streams = [wp.Stream(device) for _ in runs]
+
+    def on(i):
+        return wp.ScopedStream(streams[i]) if streams else contextlib.nullcontext()
+
+    solvers, positions, Fs, stats = [], [], [], []
+    for i, (model, state) in enumerate(runs):
+        with on(i):
+            solver = MPMSolver(model)
+            n = model.particle_count
+            X = np.empty((n_frames, n, 3), dtype=np.float32)
+            F = np.empty((n_frames, export_F, 3, 3), dtype=np.float32) if export_F else None
+            stats.append(solver.check(state))
+            X[0] = state.positions()
+            if F is not None:
+                F[0] = state.particle_F.numpy()[:export_F].astype(np.float32)
+        solvers.append(solver)
+        positions.append(X)
+        Fs.append(F)
     for frame in range(1, n_frames):
         for s in range(steps_per_frame):
-            solver.step(state)
-            # the guard runs every guard_every substeps and right after the probe's first
-            # substep (velocities jump there, and the active box must follow)
-            if state.step % p.guard_every == 0 or (model.probe_steps and state.step == model.probe_first + 1):
-                stats = solver.check(state)
-        stats = solver.check(state)
-        positions[frame] = state.positions()
-        if Fs is not None:
-            Fs[frame] = state.particle_F.numpy()[:export_F].astype(np.float32)
-        if progress is not None:
-            progress(frame, n_frames, stats)
+            for i, (model, state) in enumerate(runs):
+                with on(i):
+                    solvers[i].step(state)
+            for i, (model, state) in enumerate(runs):
+                # the guard runs every guard_every substeps and right after the probe's first
+                # substep (velocities jump there, and the active box must follow)
+                if state.step % model.params.guard_every == 0 or (model.probe_steps and state.step == model.probe_first + 1):
+                    with on(i):
+                        stats[i] = solvers[i].check(state)
+        for i, (model, state) in enumerate(runs):
+            with on(i):
+                stats[i] = solvers[i].check(state)
+                positions[i][frame] = state.positions()
+                if Fs[i] is not None:
+                    Fs[i][frame] = state.particle_F.numpy()[:export_F].astype(np.float32)
+            if progress is not None:
+                progress(i, frame, n_frames, stats[i])
     times = np.arange(n_frames, dtype=np.float64) * frame_dt
-    return SimResult(
-        times=times,
-        positions=positions,
-        F=Fs,
-        stats={"max_cfl": solver.max_cfl, "min_det_F": solver.min_det_F, "steps": state.step, "steps_per_frame": steps_per_frame},
-    )
+    return [
+        SimResult(times=times.copy(), positions=positions[i], F=Fs[i],
+                  stats={"max_cfl": solver.max_cfl, "min_det_F": solver.min_det_F, "steps": state.step,
+                         "steps_per_frame": steps_per_frame})
+        for i, (solver, (_, state)) in enumerate(zip(solvers, runs))
+    ]

@@ -1,0 +1,75 @@
+"""Where a substep's GPU time goes: Warp's per-kernel CUDA timing over a run of substeps.
+
+Builds the object's asset and one Probe-A model at theta = (1, 1), runs ``--warm``
+substeps (kernels loaded, the probe applied, the active box settled), then times
+``--steps`` substeps kernel by kernel (``wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)``)
+and prints each kernel's share.
+
+    python3 benchmarks/kernel_profile.py --object pillow --profile paper --device cuda:0
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections import defaultdict
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--object", default="pillow")
+    ap.add_argument("--profile", default="paper")
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--warm", type=int, default=300)
+    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--p2g", nargs="+", default=["scatter", "cells"], help="P2G variants of MPMSolver to profile")
+    args = ap.parse_args()
+
+    import warp as wp
+
+    from knockgs_core.assets import build_asset
+    from knockgs_core.contract import load_contract
+    from knockgs_core.sim import MPMSolver, build_model, make_state
+
+    contract = load_contract(args.object, args.profile)
+    ps = build_asset(contract).particles
+    probe = contract.resolve_probes(ps)[contract.roles["calibration"]]
+    E, nu, rho = contract.particle_materials(ps, (1.0, 1.0))
+    ref = getattr(contract, "probe_reference_particles", None)
+    model = build_model(ps.positions, E=E, nu=nu, rho=rho, params=contract.sim, volumes=ps.volumes, probe=probe,
+                        probe_force_scale=float(ref) / len(ps.positions) if ref else 1.0, device=args.device)
+    for variant in args.p2g:
+        state = make_state(model, ps.positions)
+        solver = MPMSolver(model, p2g=variant)
+        solver.check(state)
+        for _ in range(args.warm):
+            solver.step(state)
+            if state.step % contract.sim.guard_every == 0:
+                solver.check(state)
+        wp.synchronize_device(args.device)
+        wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMCPY | wp.TIMING_MEMSET)
+        t0 = time.perf_counter()
+        for _ in range(args.steps):
+            solver.step(state)
+        wp.synchronize_device(args.device)
+        wall = time.perf_counter() - t0
+        results = wp.timing_end()
+        total = defaultdict(float)
+        count = defaultdict(int)
+        for r in results:
+            total[r.name] += r.elapsed
+            count[r.name] += 1
+        all_ms = sum(total.values())
+        print(f"{args.object} {args.profile}, P2G {variant}: {len(ps.positions)} particles, n_grid {contract.sim.n_grid}, "
+              f"active box {[h - lo for lo, h in zip(solver._lo, solver._hi)]}, {args.steps} substeps, "
+              f"wall {1e3 * wall / args.steps:.4f} ms per substep")
+        print("| kernel | launches | ms per substep | share |")
+        print("|---|---:|---:|---:|")
+        for name, ms in sorted(total.items(), key=lambda kv: -kv[1]):
+            print(f"| {name} | {count[name]} | {ms / args.steps:.4f} | {100 * ms / max(all_ms, 1e-12):.1f} % |")
+        print(f"| all | {sum(count.values())} | {all_ms / args.steps:.4f} | 100 % |")
+
+
+
+if __name__ == "__main__":
+    main()
