@@ -274,6 +274,41 @@ def grid_bc_cuboid(
 # --------------------------------------------------------------------------------------
 # particle kernels
 # --------------------------------------------------------------------------------------
+@wp.func
+def p2g_particle(
+    p: int,
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33d),
+    mass: wp.array(dtype=float),
+    vol: wp.array(dtype=float),
+    mu: wp.array(dtype=float),
+    lam: wp.array(dtype=float),
+    probe_mask: wp.array(dtype=wp.int32),
+    probe_force: wp.vec3,
+    probe_on: int,
+    inv_dx: float,
+    dt: float,
+    polar_iters: int,
+    v: wp.array(dtype=wp.vec3),
+    rot: wp.array(dtype=wp.quat),
+):
+    """Particle ``p``'s part of P2G: the probe impulse (``v += f / m dt``, written back), the
+    warm-started rotation (written back) and fixed-corotated stress; returns the velocity,
+    the affine matrix of the transfer (stress and APIC terms) and its APIC term alone."""
+    m = mass[p]
+    vp = v[p]
+    if probe_on == 1 and probe_mask[p] != 0:
+        vp = vp + probe_force * (dt / m)
+        v[p] = vp
+    Fp = mat33_to_f32(F[p])
+    q = polar_rotation(Fp, rot[p], polar_iters)
+    rot[p] = q
+    tau = fixed_corotated_kirchhoff(Fp, wp.quat_to_matrix(q), mu[p], lam[p])
+    mC = m * C[p]
+    affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + mC
+    return vp, affine, mC
+
+
 @wp.kernel
 def p2g(
     x0: wp.array(dtype=wp.vec3),
@@ -305,18 +340,9 @@ def p2g(
     (the probe impulse is in both: it is the particle's velocity, not a grid force)."""
     p = wp.tid()
     m = mass[p]
-    vp = v[p]
-    if probe_on == 1 and probe_mask[p] != 0:
-        vp = vp + probe_force * (dt / m)
-        v[p] = vp
-
-    Fp = mat33_to_f32(F[p])
-    q = polar_rotation(Fp, rot[p], polar_iters)
-    rot[p] = q
-    tau = fixed_corotated_kirchhoff(Fp, wp.quat_to_matrix(q), mu[p], lam[p])
+    vp, affine, mC = p2g_particle(p, C, F, mass, vol, mu, lam, probe_mask, probe_force, probe_on, inv_dx, dt, polar_iters,
+                                  v, rot)
     dx = 1.0 / inv_dx
-    mC = m * C[p]
-    affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + mC
 
     gx = (x0[p] + u[p]) * inv_dx
     base = stencil_base(gx)
@@ -378,22 +404,14 @@ def p2g_prepare(
     order: wp.array(dtype=wp.int32),
     overrun: wp.array(dtype=wp.int32),
 ):
-    """The per-particle half of :func:`p2g`: probe impulse, stress, the affine matrices
+    """The per-particle half of :func:`p2g` (:func:`p2g_particle`): the affine matrices
     (``affine``: stress and APIC terms; ``mC``: APIC term alone) and the position in the base
     cell ``fx``; the sort key (base cell index; ``none_key``, above every cell's, for a particle
     outside the active box) and the identity order for the sort."""
     p = wp.tid()
-    m = mass[p]
-    vp = v[p]
-    if probe_on == 1 and probe_mask[p] != 0:
-        vp = vp + probe_force * (dt / m)
-        v[p] = vp
-    Fp = mat33_to_f32(F[p])
-    q = polar_rotation(Fp, rot[p], polar_iters)
-    rot[p] = q
-    tau = fixed_corotated_kirchhoff(Fp, wp.quat_to_matrix(q), mu[p], lam[p])
-    mC = m * C[p]
-    affine_out[p] = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + mC
+    vp, affine, mC = p2g_particle(p, C, F, mass, vol, mu, lam, probe_mask, probe_force, probe_on, inv_dx, dt, polar_iters,
+                                  v, rot)
+    affine_out[p] = affine
     mC_out[p] = mC
     gx = (x0[p] + u[p]) * inv_dx
     base = stencil_base(gx)
