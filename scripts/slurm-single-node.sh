@@ -2,11 +2,11 @@
 # A real single-node Slurm cluster on this machine, from Debian's packages, to try the
 # workflow's Slurm path (profiles/slurm) and to test it.
 #
-#   sudo scripts/slurm-single-node.sh install   # apt-get install munge slurmctld slurmd slurm-client
-#   sudo scripts/slurm-single-node.sh config    # writes slurm.conf only
-#   sudo scripts/slurm-single-node.sh start     # slurm.conf, munged, slurmctld, slurmd; waits for the node
-#   scripts/slurm-single-node.sh status         # the node and the queue
-#   sudo scripts/slurm-single-node.sh stop      # stops the three daemons, nothing else
+#   scripts/slurm-single-node.sh install   # root: apt-get install munge slurmctld slurmd slurm-client
+#   scripts/slurm-single-node.sh config    # root: writes slurm.conf only
+#   scripts/slurm-single-node.sh start     # root: slurm.conf, munged, slurmctld, slurmd; waits for the node
+#   scripts/slurm-single-node.sh status    # the node and the queue
+#   scripts/slurm-single-node.sh stop      # root: stops the three daemons, nothing else
 #
 # One node named after this host (all its CPUs, its memory less 1 GiB), one partition
 # `main`, accounting off (sacct is not used: the Slurm profile queries squeue, and finished
@@ -27,7 +27,7 @@ PACKAGES=(munge slurmctld slurmd slurm-client)
 refuse() { echo "slurm-single-node: $*" >&2; exit 2; }
 
 need_root() {
-    [ "$(id -u)" -eq 0 ] || refuse "'$1' needs root (it $2); run it with sudo"
+    [ "$(id -u)" -eq 0 ] || refuse "'$1' needs root (it $2): run it as root, e.g. with sudo"
 }
 
 missing_commands() {
@@ -56,7 +56,7 @@ write_conf() {
     if [ -e "$CONF" ] && ! grep -qxF "$MARKER" "$CONF"; then
         refuse "$CONF exists and was not written by this script: not overwriting it (stop that cluster, or move the file)"
     fi
-    [ -x /usr/sbin/slurmd ] || refuse "slurmd is not installed: run 'sudo $0 install' first"
+    [ -x /usr/sbin/slurmd ] || refuse "slurmd is not installed: run '$0 install' as root first"
     node=$(hostname -s)
     cpus=$(nproc)
     # the node's memory as slurmd measures it, less 1 GiB for the daemons and the workflow's own process
@@ -130,7 +130,7 @@ node_ready() {
 
 start() {
     need_root start "starts munged, slurmctld and slurmd"
-    [ -z "$(missing_commands)" ] || refuse "missing $(missing_commands): run 'sudo $0 install' first (Debian: ${PACKAGES[*]})"
+    [ -z "$(missing_commands)" ] || refuse "missing $(missing_commands): run '$0 install' as root first (Debian: ${PACKAGES[*]})"
     write_conf
     start_munge
     wait_for 10 munge -n || refuse "munged does not answer (see /var/log/munge/munged.log)"

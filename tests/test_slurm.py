@@ -38,7 +38,7 @@ def _cluster_or_skip() -> bool:
     if os.geteuid() != 0:
         pytest.skip("starting a Slurm cluster needs root (scripts/slurm-single-node.sh start)")
     if shutil.which("slurmctld") is None and not Path("/usr/sbin/slurmctld").exists():
-        pytest.skip("Slurm is not installed: sudo scripts/slurm-single-node.sh install")
+        pytest.skip("Slurm is not installed: scripts/slurm-single-node.sh install (as root)")
     was_up = subprocess.run(["scontrol", "ping"], capture_output=True).returncode == 0
     out = subprocess.run(["bash", str(SCRIPT), "start"], capture_output=True, text=True, timeout=180)
     if out.returncode != 0:
