@@ -67,6 +67,7 @@ write_conf() {
     chmod 755 "$STATE"
     local tmp
     tmp=$(mktemp "$CONF.XXXXXX")
+    trap 'rm -f "$tmp"' EXIT  # a failed write leaves the old slurm.conf and no temporary file
     cat >"$tmp" <<EOF
 $MARKER
 ClusterName=knockgs
@@ -98,6 +99,7 @@ PartitionName=main Nodes=ALL Default=YES MaxTime=INFINITE State=UP
 EOF
     chmod 644 "$tmp"
     mv -f "$tmp" "$CONF"
+    trap - EXIT
 }
 
 start_munge() {

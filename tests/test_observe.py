@@ -8,7 +8,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from knockgs_core.contract import load_contract
 from knockgs_core.descriptors import descriptor
 from knockgs_core.errors import InputError
 from knockgs_core.experiments import camera_from_contract
@@ -27,11 +26,8 @@ from knockgs_core.observe import (
 
 
 @pytest.fixture(scope="module")
-def pillow():
-    from knockgs_core.assets import build_asset
-
-    c = load_contract("pillow", "ci")
-    return c, build_asset(c)
+def pillow(pillow_ci):
+    return pillow_ci
 
 
 def _render(pillow, X, F=None, *, width=160, height=120):

@@ -30,11 +30,9 @@ from knockgs_core.experiments._probe_shifts import _common_frames
 
 
 @pytest.fixture(scope="module")
-def pillow_ci():
-    from knockgs_core.assets import build_asset
-
-    c = load_contract("pillow", "ci")
-    return c, build_asset(c).particles
+def pillow_ps(pillow_ci):
+    c, built = pillow_ci
+    return c, built.particles
 
 
 @pytest.mark.parametrize("profile", ["ci", "default", "paper"])
@@ -49,8 +47,8 @@ def test_duration_probe_delivers_probe_a_impulse(profile):
     assert (d.export.n_frames - 1) * d.export.frame_dt == pytest.approx((a.export.n_frames - 1) * a.export.frame_dt)
 
 
-def test_contact_probes_have_equal_total_force(pillow_ci):
-    c, ps = pillow_ci
+def test_contact_probes_have_equal_total_force(pillow_ps):
+    c, ps = pillow_ps
     ref, shifted = probe_total_force(c, ps, "local_center_x"), probe_total_force(c, ps, "shifted_contact_x")
     np.testing.assert_allclose(shifted, ref, rtol=1e-9)
     # the reference's total is the paper's: 0.18 N per particle times its selected_reference
@@ -61,12 +59,12 @@ def test_contact_probes_have_equal_total_force(pillow_ci):
 
 
 @pytest.mark.slow
-def test_passive_protocol_is_blind_to_a_common_scale(pillow_ci):
+def test_passive_protocol_is_blind_to_a_common_scale(pillow_ps):
     """Under gravity alone, (a s_E, a s_rho) moves exactly like (s_E, s_rho): bit for bit for a
     in {0.5, 2}; a known force (Probe A) breaks it."""
     from knockgs_core.rollout import run_rollout
 
-    c, ps = pillow_ci
+    c, ps = pillow_ps
     prot = PassiveProtocol(gravity=(0.0, 0.0, -0.3), frame_dt=0.02, n_frames=11)
     base = (0.8, 1.25)
     X = passive_rollout(c, base, prot, particles=ps).positions
@@ -184,13 +182,13 @@ def test_leakage_audit_keeps_the_routes_apart(tmp_path):
 
 
 @pytest.mark.slow
-def test_passive_protocol_gravity_search(pillow_ci):
+def test_passive_protocol_gravity_search(pillow_ps):
     """The rule: the passive response at (1, 1) as large as Probe A's, within 10 %, from a
     rollout at 1 m/s^2 by secant steps; the record says how it got there and holds the
     invariance check (bit for bit on the Pillow)."""
     from knockgs_core.experiments import passive_protocol
 
-    c, ps = pillow_ci
+    c, ps = pillow_ps
     prot, rec = passive_protocol(c, ps)
     assert rec["gravity_search"][0]["g"] == 1.0 and 2 <= len(rec["gravity_search"]) <= 4
     assert abs(rec["passive_mean_rms"] / rec["probe_a_mean_rms"] - 1.0) < 0.1

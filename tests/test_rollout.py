@@ -47,9 +47,8 @@ def test_each_asset_responds_to_its_probe_a(name, tmp_path):
         f * reference, rtol=1e-5)
 
 
-def test_rollout_parquet_round_trip_and_metadata(tmp_path):
-    contract = load_contract("pillow", "ci")
-    built = build_asset(contract)
+def test_rollout_parquet_round_trip_and_metadata(tmp_path, pillow_ci):
+    contract, built = pillow_ci
     ro = run_rollout(contract, (0.95, 1.35), "standard_x", particles=built.particles)
     path = tmp_path / "r.parquet"
     write_rollout(path, ro)
@@ -64,18 +63,18 @@ def test_rollout_parquet_round_trip_and_metadata(tmp_path):
     assert back.positions.tobytes() == ro.positions.tobytes()
 
 
-def test_rollouts_are_bitwise_deterministic():
-    contract = load_contract("pillow", "ci")
-    ps = build_asset(contract).particles
+def test_rollouts_are_bitwise_deterministic(pillow_ci):
+    contract, built = pillow_ci
+    ps = built.particles
     a = run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps)
     b = run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps)
     assert a.positions.tobytes() == b.positions.tobytes()
 
 
-def test_stiffer_heavier_scaling_on_an_asset():
+def test_stiffer_heavier_scaling_on_an_asset(pillow_ci):
     """On an asset: E and rho both x a divide the small-strain response by a."""
-    contract = load_contract("pillow", "ci")
-    ps = build_asset(contract).particles
+    contract, built = pillow_ci
+    ps = built.particles
     a = run_rollout(contract, (0.5, 0.75), "standard_x", particles=ps).positions
     b = run_rollout(contract, (1.0, 1.5), "standard_x", particles=ps).positions
     da, db = a - a[0], b - b[0]
@@ -171,11 +170,11 @@ def test_the_background_writer_writes_the_same_bytes_and_raises_a_failed_write(t
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("bad")) == []
 
 
-def test_rollouts_simulated_together_equal_separate_rollouts_bit_for_bit():
+def test_rollouts_simulated_together_equal_separate_rollouts_bit_for_bit(pillow_ci):
     from knockgs_core.rollout import run_rollouts
 
-    contract = load_contract("pillow", "ci")
-    ps = build_asset(contract).particles
+    contract, built = pillow_ci
+    ps = built.particles
     runs = [((0.95, 1.35), "standard_x"), ((1.6, 0.8), "standard_x"), ((0.7, 1.1), "standard_y")]
     together = run_rollouts(contract, runs, particles=ps, export_F=True)
     for (theta, probe), ro in zip(runs, together):
@@ -186,12 +185,12 @@ def test_rollouts_simulated_together_equal_separate_rollouts_bit_for_bit():
         assert ro.meta["stats"] == alone.meta["stats"] and ro.meta["simulated_with"] == 3
 
 
-def test_rollouts_simulated_together_refuse_mixed_schedules_and_stop_a_blow_up():
+def test_rollouts_simulated_together_refuse_mixed_schedules_and_stop_a_blow_up(pillow_ci):
     from knockgs_core.errors import SimulationError
     from knockgs_core.rollout import run_rollouts
 
-    contract = load_contract("pillow", "ci")
-    ps = build_asset(contract).particles
+    contract, built = pillow_ci
+    ps = built.particles
     with pytest.raises(InputError, match="one export schedule"):
         _mixed(contract, ps)
     # a time step far beyond the stable one: the guard stops the batch with a message
@@ -211,3 +210,13 @@ def _mixed(contract, ps):
     probes = dict(contract.probes, other=other)
     c2 = dataclasses.replace(contract, probes=probes)
     return run_rollouts(c2, [((1.0, 1.0), "standard_x"), ((1.0, 1.0), "other")], particles=ps)
+
+
+def test_batches_group_consecutive_runs_of_one_schedule_only_when_together():
+    from knockgs_core.rollout import batches
+
+    runs = [{"probe": "a"}, {"probe": "a"}, {"probe": "b"}, {"probe": "a"}]
+    key = lambda run: run["probe"]  # noqa: E731
+    assert [[i for i, _ in b] for b in batches(runs, key, together=True)] == [[0, 1], [2], [3]]
+    assert [[i for i, _ in b] for b in batches(runs, key, together=False)] == [[0], [1], [2], [3]]
+    assert batches([], key, together=True) == []

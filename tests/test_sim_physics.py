@@ -399,3 +399,20 @@ def test_p2g_variant_is_checked_and_the_cpu_keeps_the_scatter():
     assert MPMSolver(model).p2g == "scatter"  # CPU rollouts stay bitwise what they were
     with pytest.raises(Exception, match="p2g"):
         MPMSolver(model, p2g="gather")
+
+
+def test_guard_stops_an_unstable_run_under_the_p2g_by_cells():
+    # the run of the test above, stepped with the by-cell P2G: stopped mid-way with the message
+    params = SimParams(n_grid=32, dt=2e-3, boundaries=(DomainWalls(),), guard_every=5)
+    X = block((0.85, 0.85, 0.85), (1.15, 1.15, 1.15), 1 / 32)
+    probe = Probe("p", (-90.0, 0.0, 0.0), dt_ref=2e-3, start_time=0.01)
+    model = build_model(X, E=1e4, nu=0.3, rho=100.0, params=params, probe=probe)
+    state = make_state(model, X)
+    solver = MPMSolver(model, p2g="cells")
+    solver.check(state)
+    with pytest.raises(SimulationError, match=r"CFL violation at step \d+ \(t = .* s\).*dt"):
+        for _ in range(30):
+            solver.step(state)
+            if state.step % params.guard_every == 0 or state.step == model.probe_first + 1:
+                solver.check(state)
+    assert state.step > model.probe_first  # the substeps ran until the probe made the run unstable

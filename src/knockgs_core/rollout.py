@@ -38,6 +38,7 @@ __all__ = [
     "Rollout",
     "run_rollout",
     "run_rollouts",
+    "batches",
     "write_rollout",
     "read_rollout",
     "read_rollout_meta",
@@ -170,6 +171,19 @@ def run_rollouts(
         if len(runs) > 1:
             meta["simulated_with"] = len(runs)  # wall_seconds is then the batch's
         out.append(Rollout(positions=result.positions, F=result.F, meta=meta))
+    return out
+
+
+def batches(runs: list, key: Callable[[Any], Any], *, together: bool) -> list[list[tuple[int, Any]]]:
+    """The ``runs`` (in order, as (index, run) pairs) in the batches :func:`run_rollouts`
+    simulates: consecutive runs with the same ``key`` (their export schedule) together when
+    ``together`` (on a GPU), one run a batch otherwise."""
+    out: list[list[tuple[int, Any]]] = []
+    for i, run in enumerate(runs):
+        if out and together and key(out[-1][0][1]) == key(run):
+            out[-1].append((i, run))
+        else:
+            out.append([(i, run)])
     return out
 
 

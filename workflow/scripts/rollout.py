@@ -9,7 +9,7 @@ from pathlib import Path
 from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.experiments import PassiveProtocol
-from knockgs_core.rollout import BackgroundWriter, run_rollouts
+from knockgs_core.rollout import BackgroundWriter, batches, run_rollouts
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
@@ -38,11 +38,7 @@ def schedule(run):
 # On a GPU the runs of one schedule are simulated together, each on its own CUDA stream
 # (P2G's atomics on separate grids overlap); on the CPU one after the other (the results are
 # the same bit for bit either way). Each finished rollout is written on a background thread.
-groups = [[]]
-for i, run in enumerate(p.runs):
-    if groups[-1] and (not p.device.startswith("cuda") or schedule(groups[-1][0][1]) != schedule(run)):
-        groups.append([])
-    groups[-1].append((i, run))
+groups = batches(p.runs, schedule, together=p.device.startswith("cuda"))
 extra = {} if passive is None else passive.run_kwargs()
 with BackgroundWriter() as writer:
     for group in groups:

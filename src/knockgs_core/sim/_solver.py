@@ -397,15 +397,16 @@ class MPMSolver:
         cmds = {}
         cmds["zero"] = wp.launch(K.grid_zero, dim=dims, inputs=[lo, flip],
                                  outputs=[state.grid_mv, state.grid_m, state.grid_mv_old], **rec)
+        # the particle inputs of both P2G variants (``probe_on`` is set per substep)
+        particle_args = [state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
+                         m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
+                         m.probe_mask, wp.vec3(*m.probe_force), 0, self._inv_dx, dt, self.polar_iters, lo, hi]
         if self._cells is not None:
             c = self._cells
             cmds["p2g"] = wp.launch(
                 K.p2g_prepare,
                 dim=m.particle_count,
-                inputs=[state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
-                        m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
-                        m.probe_mask, wp.vec3(*m.probe_force), 0, self._inv_dx, dt, self.polar_iters, lo, hi, p.n_grid,
-                        c.none_key],
+                inputs=[*particle_args, p.n_grid, c.none_key],
                 outputs=[state.particle_v, state.particle_rot, c.fx, c.affine, c.mC, c.keys, c.order, self._overrun],
                 **rec,
             )
@@ -417,8 +418,14 @@ class MPMSolver:
                 outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
                 **rec,
             )
-        else:
-            cmds["p2g"] = self._record_scatter(state, lo, hi, flip, rec)
+        else:  # one float atomic per particle and stencil node
+            cmds["p2g"] = wp.launch(
+                K.p2g,
+                dim=m.particle_count,
+                inputs=[*particle_args, flip],
+                outputs=[state.particle_v, state.particle_rot, state.grid_mv, state.grid_m, state.grid_mv_old, self._overrun],
+                **rec,
+            )
         damping = p.grid_v_damping_scale ** (dt / p.damping_dt_ref) if p.grid_v_damping_scale < 1.0 else 1.0
         # domain walls listed first are applied in the update pass (same order, one pass less)
         fused = p.boundaries[0] if p.boundaries and isinstance(p.boundaries[0], DomainWalls) else None
@@ -448,19 +455,6 @@ class MPMSolver:
         self._cmds = cmds
         self._cmds_key = (id(state), self._lo, self._hi)
         self._box = (lo, dims)  # the active box as the effects' grid hooks take it
-
-    def _record_scatter(self, state: State, lo, hi, flip: int, rec: dict):
-        """The recorded scatter P2G launch (one float atomic per particle and stencil node)."""
-        m, p = self.model, self.model.params
-        return wp.launch(
-            K.p2g,
-            dim=m.particle_count,
-            inputs=[state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
-                    m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
-                    m.probe_mask, wp.vec3(*m.probe_force), 0, self._inv_dx, p.dt, self.polar_iters, lo, hi, flip],
-            outputs=[state.particle_v, state.particle_rot, state.grid_mv, state.grid_m, state.grid_mv_old, self._overrun],
-            **rec,
-        )
 
     def step(self, state: State) -> None:
         """Advance ``state`` by one substep: P2G (probe force included), grid update, boundary
