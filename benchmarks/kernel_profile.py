@@ -5,7 +5,7 @@ substeps (kernels loaded, the probe applied, the active box settled), then times
 ``--steps`` substeps kernel by kernel (``wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)``)
 and prints each kernel's share.
 
-    python3 benchmarks/kernel_profile.py --object pillow --profile paper --device cuda:0
+    python3 benchmarks/kernel_profile.py --object pillow --profile paper --device cuda:0 --p2g cells scatter
 """
 
 from __future__ import annotations

@@ -17,6 +17,7 @@ from knockgs_core.sim import (
     FixedCuboid,
     Gravity,
     HiddenMass,
+    MaterialViscosity,
     MPMSolver,
     ParticleTranslation,
     PoissonShift,
@@ -31,6 +32,7 @@ from knockgs_core.sim import (
     is_still_sticky,
     make_state,
     simulate,
+    viscous_stability_limit,
     with_effects,
 )
 from knockgs_core.sim._effects import PlasticStrain, von_mises_return
@@ -115,6 +117,76 @@ def test_velocity_damping_decays_free_motion_exponentially():
     x = r.positions.astype(np.float64).mean(axis=1)[:, 0]
     expected = x[0] + 0.2 * (1 - np.exp(-rate * r.times)) / rate
     np.testing.assert_allclose(x, expected, atol=2e-4)
+
+
+BAR = ((0.75, 0.875, 0.875), (1.25, 1.125, 1.125))  # a free 0.5 m bar along x
+
+
+def _bar_elongation(beta, *, E=2e5, rho=1000.0):
+    """The free bar's first axial mode (initial velocity 0.3 sin(pi (x - xc) / L) m/s):
+    times [s] and elongation (right half's mean x minus the left's) [m] over 0.4 s."""
+    X = block(*BAR)
+    xc = X[:, 0].mean()
+    v0 = np.zeros_like(X)
+    v0[:, 0] = 0.3 * np.sin(np.pi * (X[:, 0] - xc) / 0.5)
+    params = SimParams(n_grid=N_GRID, dt=5e-4)
+    if beta:
+        params = with_effects(params, MaterialViscosity(retardation_time=beta))
+    model = build_model(X, E=E, nu=0.3, rho=rho, params=params)
+    r = simulate(model, make_state(model, X, v0), frame_dt=0.0025, n_frames=161)
+    P = r.positions.astype(np.float64)
+    right = X[:, 0] > xc
+    e = P[:, right, 0].mean(axis=1) - P[:, ~right, 0].mean(axis=1)
+    return r.times, e - e[0]
+
+
+def test_material_viscosity_damps_a_mode_at_beta_omega_squared_over_two():
+    """Kelvin-Voigt (stiffness-proportional) viscosity: a vibration mode of angular frequency
+    omega decays at the rate beta omega^2 / 2 (damping ratio beta omega / 2), on top of the
+    transfer's own (small) dissipation; the frequency stays (the ratio is small)."""
+    from scipy.optimize import curve_fit
+
+    def fit(t, e):
+        f = lambda t, A, lam, w, ph, c: A * np.exp(-lam * t) * np.sin(w * t + ph) + c  # noqa: E731
+        return curve_fit(f, t, e, p0=(np.abs(e).max(), 1.0, 80.0, 0.0, 0.0))[0]
+
+    _, lam0, w0, _, _ = fit(*_bar_elongation(0.0))
+    assert lam0 < 0.1  # the transfer alone barely damps the mode (1/s)
+    for beta in (0.001, 0.002):
+        _, lam, w, _, _ = fit(*_bar_elongation(beta))
+        assert w == pytest.approx(w0, rel=0.01)
+        assert lam - lam0 == pytest.approx(beta * w0**2 / 2.0, rel=0.06), (beta, lam, lam0, w0)
+
+
+def test_material_viscosity_leaves_rigid_rotation_undamped_and_is_off_at_zero():
+    """The viscous stress acts on the rate of deformation only: a spinning free block keeps its
+    angular momentum (velocity damping would slow it). Retardation time 0 is bit for bit no
+    effect; one above the explicit stability limit is refused with the limit named."""
+    X = block(*FREE)
+    c = X.astype(np.float64).mean(axis=0)
+    omega = np.array([0.0, 0.0, 2.0])
+    V = np.cross(omega, X - c).astype(np.float32)
+
+    def spin(*effects):
+        params = with_effects(SimParams(n_grid=N_GRID, dt=1e-3, boundaries=()), *effects)
+        model = build_model(X, E=2e5, nu=0.3, rho=1000.0, params=params)
+        r = simulate(model, make_state(model, X, V), frame_dt=0.05, n_frames=9)
+        P = r.positions.astype(np.float64)
+        dP = (P[-1] - P[-2]) / 0.05
+        return P, float(np.sum(np.cross(P[-1] - P[-1].mean(axis=0), dP)[:, 2]))
+
+    P0, L0 = spin()
+    _, L1 = spin(MaterialViscosity(retardation_time=0.002))
+    _, L2 = spin(VelocityDamping(rate=3.0))
+    assert L1 == pytest.approx(L0, rel=2e-3)
+    assert L2 < 0.5 * L0
+    np.testing.assert_array_equal(spin(MaterialViscosity(retardation_time=0.0))[0], P0)
+    params = SimParams(n_grid=N_GRID, dt=1e-3, boundaries=())
+    model = build_model(X, E=2e5, nu=0.3, rho=1000.0, params=params)
+    limit = viscous_stability_limit(params.dx, model.max_wave_speed, params.dt)
+    too_much = with_effects(params, MaterialViscosity(retardation_time=2.0 * limit))
+    with pytest.raises(InputError, match="retardation_time.*stability limit"):
+        MPMSolver(build_model(X, E=2e5, nu=0.3, rho=1000.0, params=too_much))
 
 
 def test_gravity_effect_matches_contract_gravity_and_free_fall():

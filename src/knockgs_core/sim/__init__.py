@@ -27,10 +27,12 @@ from ._effects import (
     HiddenMass,
     PoissonShift,
     StiffnessGradient,
+    MaterialViscosity,
     SupportFriction,
     SupportSlip,
     VelocityDamping,
     VonMisesPlasticity,
+    viscous_stability_limit,
     with_effects,
 )
 from ._protocol import Effect
@@ -64,6 +66,8 @@ __all__ = [
     "VonMisesPlasticity",
     "PoissonShift",
     "StiffnessGradient",
+    "MaterialViscosity",
+    "viscous_stability_limit",
     "SupportFriction",
     "SupportSlip",
     "BodyForcePulse",

@@ -15,7 +15,8 @@ Units are in each docstring; lengths are in the normalized domain [m], times [s]
 
 Catalogue (the terms a discrepancy analysis may add): :class:`VelocityDamping`,
 :class:`Gravity`, :class:`VonMisesPlasticity`, :class:`PoissonShift`,
-:class:`StiffnessGradient`, :class:`SupportSlip`, :class:`SupportFriction`. Two further terms,
+:class:`StiffnessGradient`, :class:`MaterialViscosity`, :class:`SupportSlip`,
+:class:`SupportFriction`. Two further terms,
 :class:`BodyForcePulse` (a time-varying external force) and :class:`HiddenMass`
 (extra mass in a region), model disturbances outside that catalogue.
 """
@@ -44,6 +45,8 @@ __all__ = [
     "VonMisesPlasticity",
     "PoissonShift",
     "StiffnessGradient",
+    "MaterialViscosity",
+    "viscous_stability_limit",
     "SupportFriction",
     "SupportSlip",
     "BodyForcePulse",
@@ -335,6 +338,46 @@ class StiffnessGradient(Effect):
         lo, hi = c.min(), c.max()
         s = (c - 0.5 * (lo + hi)) / max(hi - lo, 1e-12)
         return np.asarray(E, dtype=np.float64) * np.exp(self.slope * s), nu, rho
+
+
+@dataclass(frozen=True)
+class MaterialViscosity(Effect):
+    """Material (Kelvin-Voigt) viscosity proportional to the stiffness: the stress gains
+    ``beta`` times the elastic tangent applied to the rate of deformation D (the symmetric
+    part of the velocity gradient the transfer carries), ``tau_v = J beta (2 mu D + lam tr(D) I)``
+    [Pa]. This is the stiffness-proportional half of Rayleigh damping: a vibration mode of
+    angular frequency omega decays with damping ratio ``beta omega / 2``, so higher modes
+    decay faster (unlike :class:`VelocityDamping`, which damps every mode at one rate).
+
+    ``retardation_time`` beta [s] >= 0; 0 is off. The viscous stress is explicit: beta must
+    stay below ``dx^2 / (6 c_p^2 dt)`` of the model (c_p its fastest p-wave speed), checked
+    when a solver is made."""
+
+    retardation_time: float = 0.0
+    name: ClassVar[str] = "viscosity"
+    parameter: ClassVar[str] = "retardation_time"
+    unit: ClassVar[str] = "s"
+
+    def __post_init__(self):
+        if _finite("MaterialViscosity", "retardation_time", self.retardation_time) < 0:
+            raise InputError("MaterialViscosity", "retardation_time", f"must be >= 0, got {self.retardation_time!r}")
+
+    def viscous_retardation(self, model):
+        beta = self.retardation_time
+        if beta > 0.0:
+            limit = viscous_stability_limit(model.params.dx, model.max_wave_speed, model.params.dt)
+            if beta > limit:
+                raise InputError("MaterialViscosity", "retardation_time",
+                                 f"{beta:.4g} s exceeds the explicit stability limit dx^2 / (6 c_p^2 dt) = {limit:.4g} s "
+                                 "of this model (refine dt or lower it)")
+        return beta
+
+
+def viscous_stability_limit(dx: float, wave_speed: float, dt: float) -> float:
+    """The largest stable Kelvin-Voigt retardation time [s] of an explicit step ``dt`` [s] on
+    cells ``dx`` [m] with p-wave speed ``wave_speed`` [m/s]: ``dx^2 / (6 c^2 dt)`` (the
+    forward-Euler diffusion bound of a 3-D grid for the viscosity ``beta c^2``)."""
+    return float(dx * dx / (6.0 * max(wave_speed, 1e-30) ** 2 * dt))
 
 
 @dataclass(frozen=True)

@@ -115,6 +115,18 @@ def fixed_corotated_kirchhoff(F: wp.mat33, R: wp.mat33, mu: float, lam: float) -
     return 2.0 * mu * (F - R) * wp.transpose(F) + wp.identity(n=3, dtype=float) * (lam * (J - 1.0) * J)
 
 
+@wp.func
+def kelvin_voigt_kirchhoff(L: wp.mat33, J: float, mu: float, lam: float, retardation: float) -> wp.mat33:
+    """Kirchhoff viscous stress of a Kelvin-Voigt solid whose viscosity is proportional to
+    its stiffness: tau_v = J beta (2 mu D + lam tr(D) I) [Pa], D = sym(L) the rate of
+    deformation [1/s] from the velocity gradient ``L`` (the transfer's affine matrix), beta =
+    ``retardation`` [s] (stiffness-proportional Rayleigh damping: the modal damping ratio
+    is beta omega / 2)."""
+    D = 0.5 * (L + wp.transpose(L))
+    tr = D[0, 0] + D[1, 1] + D[2, 2]
+    return (J * retardation) * (2.0 * mu * D + wp.identity(n=3, dtype=float) * (lam * tr))
+
+
 # --------------------------------------------------------------------------------------
 # grid kernels (launched over the active box)
 # --------------------------------------------------------------------------------------
@@ -289,11 +301,13 @@ def p2g_particle(
     inv_dx: float,
     dt: float,
     polar_iters: int,
+    retardation: float,
     v: wp.array(dtype=wp.vec3),
     rot: wp.array(dtype=wp.quat),
 ):
     """Particle ``p``'s part of P2G: the probe impulse (``v += f / m dt``, written back), the
-    warm-started rotation (written back) and fixed-corotated stress; returns the velocity,
+    warm-started rotation (written back) and fixed-corotated stress, plus the Kelvin-Voigt
+    viscous stress when ``retardation`` [s] > 0; returns the velocity,
     the affine matrix of the transfer (stress and APIC terms) and its APIC term alone."""
     m = mass[p]
     vp = v[p]
@@ -304,6 +318,8 @@ def p2g_particle(
     q = polar_rotation(Fp, rot[p], polar_iters)
     rot[p] = q
     tau = fixed_corotated_kirchhoff(Fp, wp.quat_to_matrix(q), mu[p], lam[p])
+    if retardation > 0.0:
+        tau = tau + kelvin_voigt_kirchhoff(C[p], wp.determinant(Fp), mu[p], lam[p], retardation)
     mC = m * C[p]
     affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + mC
     return vp, affine, mC
@@ -325,6 +341,7 @@ def p2g(
     inv_dx: float,
     dt: float,
     polar_iters: int,
+    retardation: float,
     lo: wp.vec3i,
     hi: wp.vec3i,
     affine_flip: int,
@@ -341,7 +358,7 @@ def p2g(
     p = wp.tid()
     m = mass[p]
     vp, affine, mC = p2g_particle(p, C, F, mass, vol, mu, lam, probe_mask, probe_force, probe_on, inv_dx, dt, polar_iters,
-                                  v, rot)
+                                  retardation, v, rot)
     dx = 1.0 / inv_dx
 
     gx = (x0[p] + u[p]) * inv_dx
@@ -370,10 +387,12 @@ def p2g(
 # The scatter P2G above adds 27 contributions per particle to the grid with float atomics;
 # where many particles share a cell (the paper-scale assets' shells: up to ~200 per cell) the
 # GPU serializes those atomics on the shared nodes. By cells: each particle's contribution
-# terms are computed once (``p2g_prepare``), the particles sorted by stencil base cell, and
-# one thread per chunk of a cell (at most 32 particles) and stencil node sums their contributions
-# (``p2g_cells``): 27 atomics per cell (per chunk of 32 particles) instead of 27 per particle. The same sums, in another
-# order (float rounding differs from the scatter's).
+# terms are computed once (``p2g_prepare``), the particles sorted by stencil base cell, their
+# terms copied to sorted order and the chunks listed (``p2g_chunks``, a prefix sum,
+# ``p2g_chunk_list``: a chunk is a run of at most 32 sorted particles of one cell), and one
+# thread per chunk and stencil node sums the chunk's contributions (``p2g_cells``): 27 atomics
+# per chunk instead of 27 per particle. The same sums, in another order (float rounding
+# differs from the scatter's).
 
 @wp.kernel
 def p2g_prepare(
@@ -391,6 +410,7 @@ def p2g_prepare(
     inv_dx: float,
     dt: float,
     polar_iters: int,
+    retardation: float,
     lo: wp.vec3i,
     hi: wp.vec3i,
     n_grid: int,
@@ -410,7 +430,7 @@ def p2g_prepare(
     outside the active box) and the identity order for the sort."""
     p = wp.tid()
     vp, affine, mC = p2g_particle(p, C, F, mass, vol, mu, lam, probe_mask, probe_force, probe_on, inv_dx, dt, polar_iters,
-                                  v, rot)
+                                  retardation, v, rot)
     affine_out[p] = affine
     mC_out[p] = mC
     gx = (x0[p] + u[p]) * inv_dx
@@ -429,65 +449,115 @@ CELL_CHUNK = wp.constant(32)
 
 
 @wp.kernel
-def p2g_cells(
+def p2g_chunks(
     keys: wp.array(dtype=wp.int32),
     order: wp.array(dtype=wp.int32),
-    count: int,
-    n_grid: int,
     none_key: int,
-    inv_dx: float,
-    affine_flip: int,
     mass: wp.array(dtype=float),
     v: wp.array(dtype=wp.vec3),
     fx: wp.array(dtype=wp.vec3),
     affine: wp.array(dtype=wp.mat33),
     mC: wp.array(dtype=wp.mat33),
+    affine_flip: int,
+    fx_s: wp.array(dtype=wp.vec3),
+    mv_s: wp.array(dtype=wp.vec4),
+    affine_s: wp.array(dtype=wp.mat33),
+    mC_s: wp.array(dtype=wp.mat33),
+    start: wp.array(dtype=wp.int32),
+):
+    """Launched over sorted positions ``s``: the terms of particle ``order[s]`` copied to
+    position ``s`` (``mv_s``: momentum [xyz] and mass [w]), so a chunk's particles lie
+    contiguous, and ``start[s]`` = 1 where a chunk begins (a run of at most ``CELL_CHUNK``
+    sorted particles with one base cell; 0 elsewhere and outside the active box)."""
+    s = wp.tid()
+    key = keys[s]
+    start[s] = 0
+    if key == none_key:
+        return
+    p = order[s]
+    m = mass[p]
+    mv = m * v[p]
+    fx_s[s] = fx[p]
+    mv_s[s] = wp.vec4(mv[0], mv[1], mv[2], m)
+    affine_s[s] = affine[p]
+    if affine_flip == 1:
+        mC_s[s] = mC[p]
+    if s == 0 or s % CELL_CHUNK == 0:
+        start[s] = 1
+    elif keys[s - 1] != key:
+        start[s] = 1
+
+
+@wp.kernel
+def p2g_chunk_list(start: wp.array(dtype=wp.int32), index: wp.array(dtype=wp.int32), count: int,
+                   chunks: wp.array(dtype=wp.int32), n_chunks: wp.array(dtype=wp.int32)):
+    """From the chunk starts and their exclusive prefix sum ``index``: the list of chunk
+    starts ``chunks`` (in sorted order) and their number ``n_chunks[0]``."""
+    s = wp.tid()
+    if start[s] == 1:
+        chunks[index[s]] = s
+    if s == count - 1:
+        n_chunks[0] = index[s] + start[s]
+
+
+@wp.kernel
+def p2g_cells(
+    chunks: wp.array(dtype=wp.int32),
+    n_chunks: wp.array(dtype=wp.int32),
+    stride: int,
+    keys: wp.array(dtype=wp.int32),
+    count: int,
+    n_grid: int,
+    inv_dx: float,
+    affine_flip: int,
+    fx_s: wp.array(dtype=wp.vec3),
+    mv_s: wp.array(dtype=wp.vec4),
+    affine_s: wp.array(dtype=wp.mat33),
+    mC_s: wp.array(dtype=wp.mat33),
     grid_mv: wp.array3d(dtype=wp.vec3),
     grid_m: wp.array3d(dtype=float),
     grid_mv_old: wp.array3d(dtype=wp.vec3),
 ):
-    """Launched over (sorted position, stencil node): the thread at the first position of a
-    chunk (a run of at most ``CELL_CHUNK`` sorted particles with the same base cell) sums the
-    chunk's contributions to its node and adds the sum to the grid with one atomic."""
-    s, n = wp.tid()
-    key = keys[s]
-    if key == none_key:
-        return
-    if s > 0 and s % CELL_CHUNK != 0:
-        if keys[s - 1] == key:
-            return
-    e = s + 1
-    while e < count:
-        if keys[e] != key or e % CELL_CHUNK == 0:
-            break
-        e += 1
+    """Launched over (chunk slot, stencil node): the thread sums the contributions of the
+    chunks ``slot``, ``slot + stride``, ... (the chunk list is as long as the data make it) to
+    its node and adds each chunk's sum to the grid with one atomic."""
+    c, n = wp.tid()
+    total = n_chunks[0]
     i = n // 9
     j = (n // 3) % 3
     k = n % 3
     node = wp.vec3(float(i), float(j), float(k))
     dx = 1.0 / inv_dx
-    sum_mv = wp.vec3(0.0)
-    sum_m = float(0.0)
-    sum_old = wp.vec3(0.0)
-    for t in range(s, e):
-        p = order[t]
-        f = fx[p]
-        w = bspline_weights(f)
-        weight = w[i, 0] * w[j, 1] * w[k, 2]
-        dpos = (node - f) * dx
-        m = mass[p]
-        mv = m * v[p]
-        sum_mv += weight * (mv + affine[p] * dpos)
-        sum_m += weight * m
+    while c < total:
+        s = chunks[c]
+        key = keys[s]
+        e = s + 1
+        while e < count:
+            if keys[e] != key or e % CELL_CHUNK == 0:
+                break
+            e += 1
+        sum_mv = wp.vec3(0.0)
+        sum_m = float(0.0)
+        sum_old = wp.vec3(0.0)
+        for t in range(s, e):
+            f = fx_s[t]
+            w = bspline_weights(f)
+            weight = w[i, 0] * w[j, 1] * w[k, 2]
+            dpos = (node - f) * dx
+            q = mv_s[t]
+            mv = wp.vec3(q[0], q[1], q[2])
+            sum_mv += weight * (mv + affine_s[t] * dpos)
+            sum_m += weight * q[3]
+            if affine_flip == 1:
+                sum_old += weight * (mv + mC_s[t] * dpos)
+        gi = key // (n_grid * n_grid) + i
+        gj = (key // n_grid) % n_grid + j
+        gk = key % n_grid + k
+        wp.atomic_add(grid_mv, gi, gj, gk, sum_mv)
+        wp.atomic_add(grid_m, gi, gj, gk, sum_m)
         if affine_flip == 1:
-            sum_old += weight * (mv + mC[p] * dpos)
-    gi = key // (n_grid * n_grid) + i
-    gj = (key // n_grid) % n_grid + j
-    gk = key % n_grid + k
-    wp.atomic_add(grid_mv, gi, gj, gk, sum_mv)
-    wp.atomic_add(grid_m, gi, gj, gk, sum_m)
-    if affine_flip == 1:
-        wp.atomic_add(grid_mv_old, gi, gj, gk, sum_old)
+            wp.atomic_add(grid_mv_old, gi, gj, gk, sum_old)
+        c += stride
 
 
 @wp.kernel

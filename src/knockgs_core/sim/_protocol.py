@@ -17,7 +17,10 @@ overrides only the stages it acts at:
   velocities [m/s]); the kernels run over the active box ``lo`` (``wp.vec3i``) of size
   ``dims`` (cells per axis);
 * :meth:`Effect.apply_particles` ``(model, state, scratch, t)``: each substep, after the
-  grid-to-particle transfer.
+  grid-to-particle transfer;
+* :meth:`Effect.viscous_retardation` ``(model) -> beta``: once per solver, the retardation
+  time [s] of a Kelvin-Voigt viscous stress (``beta`` times the elastic tangent applied to
+  the rate of deformation), added to the stress of every particle-to-grid transfer.
 
 ``t`` is the time at the start of the substep [s]. Each effect has one scalar *strength*
 parameter, named by the class attribute ``parameter``, whose value ``off`` makes the
@@ -85,3 +88,9 @@ class Effect:
 
     def apply_particles(self, model: Model, state: State, scratch: Any, t: float) -> None:
         """Act on the particle state after the grid-to-particle transfer; default: nothing."""
+
+    def viscous_retardation(self, model: Model) -> float:
+        """The retardation time beta [s] of a Kelvin-Voigt viscous stress this effect adds to
+        the elastic stress of ``model`` (stiffness-proportional damping, read once per solver;
+        the solver sums the effects'); default 0."""
+        return 0.0

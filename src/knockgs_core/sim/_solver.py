@@ -266,7 +266,10 @@ class _CellScratch:
     """Scratch of the P2G by cells (``MPMSolver(p2g="cells")``): per particle the position in
     its base cell ``fx`` [cells], the affine matrices ``affine`` and ``mC``; the sort ``keys``
     and ``order`` (twice the particle count, as the radix sort needs); ``none_key`` (a key above
-    every cell's) and ``end_bit`` (the bits the sort looks at)."""
+    every cell's) and ``end_bit`` (the bits the sort looks at); in sorted order, the terms
+    ``fx_s``, ``mv_s`` (momentum, mass), ``affine_s``, ``mC_s`` (affine FLIP only), the chunk
+    starts ``start`` and their prefix sum ``index``; the list of chunk starts ``chunks`` and
+    its length ``n_chunks`` [1]."""
 
     fx: wp.array
     affine: wp.array
@@ -275,15 +278,28 @@ class _CellScratch:
     order: wp.array
     none_key: int
     end_bit: int
+    fx_s: wp.array
+    mv_s: wp.array
+    affine_s: wp.array
+    mC_s: wp.array
+    start: wp.array
+    index: wp.array
+    chunks: wp.array
+    n_chunks: wp.array
 
     @classmethod
     def make(cls, model: Model) -> _CellScratch:
         n, dev, g = model.particle_count, model.device, model.params.n_grid
         none_key = g * g * g
-        return cls(fx=wp.zeros(n, dtype=wp.vec3, device=dev), affine=wp.zeros(n, dtype=wp.mat33, device=dev),
-                   mC=wp.zeros(n, dtype=wp.mat33, device=dev), keys=wp.zeros(2 * n, dtype=wp.int32, device=dev),
-                   order=wp.zeros(2 * n, dtype=wp.int32, device=dev), none_key=none_key,
-                   end_bit=max(1, int(none_key).bit_length()))
+        n_old = n if model.params.transfer == "affine_flip" else 1
+
+        def zeros(dtype, size=n):
+            return wp.zeros(size, dtype=dtype, device=dev)
+
+        return cls(fx=zeros(wp.vec3), affine=zeros(wp.mat33), mC=zeros(wp.mat33), keys=zeros(wp.int32, 2 * n),
+                   order=zeros(wp.int32, 2 * n), none_key=none_key, end_bit=max(1, int(none_key).bit_length()),
+                   fx_s=zeros(wp.vec3), mv_s=zeros(wp.vec4), affine_s=zeros(wp.mat33), mC_s=zeros(wp.mat33, n_old),
+                   start=zeros(wp.int32), index=zeros(wp.int32), chunks=zeros(wp.int32), n_chunks=zeros(wp.int32, 1))
 
 
 class MPMSolver:
@@ -294,6 +310,10 @@ class MPMSolver:
     domain stop the run with a :class:`~knockgs_core.errors.SimulationError`. The guard also
     sizes the active grid box for the next substeps. ``effect_scratch`` holds the scratch
     object of each of ``params.effects`` (same order), made by its ``setup`` here.
+
+    ``p2g``: ``"scatter"`` (one float atomic per particle and stencil node; the CPU's),
+    ``"cells"`` (particles sorted by base cell every substep, chunk sums with one atomic per
+    chunk and node; the GPU's) or ``"auto"``.
     """
 
     #: cap on the warm-started polar iterations per particle and substep (they stop when the
@@ -323,6 +343,8 @@ class MPMSolver:
         self.max_cfl = 0.0
         self.min_det_F = 1.0
         self.effect_scratch = tuple(effect.setup(model) for effect in p.effects)
+        # the effects' Kelvin-Voigt viscous stress (stiffness-proportional damping), summed [s]
+        self.retardation = float(sum(effect.viscous_retardation(model) for effect in p.effects))
 
     # -- guard -----------------------------------------------------------------------
     def check(self, state: State) -> dict:
@@ -400,7 +422,8 @@ class MPMSolver:
         # the particle inputs of both P2G variants (``probe_on`` is set per substep)
         particle_args = [state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
                          m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
-                         m.probe_mask, wp.vec3(*m.probe_force), 0, self._inv_dx, dt, self.polar_iters, lo, hi]
+                         m.probe_mask, wp.vec3(*m.probe_force), 0, self._inv_dx, dt, self.polar_iters,
+                         self.retardation, lo, hi]
         if self._cells is not None:
             c = self._cells
             cmds["p2g"] = wp.launch(
@@ -410,11 +433,20 @@ class MPMSolver:
                 outputs=[state.particle_v, state.particle_rot, c.fx, c.affine, c.mC, c.keys, c.order, self._overrun],
                 **rec,
             )
+            cmds["p2g_chunks"] = wp.launch(
+                K.p2g_chunks, dim=m.particle_count,
+                inputs=[c.keys, c.order, c.none_key, m.particle_mass, state.particle_v, c.fx, c.affine, c.mC, flip],
+                outputs=[c.fx_s, c.mv_s, c.affine_s, c.mC_s, c.start], **rec)
+            cmds["p2g_chunk_list"] = wp.launch(K.p2g_chunk_list, dim=m.particle_count,
+                                               inputs=[c.start, c.index, m.particle_count], outputs=[c.chunks, c.n_chunks], **rec)
+            # chunk slots: at most one chunk per cell of the active box plus one per 32 particles
+            # (the kernel strides over any beyond, so the bound is for speed, not correctness)
+            slots = max(1, min(m.particle_count, math.prod(dims) + m.particle_count // 32 + 1))
             cmds["p2g_cells"] = wp.launch(
                 K.p2g_cells,
-                dim=(m.particle_count, 27),
-                inputs=[c.keys, c.order, m.particle_count, p.n_grid, c.none_key, self._inv_dx, flip, m.particle_mass,
-                        state.particle_v, c.fx, c.affine, c.mC],
+                dim=(slots, 27),
+                inputs=[c.chunks, c.n_chunks, slots, c.keys, m.particle_count, p.n_grid, self._inv_dx, flip,
+                        c.fx_s, c.mv_s, c.affine_s, c.mC_s],
                 outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
                 **rec,
             )
@@ -470,9 +502,12 @@ class MPMSolver:
         cmds["zero"].launch()
         cmds["p2g"].set_param_by_name("probe_on", probe_on)
         cmds["p2g"].launch()
-        if self._cells is not None:
+        if self._cells is not None:  # sort by base cell, copy the terms to sorted order, list the chunks, sum
             c = self._cells
             wp.utils.radix_sort_pairs(c.keys, c.order, m.particle_count, end_bit=c.end_bit)
+            cmds["p2g_chunks"].launch()
+            wp.utils.array_scan(c.start, c.index, inclusive=False)
+            cmds["p2g_chunk_list"].launch()
             cmds["p2g_cells"].launch()
         cmds["update"].launch()
         for bc, cmd in cmds["bcs"]:
