@@ -185,6 +185,32 @@ def test_rollouts_simulated_together_equal_separate_rollouts_bit_for_bit(pillow_
         assert ro.meta["stats"] == alone.meta["stats"] and ro.meta["simulated_with"] == 3
 
 
+def test_rollouts_simulated_in_cell_order_come_back_in_the_asset_order(pillow_ci):
+    # the GPU's order (particles sorted by cell within the Gaussian-associated rows and within
+    # the fill), run on the CPU: the same motion up to float rounding, returned row for row in
+    # the particle set's order (F too); the CPU's default keeps the asset order, bit for bit
+    from knockgs_core.rollout import cell_order, run_rollouts
+
+    contract, built = pillow_ci
+    ps = built.particles
+    perm = cell_order(ps, n_grid=contract.sim.n_grid, grid_lim=contract.sim.grid_lim)
+    assert sorted(perm[: ps.n_gs]) == list(range(ps.n_gs)) and not np.array_equal(perm, np.arange(len(perm)))
+    runs = [((0.95, 1.35), "standard_x")]
+    (asset,) = run_rollouts(contract, runs, particles=ps, export_F=True)
+    (cell,) = run_rollouts(contract, runs, particles=ps, export_F=True, particle_order="cell")
+    (auto,) = run_rollouts(contract, runs, particles=ps, export_F=True, particle_order="auto")
+    assert auto.positions.tobytes() == asset.positions.tobytes() and "particle_order" not in auto.meta
+    assert cell.meta["particle_order"] == "cell"
+    np.testing.assert_array_equal(cell.positions[0], ps.positions)
+    U = asset.positions - asset.positions[0]
+    scale = np.sqrt((U.astype(np.float64) ** 2).sum(-1).mean())
+    assert scale > 1e-4
+    assert np.sqrt(((cell.positions - asset.positions).astype(np.float64) ** 2).sum(-1).mean()) < 1e-4 * scale
+    np.testing.assert_allclose(cell.F, asset.F, atol=1e-4)
+    with pytest.raises(InputError, match="particle_order"):
+        run_rollouts(contract, runs, particles=ps, particle_order="morton")
+
+
 def test_rollouts_simulated_together_refuse_mixed_schedules_and_stop_a_blow_up(pillow_ci):
     from knockgs_core.errors import SimulationError
     from knockgs_core.rollout import run_rollouts

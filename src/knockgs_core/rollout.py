@@ -38,6 +38,7 @@ __all__ = [
     "Rollout",
     "run_rollout",
     "run_rollouts",
+    "cell_order",
     "batches",
     "write_rollout",
     "read_rollout",
@@ -73,16 +74,19 @@ def run_rollout(
     probe: Probe | None = None,
     progress: Callable[[int, int, dict], None] | None = None,
     sim_overrides: dict | None = None,
+    particle_order: str = "auto",
 ) -> Rollout:
     """Simulate ``contract`` at ``theta = (s_E, s_rho)`` under its probe ``probe_name``.
 
     ``particles`` (a :class:`knockgs_core.assets.ParticleSet`) defaults to building the
     contract's asset. ``probe`` overrides the contract's probe of that name (diagnostics).
     ``sim_overrides`` replaces fields of the contract's :class:`~knockgs_core.sim.SimParams`.
+    ``particle_order``: as in :func:`run_rollouts`.
     """
     report = None if progress is None else (lambda run, frame, n, stats: progress(frame, n, stats))
     return run_rollouts(contract, [(theta, probe_name)], particles=particles, device=device, export_F=export_F,
-                        probe=probe, progress=report, sim_overrides=sim_overrides, concurrent=False)[0]
+                        probe=probe, progress=report, sim_overrides=sim_overrides, concurrent=False,
+                        particle_order=particle_order)[0]
 
 
 def run_rollouts(
@@ -96,13 +100,23 @@ def run_rollouts(
     progress: Callable[[int, int, int, dict], None] | None = None,
     sim_overrides: dict | None = None,
     concurrent: bool = True,
+    particle_order: str = "auto",
 ) -> list[Rollout]:
     """Several rollouts of one contract, ``runs`` = [(theta, probe_name), ...], simulated
     together (:func:`knockgs_core.sim.simulate_many`): each is what :func:`run_rollout` makes
     of it (bit for bit on the CPU), and on a CUDA device the runs overlap on their own
     streams (``concurrent``). The runs' probes must share one export schedule.
-    ``progress(run, frame, n_frames, stats)`` after each exported frame of each run."""
+    ``progress(run, frame, n_frames, stats)`` after each exported frame of each run.
+
+    ``particle_order``: the order the simulator holds the particles in: ``"asset"`` (the
+    particle set's), ``"cell"`` (sorted by grid cell within the Gaussian-associated rows and
+    within the fill rows, :func:`cell_order`: neighbours lie together in memory, which the
+    GPU's by-cell P2G reads faster) or ``"auto"`` (cell on a CUDA device, asset on the CPU,
+    whose rollouts stay bit for bit what they were). The rollouts are returned in the
+    particle set's order whatever the order simulated."""
     import warp as wp
+
+    from .sim import default_device
 
     if particles is None:
         from .assets import build_asset
@@ -111,6 +125,13 @@ def run_rollouts(
     params = contract.sim
     if sim_overrides:
         params = dataclasses.replace(params, **sim_overrides)
+    if particle_order == "auto":
+        particle_order = "cell" if wp.get_device(device or default_device()).is_cuda else "asset"
+    if particle_order not in ("asset", "cell"):
+        raise InputError("run_rollouts", "particle_order", f"must be 'auto', 'asset' or 'cell', got {particle_order!r}")
+    perm = cell_order(particles, n_grid=params.n_grid, grid_lim=params.grid_lim) if particle_order == "cell" else None
+    if perm is not None:
+        particles = _permuted(particles, perm)
     resolved = None
     n = len(particles.positions)
     ref = getattr(contract, "probe_reference_particles", None)
@@ -170,8 +191,33 @@ def run_rollouts(
         }
         if len(runs) > 1:
             meta["simulated_with"] = len(runs)  # wall_seconds is then the batch's
-        out.append(Rollout(positions=result.positions, F=result.F, meta=meta))
+        X, F = result.positions, result.F
+        if perm is not None:  # back to the particle set's order
+            inv = np.argsort(perm)
+            X = np.ascontiguousarray(X[:, inv])
+            F = None if F is None else np.ascontiguousarray(F[:, inv[: particles.n_gs]])
+            meta["particle_order"] = "cell"
+        out.append(Rollout(positions=X, F=F, meta=meta))
     return out
+
+
+def cell_order(particles, *, n_grid: int, grid_lim: float) -> np.ndarray:
+    """A permutation [N] of ``particles`` sorting them by grid cell (cells ``grid_lim / n_grid``
+    [m], x-major) within the Gaussian-associated rows and within the fill rows, each stably:
+    the Gaussian-associated particles stay first."""
+    X = np.asarray(particles.positions, dtype=np.float64)
+    g = int(particles.n_gs)
+    cell = np.clip(np.floor(X / (grid_lim / n_grid)).astype(np.int64), 0, n_grid - 1)
+    key = (cell[:, 0] * n_grid + cell[:, 1]) * n_grid + cell[:, 2]
+    return np.concatenate([np.argsort(key[:g], kind="stable"), g + np.argsort(key[g:], kind="stable")])
+
+
+def _permuted(particles, perm: np.ndarray):
+    """``particles`` with its rows in the order ``perm`` (Gaussian-associated rows first)."""
+    g = int(particles.n_gs)
+    return dataclasses.replace(particles, positions=particles.positions[perm],
+                               volumes=None if particles.volumes is None else particles.volumes[perm],
+                               gaussian_index=particles.gaussian_index[perm[:g]], region=particles.region[perm])
 
 
 def batches(runs: list, key: Callable[[Any], Any], *, together: bool) -> list[list[tuple[int, Any]]]:
