@@ -281,24 +281,38 @@ def _window_shares(problem: Problem, fitted: ModelSpec, key: str, floor: float) 
 
 
 def _refine(problem: Problem, spec: ModelSpec, row: AttributionRow, cand: Candidate, rss_theta: tuple[float, float],
-            settings: LoopSettings, log: list, floor: float = 0.0) -> None:
+            settings: LoopSettings, log: list, floor: float = 0.0, lin: _Linearization | None = None) -> None:
     """Fit the candidate nonlinearly (theta, the strengths in ``spec`` and its own) on the fit
     window and score it against the theta-only refit energies ``rss_theta`` (fit,
     validation); updates ``row`` in place."""
     F, V = problem.fit_rows, problem.val_rows
-    # start from the better (on the fit window) of the screen's estimate and its trials
+    # start from the best (on the fit window) of the screen's estimate and its trials, each as
+    # it is and with theta re-tuned by one Gauss-Newton step of the linearization ``lin``: an
+    # effect that theta has partly absorbed (a yield softens like a lower E) comes in only
+    # while theta moves back
     start, start_cost = None, math.inf
+    lo, hi = (math.log(b) for b in settings.theta_bounds)
     for u0 in dict.fromkeys((row.strength_estimate,) + tuple(cand.trials)):
         if u0 == 0.0:
             continue
         trial = spec.with_effect(cand.key, u0)
-        try:
-            rr = problem.residual(trial)[F]
-        except (SimulationError, InputError):
-            continue
-        c0 = float(rr @ rr)
-        if c0 < start_cost:
-            start, start_cost = trial, c0
+        tries = [trial]
+        if lin is not None:
+            try:
+                r_u = (problem.Y - problem.observe(trial))[1:].reshape(-1)
+            except (SimulationError, InputError):
+                continue
+            step = _fit_rows(lin.J, r_u, F, lin.lower, lin.upper)[:2]
+            logt = np.clip(np.log(np.asarray(spec.theta, dtype=np.float64)) + step, lo, hi)
+            tries.append(trial.with_theta(tuple(float(x) for x in np.exp(logt))))
+        for t in tries:
+            try:
+                rr = problem.residual(t)[F]
+            except (SimulationError, InputError):
+                continue
+            c0 = float(rr @ rr)
+            if c0 < start_cost:
+                start, start_cost = t, c0
     if start is None:
         row.explained_val = row.screen_explained_val
         return
@@ -361,7 +375,7 @@ def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], fl
         chosen = []
     for row in rows:
         if row.key in chosen:
-            _refine(problem, spec, row, by_key[row.key], (rss_nl_theta_F, rss_nl_theta_V), settings, log, floor)
+            _refine(problem, spec, row, by_key[row.key], (rss_nl_theta_F, rss_nl_theta_V), settings, log, floor, lin)
         else:
             row.explained_val = row.screen_explained_val
     rows.sort(key=lambda row: (not row.refined, -row.explained_val))

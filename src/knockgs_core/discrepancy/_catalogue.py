@@ -13,12 +13,14 @@ from typing import Callable
 
 import numpy as np
 
-from ..sim import Gravity, PoissonShift, StiffnessGradient, SupportFriction, SupportSlip, VelocityDamping, VonMisesPlasticity
+from ..sim import (Gravity, MaterialViscosity, PoissonShift, StiffnessGradient, SupportFriction, SupportSlip, VelocityDamping,
+                   VonMisesPlasticity)
 
 __all__ = ["Candidate", "CatalogueContext", "default_catalogue", "CATALOGUE_KEYS"]
 
 CATALOGUE_KEYS = (
     "damping",
+    "viscosity",
     "gravity",
     "plasticity",
     "poisson",
@@ -40,7 +42,9 @@ class CatalogueContext:
     percentile over particles and frames); ``shear_modulus`` [Pa]: mean base shear modulus
     (theta not applied); ``nu_range``: min/max base Poisson ratio; ``has_gravity``: the
     contract has gravity (Coulomb friction needs a normal load); ``has_support``: it has a
-    still sticky support."""
+    still sticky support; ``viscous_limit`` [s]: the explicit stability limit of a
+    Kelvin-Voigt retardation time at the calibrated theta
+    (:func:`knockgs_core.sim.viscous_stability_limit`)."""
 
     horizon: float
     rms_displacement: float
@@ -49,6 +53,7 @@ class CatalogueContext:
     nu_range: tuple[float, float]
     has_gravity: bool
     has_support: bool
+    viscous_limit: float = math.inf
 
 
 @dataclass(frozen=True)
@@ -96,6 +101,13 @@ def default_catalogue(ctx: CatalogueContext, *, keys=None) -> list[Candidate]:
     out.append(Candidate(
         "damping", "velocity damping", lambda u: VelocityDamping(rate=u), lambda u: u, "rate", "1/s",
         trials=(0.5 / H, 1.5 / H, 4.0 / H), scale=1.0 / H, one_sided=True, bounds=(0.0, 200.0 / H)))
+    # strength = retardation time beta [s] of stiffness-proportional (Kelvin-Voigt) viscosity; half
+    # the explicit stability limit leaves room for theta to stiffen during the fits
+    beta_max = min(0.5 * ctx.viscous_limit, 0.05 * H)
+    out.append(Candidate(
+        "viscosity", "material viscosity (stiffness-proportional damping)", lambda u: MaterialViscosity(retardation_time=u),
+        lambda u: u, "retardation_time", "s", trials=tuple(sorted({min(f * H, 0.8 * beta_max) for f in (5e-4, 2e-3, 5e-3)})),
+        scale=2e-3 * H, one_sided=True, bounds=(0.0, beta_max)))
     g = 2.0 * D / H**2
     out.append(Candidate(
         "gravity", "gravity (sag under self-weight)", lambda u: Gravity(g=u), lambda u: u, "g", "m/s^2",

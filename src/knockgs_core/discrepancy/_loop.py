@@ -34,6 +34,7 @@ import numpy as np
 
 from .._io import json_safe
 from ..errors import InputError, SimulationError
+from ..sim import viscous_stability_limit
 from ._attribution import AttributionRound, attribute
 from ._catalogue import Candidate, CatalogueContext, default_catalogue, dev_strain_norm
 from ._fitting import Parametrization, Problem, levenberg_marquardt, lm_fit
@@ -186,11 +187,15 @@ def _context(problem: Problem, spec: ModelSpec) -> CatalogueContext:
     rms = float(np.sqrt(np.mean(np.sum((Yobs - Yobs[0]) ** 2, axis=-1))))
     F = fw.deformation(spec, problem.probe)
     strain = float(np.quantile(dev_strain_norm(F.reshape(-1, 3, 3)), 0.999)) if F is not None and F.size else 1e-3
-    E, nu, _ = fw.base_materials()
+    E, nu, rho = fw.base_materials()
     mu = float(np.mean(E / (2.0 * (1.0 + nu))))
+    sim = fw.contract.sim
+    p_modulus = spec.theta[0] * np.asarray(E, np.float64) * (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    c_p = float(np.sqrt(np.max(p_modulus / (spec.theta[1] * np.asarray(rho, np.float64)))))
     return CatalogueContext(
         horizon=float(problem.times[-1]), rms_displacement=rms, max_dev_strain=strain, shear_modulus=mu,
         nu_range=(float(nu.min()), float(nu.max())), has_gravity=fw.has_gravity(), has_support=fw.has_still_support(),
+        viscous_limit=viscous_stability_limit(sim.grid_lim / sim.n_grid, c_p, sim.dt),
     )
 
 

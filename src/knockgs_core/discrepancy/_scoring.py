@@ -85,12 +85,19 @@ def acceptance(row: dict) -> tuple[bool, str]:
     return ok1 and ok2 and ok3, "; ".join(why) or "ranked first, identified, held-out drop >= 2x"
 
 
+#: (world, planted effect) -> the catalogue terms that name it correctly, where the world's
+#: effect is not one catalogue term: the FEM world's Rayleigh damping is mass-proportional
+#: (the catalogue's velocity damping) plus stiffness-proportional (its material viscosity)
+CORRECT_NAMES = {("fem", "damping"): ("damping", "viscosity")}
+
+
 def world_acceptance(row: dict) -> tuple[bool, str]:
     """The acceptance rule of a case in a world the model cannot match (issue of worlds with a
     model-error floor): a planted catalogue effect is named (the first effect added) and the
     held-out RMSE drops at least 1.5x; with no effect planted, none is named and the theta
     interval holds the truth; an effect outside the catalogue is not named as a catalogue one
-    (or is flagged an approximation) and the held-out prediction is not worse (2 % slack)."""
+    (or is flagged an approximation) and the held-out prediction is not worse (2 % slack).
+    A planted effect that two catalogue terms make up (:data:`CORRECT_NAMES`) is named by either."""
     planted = row["planted_effect"]
     named = row["identified_effect"].split("+")[0]
     if planted == "none":
@@ -104,7 +111,7 @@ def world_acceptance(row: dict) -> tuple[bool, str]:
         if not not_worse:
             why.append("held-out prediction worse")
         return not_forced and not_worse, "; ".join(why) or "not forced onto the catalogue, held-out not worse"
-    ok1 = named == planted
+    ok1 = named in CORRECT_NAMES.get((row.get("world", "same"), planted), (planted,))
     ok2 = row["heldout_improvement"] >= 1.5
     why = ([] if ok1 else [f"named {named}"]) + ([] if ok2 else [f"held-out drop {row['heldout_improvement']:.2f}x"])
     return ok1 and ok2, "; ".join(why) or "named, held-out drop >= 1.5x"
