@@ -156,6 +156,24 @@ def test_attribution_rows_serialize_in_the_order_their_stage_set_them():
     assert list(rd)[-2:] == ["table", "decision"] and "tried" not in rd and rd["table"][0]["error"] == "unstable"
 
 
+def test_catalogue_viscosity_stays_within_the_explicit_stability_limit():
+    # the viscosity candidate's trials and bound sit below half the stability limit of the
+    # calibrated model (and below 5 % of the record); off, its strength 0 is no viscosity
+    from knockgs_core.discrepancy._catalogue import CatalogueContext, default_catalogue
+    from knockgs_core.sim import MaterialViscosity
+
+    def visc(limit):
+        ctx = CatalogueContext(horizon=0.6, rms_displacement=5e-3, max_dev_strain=0.05, shear_modulus=4e3,
+                               nu_range=(0.3, 0.3), has_gravity=False, has_support=True, viscous_limit=limit)
+        (cand,) = [c for c in default_catalogue(ctx) if c.key == "viscosity"]
+        return cand
+
+    wide, tight = visc(1.0), visc(0.004)
+    assert wide.bounds == (0.0, 0.05 * 0.6) and tight.bounds == (0.0, 0.002)
+    assert all(0 < u <= 0.8 * tight.bounds[1] for u in tight.trials) and len(wide.trials) == 3
+    assert wide.one_sided and isinstance(wide.effect(0.001), MaterialViscosity) and wide.effect(0.0).is_off
+
+
 def test_default_cases_cycle_through_the_main_targets():
     from knockgs_core.contract import load_targets
     from knockgs_core.discrepancy import default_cases

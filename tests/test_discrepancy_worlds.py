@@ -107,6 +107,13 @@ def test_world_acceptance_rule():
     assert world_acceptance({**push, "identified_effect": "none"})[0]
     assert not world_acceptance({**push, "identified_effect": "gravity"})[0]
     assert not world_acceptance({**push, "identified_effect": "none", "heldout_traj_rmse_after": 2.5})[0]
+    # the FEM world's Rayleigh damping is mass- plus stiffness-proportional: either catalogue term
+    # names it; the finer world's damping is the catalogue's velocity damping only
+    fem = {**base, "planted_effect": "damping", "world": "fem"}
+    assert world_acceptance({**fem, "identified_effect": "viscosity"})[0]
+    assert world_acceptance({**fem, "identified_effect": "damping+viscosity"})[0]
+    assert not world_acceptance({**fem, "identified_effect": "gravity"})[0]
+    assert not world_acceptance({**base, "planted_effect": "damping", "world": "finer", "identified_effect": "viscosity"})[0]
 
 
 def test_the_worlds_target_plans_every_world_case_and_stays_out_of_all(tmp_path):
