@@ -116,7 +116,7 @@ def run_rollouts(
     particle set's order whatever the order simulated."""
     import warp as wp
 
-    from .sim import default_device
+    from ._warp import warp_device
 
     if particles is None:
         from .assets import build_asset
@@ -126,7 +126,7 @@ def run_rollouts(
     if sim_overrides:
         params = dataclasses.replace(params, **sim_overrides)
     if particle_order == "auto":
-        particle_order = "cell" if wp.get_device(device or default_device()).is_cuda else "asset"
+        particle_order = "cell" if warp_device(device).is_cuda else "asset"  # starts Warp, quiet on the CPU
     if particle_order not in ("asset", "cell"):
         raise InputError("run_rollouts", "particle_order", f"must be 'auto', 'asset' or 'cell', got {particle_order!r}")
     perm = cell_order(particles, n_grid=params.n_grid, grid_lim=params.grid_lim) if particle_order == "cell" else None
