@@ -37,7 +37,8 @@ def block(n_particles: int, n_grid: int, grid_lim: float = 2.0, ppc: int = 8) ->
     return X.astype(np.float32)
 
 
-def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: str, *, transfer: str = "affine_flip") -> dict:
+def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: str, *, transfer: str = "affine_flip",
+             graph: bool | str = "auto") -> dict:
     import warp as wp
 
     from knockgs_core.sim import MPMSolver, Probe, SimParams, build_model, make_state
@@ -46,7 +47,7 @@ def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: st
     params = SimParams(n_grid=n_grid, dt=1e-4, transfer=transfer)
     model = build_model(X, E=1e4, nu=0.3, rho=2000.0, params=params, probe=Probe("standard_x", (-0.18, 0.0, 0.0)), device=device)
     state = make_state(model, X)
-    solver = MPMSolver(model)
+    solver = MPMSolver(model, graph=graph)
     solver.check(state)
     for _ in range(20):  # warm-up (kernel load, caches)
         solver.step(state)
@@ -66,6 +67,7 @@ def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: st
         "particles": len(X),
         "n_grid": n_grid,
         "transfer": transfer,
+        "graph": solver.graph,
         "steps": steps,
         "median_s": med,
         "particle_substeps_per_s": rate,
@@ -98,21 +100,26 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--transfer", choices=["affine_flip", "apic", "both"], default="affine_flip")
+    ap.add_argument("--graph", choices=["auto", "off", "both"], default="auto",
+                    help="substeps as CUDA graphs (auto: on a CUDA device); both: each case with and without")
     ap.add_argument("--cold", action="store_true", help="also measure a cold compile")
     ap.add_argument("--json", help="write results here")
     args = ap.parse_args()
     rows = []
     print(f"# device {args.device}, {platform.processor() or platform.machine()}, python {platform.python_version()}")
     transfers = ["affine_flip", "apic"] if args.transfer == "both" else [args.transfer]
-    print("| particles | n_grid | transfer | particle-substeps/s | ms/substep | s per 6000-substep rollout |")
-    print("|---:|---:|---|---:|---:|---:|")
+    graphs = {"auto": ["auto"], "off": [False], "both": [False, "auto"]}[args.graph]
+    print("| particles | n_grid | transfer | graph | particle-substeps/s | ms/substep | s per 6000-substep rollout |")
+    print("|---:|---:|---|---|---:|---:|---:|")
     for case in args.cases:
         n, g = (int(v) for v in case.split(":"))
         for transfer in transfers:
-            r = run_case(n, g, args.steps, args.repeats, args.device, transfer=transfer)
-            rows.append(r)
-            print(f"| {r['particles']:,} | {g} | {transfer} | {r['particle_substeps_per_s']:.3g} | {r['ms_per_substep']:.3f} "
-                  f"| {r['s_per_6000_substeps']:.2f} |", flush=True)
+            for graph in graphs:
+                r = run_case(n, g, args.steps, args.repeats, args.device, transfer=transfer, graph=graph)
+                rows.append(r)
+                print(f"| {r['particles']:,} | {g} | {transfer} | {'on' if r['graph'] else 'off'} | "
+                      f"{r['particle_substeps_per_s']:.3g} | {r['ms_per_substep']:.3f} | {r['s_per_6000_substeps']:.2f} |",
+                      flush=True)
     out = {"device": args.device, "rows": rows}
     if args.cold:
         out["cold_compile_s"] = cold_compile_seconds()

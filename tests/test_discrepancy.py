@@ -156,6 +156,25 @@ def test_attribution_rows_serialize_in_the_order_their_stage_set_them():
     assert list(rd)[-2:] == ["table", "decision"] and "tried" not in rd and rd["table"][0]["error"] == "unstable"
 
 
+def test_an_effect_is_judged_beyond_the_floor_where_the_residual_is_significant():
+    """``decision_share``: of the validation energy above the noise and the discretization
+    floor where that excess is significant, else of the whole theta-only residual."""
+    from knockgs_core.discrepancy import AttributionRound, AttributionRow
+
+    row = AttributionRow("plasticity", "von Mises plasticity", refined=True, explained_val=0.27)
+    # theta-only validation energy 18, noise 1, floor 7.5: the excess is 9.5
+    row.explained_excess = row.explained_val * 18.0 / (18.0 - 1.0 - 7.5)
+
+    def round_(significant, model_floor):
+        return AttributionRound([1.0, 1.0], [], 9, 3, 10.0, 18.0, [1.0, 1.0], 18.0, 1.0, 18.0 / 8.5 - 1, 17.0, True,
+                                significant, [row], model_floor_val=model_floor)
+
+    assert round_(True, 7.5).decision_share(row) == pytest.approx(0.27 * 18 / 9.5)  # 0.51: beyond the floor
+    assert round_(False, 7.5).decision_share(row) == 0.27  # within the floor: of the whole residual
+    assert round_(True, 0.0).decision_share(row) == 0.27  # no discretization floor (the model's own resolution)
+    assert row.to_dict()["explained_excess"] == pytest.approx(0.27 * 18 / 9.5)
+
+
 def test_catalogue_viscosity_stays_within_the_explicit_stability_limit():
     # the viscosity candidate's trials and bound sit below half the stability limit of the
     # calibrated model (and below 5 % of the record); off, its strength 0 is no viscosity

@@ -9,7 +9,7 @@ import pytest
 from knockgs_core.discrepancy import LoopSettings, Measurement, run_discrepancy
 from knockgs_core.discrepancy._fitting import Problem
 from knockgs_core.discrepancy._forward import ModelSpec
-from knockgs_core.discrepancy._model_error import displacement_at, refined_contract
+from knockgs_core.discrepancy._model_error import FLOOR_SHIFTS, displacement_at, refined_contract, translated
 from knockgs_core.errors import InputError
 
 
@@ -95,6 +95,10 @@ def test_coefficient_is_profiled_on_the_fit_window_and_bounded(rng):
         pf = Problem(m, fw, "p", LoopSettings()).with_term(term, c_max, floor_shape=shape)
         assert pf.model_floor(pf.val_rows, 2.0) == pytest.approx(2.0 * float(np.sum(shape[pf.val_rows] ** 2)))
         assert pf.coefficient(pf.raw_residual(spec)) == pb.coefficient(raw)
+        # several shapes (the grid placements'): the floor is their mean energy
+        shapes = np.stack([shape, 3.0 * shape, np.zeros_like(shape)])
+        pk = Problem(m, fw, "p", LoopSettings()).with_term(term, c_max, floor_shape=shapes)
+        assert pk.model_floor(pk.val_rows) == pytest.approx(float(np.sum(shape[pk.val_rows] ** 2)) * (1 + 9 + 0) / 3)
     # only the fit window sets it: a validation-window-only disturbance leaves c unchanged
     Y = fw.rollout(spec, "p") + 0.7 * term
     Y2 = Y.copy()
@@ -112,6 +116,61 @@ def test_settings_refuse_a_refinement_that_refines_nothing():
     with pytest.raises(InputError, match="model_error_refine"):
         LoopSettings(model_error_refine=1.0)
     assert LoopSettings(model_error_refine=None).model_error_refine is None
+    with pytest.raises(InputError, match="model_error_floor"):
+        LoopSettings(model_error_floor="richardson")
+
+
+def test_translated_moves_every_box_with_the_particles():
+    """A placement on the grid: particles and every box (support, probe and region boxes)
+    move together, nothing else changes; a bad shift is refused."""
+    from knockgs_core.assets import build_asset
+    from knockgs_core.contract import load_contract
+
+    kinds = set()
+    for name in ("ficus", "vasedeck"):  # regions and a support (Ficus), a probe box (Vasedeck)
+        c = load_contract(name, "ci")
+        particles = build_asset(c).particles
+        shift = np.array([0.01, -0.02, 0.03])
+        c2, p2 = translated(c, particles, shift)
+        np.testing.assert_allclose(np.asarray(p2.positions, np.float64) - np.asarray(particles.positions, np.float64),
+                                   np.broadcast_to(shift, (len(particles.positions), 3)), atol=1e-6)
+        assert p2.n_gs == particles.n_gs and p2.volumes is particles.volumes
+        boxes = [("support", b.box, b2.box) for b, b2 in zip(c.sim.boundaries, c2.sim.boundaries)
+                 if getattr(b, "box", None) is not None]
+        boxes += [("probe", p.box, c2.probes[k].box) for k, p in c.probes.items() if p.box is not None]
+        boxes += [("region", b, b2) for k in c.regions for b, b2 in zip(c.regions[k], c2.regions[k])]
+        for kind, b, b2 in boxes:
+            kinds.add(kind)
+            np.testing.assert_allclose(np.subtract(b2.center, b.center), shift, atol=1e-12)
+            assert b2.half_size == b.half_size
+        assert c2.materials == c.materials and c2.sim.n_grid == c.sim.n_grid and c2.sim.dt == c.sim.dt
+    assert kinds == {"support", "probe", "region"}
+    with pytest.raises(InputError, match="shift"):
+        translated(c, particles, [np.nan, 0.0, 0.0])
+
+
+def test_placements_on_the_grid_whole_cells_change_nothing_half_cells_do(pillow):
+    """The floor's placements: moving the Pillow and its support by one whole cell leaves its
+    Probe-A response as it is (to float32 rounding of the positions), moving it by half a cell
+    (a placement of the floor, ``FLOOR_SHIFTS``) changes it by percents at ci (the grid does not
+    resolve the thin body)."""
+    from knockgs_core.rollout import run_rollout
+
+    contract, particles = pillow
+    dx = contract.sim.grid_lim / contract.sim.n_grid
+    n = particles.n_gs
+
+    def motion(shift):
+        c2, p2 = translated(contract, particles, shift)
+        X = np.asarray(run_rollout(c2, (0.8, 1.2), "standard_x", particles=p2).positions, np.float64)[:, :n]
+        return X - X[0]
+
+    U = motion(np.zeros(3))
+    size = np.linalg.norm(U)
+    whole = np.linalg.norm(motion(np.array([dx, 0.0, 0.0])) - U) / size
+    half = np.linalg.norm(motion(np.asarray(FLOOR_SHIFTS[0]) * dx) - U) / size
+    assert whole < 2e-3, whole
+    assert half > 10 * whole and half > 0.01, (half, whole)
 
 
 # -------------------------------------------------------------------------------------
@@ -143,10 +202,13 @@ def _tracks(contract, particles, theta, probe, effects, rng, *, noise=0.02, shar
     return m, X
 
 
-def test_a_finer_world_without_effect_is_consistent_with_the_discretization_error(pillow):
+def test_a_finer_world_without_effect_names_nothing_and_its_floor_is_the_residual_size(pillow):
     """Data from the same MPM on a grid twice as fine: the term's coefficient is well above
-    the standard cases' (<= 0.01), no catalogue effect is named, and the theta interval holds
-    the truth though the point estimate is off by the discretization bias."""
+    the standard cases' (<= 0.01), no catalogue effect is named, the floor measured by the
+    grid placements is of the size of the residual that theta and the term leave (this world
+    leaves a little more than the placements' mean: the verdict may be "unexplained" with both
+    sizes reported, or "discretization"), and the theta interval holds the truth though the
+    point estimate is off by the discretization bias."""
     from knockgs_core.assets import build_asset
 
     contract, particles = pillow
@@ -154,15 +216,16 @@ def test_a_finer_world_without_effect_is_consistent_with_the_discretization_erro
     truth = (0.8, 1.2)
     m, _ = _tracks(world, build_asset(world).particles, truth, "standard_x", (), np.random.default_rng(5))
     res = run_discrepancy(m, contract, particles, settings=LoopSettings(catalogue=("damping", "gravity", "stiffness_gradient_z")))
-    assert res.identified == [] and res.verdict_kind in ("discretization", "none"), res.verdict
+    assert res.identified == [] and res.verdict_kind in ("discretization", "unexplained", "none"), res.verdict
     assert res.model_error["coefficient"] > 0.3 and res.model_error["floor_weight"] == 1.0
-    # the floor was measured by the second refinement: the share of its change the term misses
-    assert res.model_error["second_n_grid"] == round(contract.sim.n_grid * 2.25)
+    # the floor was measured by the grid placements: the share of their change the term misses
+    assert res.model_error["floor"] == "shifts" and len(res.model_error["placement_shifts_cells"]) == len(FLOOR_SHIFTS)
     assert 0.0 < res.model_error["leftover_share"] < 1.0
-    assert res.model_error["significant_without_term"] and not res.model_error["significant_with_term"]
+    assert 0.5 < res.model_error["floor_rms_per_point"] / res.residual["excess_rms_per_point"] < 2.0
+    assert res.model_error["significant_without_term"]
     (lo_e, hi_e), (lo_r, hi_r) = res.theta_interval
     assert lo_e <= truth[0] <= hi_e and lo_r <= truth[1] <= hi_r, res.theta_interval
-    assert "discretization" in res.verdict
+    assert "discretization floor" in res.verdict
 
 
 def test_a_push_that_starts_late_is_not_named_gravity(pillow):

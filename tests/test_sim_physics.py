@@ -416,3 +416,17 @@ def test_guard_stops_an_unstable_run_under_the_p2g_by_cells():
             if state.step % params.guard_every == 0 or state.step == model.probe_first + 1:
                 solver.check(state)
     assert state.step > model.probe_first  # the substeps ran until the probe made the run unstable
+
+
+def test_substep_graphs_are_refused_where_they_cannot_replay():
+    """Substep graphs need a CUDA device and a model without per-substep host hooks (effects,
+    particle translations); on the CPU ``auto`` keeps the launches as they are."""
+    from knockgs_core.errors import InputError
+
+    X = np.full((8, 3), 1.0, dtype=np.float32) + 0.01 * np.arange(24, dtype=np.float32).reshape(8, 3)
+    model = build_model(X, E=1e4, nu=0.3, rho=1000.0, params=SimParams(n_grid=16, dt=1e-3), device="cpu")
+    assert MPMSolver(model).graph is False
+    with pytest.raises(InputError, match="graph"):
+        MPMSolver(model, graph=True)
+    with pytest.raises(InputError, match="graph"):
+        MPMSolver(model, graph="yes")

@@ -163,9 +163,13 @@ def run_rollouts(
             probe=run_probe, probe_force_scale=force_scale, device=device,
         )
         models.append((model, make_state(model, particles.positions)))
+    inv = None
+    if perm is not None:  # exported back in the particle set's order, gathered on the device
+        inv = np.empty_like(perm)
+        inv[perm] = np.arange(len(perm), dtype=perm.dtype)
     results: list[SimResult] = simulate_many(models, frame_dt=frame_dt, n_frames=n_frames,
                                              export_F=particles.n_gs if export_F else 0, progress=progress,
-                                             concurrent=concurrent)
+                                             concurrent=concurrent, export_index=inv)
     wall = time.perf_counter() - t0
     out = []
     for ((s_e, s_rho), run_probe, *_), (model, _), result in zip(setups, models, results):
@@ -191,13 +195,9 @@ def run_rollouts(
         }
         if len(runs) > 1:
             meta["simulated_with"] = len(runs)  # wall_seconds is then the batch's
-        X, F = result.positions, result.F
-        if perm is not None:  # back to the particle set's order
-            inv = np.argsort(perm)
-            X = np.ascontiguousarray(X[:, inv])
-            F = None if F is None else np.ascontiguousarray(F[:, inv[: particles.n_gs]])
+        if perm is not None:
             meta["particle_order"] = "cell"
-        out.append(Rollout(positions=X, F=F, meta=meta))
+        out.append(Rollout(positions=result.positions, F=result.F, meta=meta))
     return out
 
 

@@ -39,7 +39,9 @@ class AttributionRow:
     ``error`` when no trial simulated. Refinement (``refined``): the nonlinear estimate
     (``strength_estimate``, ``value_estimate``, ``theta_estimate``), ``explained_fit``,
     ``delta_bic`` (fit window) and the score ``explained_val``; ``refine_error`` when it
-    failed. Time signature (sustained and permanent candidates, refined):
+    failed. ``explained_excess``: the same validation energy removed, as a share of the part
+    of the theta-only residual above the noise and the discretization floor (NaN where there
+    is none): what the effect explains beyond the floor. Time signature (sustained and permanent candidates, refined):
     ``signature_share``, the smallest share of the candidate's contribution that the data
     hold in a third of the record where it is visible above the noise (:func:`_window_shares`),
     and ``signature_ok`` (at least ``LoopSettings.signature_min``): a load that stays on acts
@@ -64,6 +66,7 @@ class AttributionRow:
     explained_fit: float = math.nan
     explained_val: float = -math.inf
     delta_bic: float = math.nan
+    explained_excess: float = math.nan
     signature_share: float = math.nan
     signature_ok: bool = True
     rank: int = 0
@@ -97,6 +100,8 @@ class AttributionRow:
             if self.refine_error is not None:
                 d["refine_error"] = self.refine_error
             d["explained_val"] = self.explained_val
+        if not math.isnan(self.explained_excess):
+            d["explained_excess"] = self.explained_excess
         d["rank"] = self.rank
         return d
 
@@ -143,6 +148,15 @@ class AttributionRound:
     @property
     def best(self) -> AttributionRow | None:
         return self.table[0] if self.table else None
+
+    def decision_share(self, row: AttributionRow) -> float:
+        """The share of the residual that ``row`` must explain (``LoopSettings.min_explained``):
+        of the part above the noise and the discretization floor where that part is
+        significant (an effect is judged on what it explains beyond the floor), else of the
+        whole theta-only validation residual."""
+        if self.significant and self.model_floor_val > 0 and not math.isnan(row.explained_excess):
+            return row.explained_excess
+        return row.explained_val
 
     def to_dict(self) -> dict:
         d = {
@@ -379,8 +393,11 @@ def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], fl
         else:
             row.explained_val = row.screen_explained_val
     rows.sort(key=lambda row: (not row.refined, -row.explained_val))
+    above = rss_nl_theta_V - floor_V
     for rank, row in enumerate(rows, 1):
         row.rank = rank
+        if above > 0 and math.isfinite(row.explained_val):
+            row.explained_excess = row.explained_val * rss_nl_theta_V / above
     return AttributionRound(
         theta=list(spec.theta), effects=[list(e) for e in spec.effects], n_fit=F.size, n_val=V.size,
         rss_theta_fit=rss_nl_theta_F, rss_theta_val=rss_nl_theta_V, theta_fit_window=list(theta_fit.theta),

@@ -47,7 +47,7 @@ class Problem:
         self.Y = measured.points
         self.term: np.ndarray | None = None
         self.term_max = 0.0
-        self.floor_shape: np.ndarray | None = None
+        self.floor_shape: np.ndarray | None = None  # [K, rows]
 
     def observe(self, spec: ModelSpec) -> np.ndarray:
         """The model's positions [T, M, 3] at the observed points and frames (no term)."""
@@ -90,22 +90,27 @@ class Problem:
 
     def model_floor(self, rows, weight: float = 1.0) -> float:
         """The discretization floor [m^2] of the residual rows ``rows``: ``weight`` times the
-        energy there of the floor's shape (what a second refinement changes that theta and the
-        term cannot represent) or, without one, of the term itself (the model's change under
-        refinement that theta cannot absorb); 0 without a term."""
+        mean energy there of the floor's shapes (what other placements on the grid, or a second
+        refinement, change that theta and the term cannot represent) or, without them, of the
+        term itself (the model's change under refinement that theta cannot absorb); 0 without
+        a term."""
         if self.term is None:
             return 0.0
-        t = (self.floor_shape if self.floor_shape is not None else self.term)[rows]
-        return float(weight) * float(t @ t)
+        t = (self.floor_shape if self.floor_shape is not None else self.term[None, :])[:, rows]
+        return float(weight) * float(np.mean(np.sum(t * t, axis=1)))
 
     def with_term(self, term: np.ndarray | None, term_max: float, *, floor_shape: np.ndarray | None = None) -> Problem:
         """The same problem with the discretization term ``term`` [T, M, 3] (m, frame 0
         included) whose coefficient is profiled in [0, ``term_max``], and the floor's shape
-        ``floor_shape`` (flattened rows after frame 0; None: the term's)."""
+        ``floor_shape`` ([K, rows]: K shapes of flattened rows after frame 0, or one [rows];
+        None: the term's)."""
         other = copy.copy(self)
         other.term = None if term is None else np.asarray(term, dtype=np.float64)[1:].reshape(-1)
         other.term_max = float(term_max)
-        other.floor_shape = None if floor_shape is None else np.asarray(floor_shape, dtype=np.float64).reshape(-1)
+        other.floor_shape = None
+        if floor_shape is not None:
+            shape = np.asarray(floor_shape, dtype=np.float64)
+            other.floor_shape = shape.reshape(shape.shape[0] if shape.ndim > 1 else 1, -1)
         return other
 
     def with_forward(self, forward: ForwardModel) -> Problem:

@@ -246,17 +246,24 @@ def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loop
     me.spec, me.term, me.change = spec, term, D
     out = problem.with_term(term, me.c_max)
     me.leftover, me.leftover_share = None, None
-    # the floor's shape is needed only where the data show the term: at the model's own
-    # resolution (c below half the ramp's start) the floor's weight is 0, and the second
-    # refinement is not run
-    if me.second is not None and out.coefficient(out.raw_residual(spec)) > 0.5 * settings.model_error_ramp[0]:
-        # the floor: what one more refinement step changes that theta and the term cannot represent
-        D2 = me.difference(fw, spec, problem.probe, points, level=2)[problem.frames][1:].reshape(-1)
+    # the floor's shapes are needed only where the data show the term: at the model's own
+    # resolution (c below half the ramp's start) the floor's weight is 0, and neither the
+    # placements nor the second refinement are simulated
+    if me.floor != "term" and out.coefficient(out.raw_residual(spec)) > 0.5 * settings.model_error_ramp[0]:
+        # the floor: what other placements on the grid (or one more refinement step) change
+        # that theta and the term cannot represent
+        if me.floor == "shifts":
+            index = problem.corr.index
+            changes = [me.placement_difference(fw, spec, problem.probe, index, k)[problem.frames][1:].reshape(-1)
+                       for k in range(len(me.placements))]
+        else:
+            changes = [me.difference(fw, spec, problem.probe, points, level=2)[problem.frames][1:].reshape(-1)]
         A = np.column_stack([J, flat])
-        out.floor_shape = D2 - A @ np.linalg.lstsq(A, D2, rcond=None)[0]
-        me.leftover = np.zeros_like(D)
-        me.leftover[1:] = out.floor_shape.reshape(D[1:].shape)
-        me.leftover_share = float(out.floor_shape @ out.floor_shape) / max(float(D2 @ D2), 1e-300)
+        shapes = np.stack([Dk - A @ np.linalg.lstsq(A, Dk, rcond=None)[0] for Dk in changes])
+        out.floor_shape = shapes
+        me.leftover = np.zeros((len(shapes),) + D.shape)
+        me.leftover[:, 1:] = shapes.reshape((len(shapes),) + D[1:].shape)
+        me.leftover_share = float(np.sum(shapes * shapes)) / max(float(sum(Dk @ Dk for Dk in changes)), 1e-300)
     return out
 
 
@@ -313,7 +320,7 @@ def _try_candidates(problem: Problem, spec: ModelSpec, att: AttributionRound, fl
     tried = []
     rss_cur = float(np.sum(problem.residual(spec) ** 2))
     for row in att.table[: settings.max_tries]:
-        if not row.refined or row.explained_val < settings.min_explained or row.delta_bic >= 0 or not row.signature_ok:
+        if not row.refined or att.decision_share(row) < settings.min_explained or row.delta_bic >= 0 or not row.signature_ok:
             continue
         key = row.key
         start_spec = row.refined_spec
@@ -354,7 +361,8 @@ def _augment(problem: Problem, spec: ModelSpec, candidates: list[Candidate], flo
         top = att.best
         say(f"round {len(rounds)}: excess over noise {att.excess_noise_val:.3g}, over noise and floor {att.excess_val:.3g}; "
             f"best {top.key if top else '-'} "
-            f"explains {top.explained_val if top else float('nan'):.3f}")
+            f"explains {top.explained_val if top else float('nan'):.3f}"
+            + (f" ({top.explained_excess:.3f} beyond the floor)" if top and att.model_floor_val > 0 else ""))
         if not att.visible:
             att.decision = "no residual above the noise left"
             return spec, rounds, False, "no_residual"
@@ -471,7 +479,8 @@ def _approximation(rounds: list[AttributionRound], unexplained: bool, settings: 
     if not unexplained or not rounds:
         return None
     for row in rounds[-1].table:
-        if row.refined and not row.signature_ok and row.explained_val >= settings.min_explained and row.delta_bic < 0:
+        if (row.refined and not row.signature_ok and rounds[-1].decision_share(row) >= settings.min_explained
+                and row.delta_bic < 0):
             return {"key": row.key, "label": row.label, "explained_val": row.explained_val,
                     "signature_share": row.signature_share, "parameter": row.parameter, "value_estimate": row.value_estimate,
                     "note": (f"{row.label} would explain {100 * row.explained_val:.0f}% of the validation residual, but the "
@@ -575,7 +584,7 @@ def run_discrepancy(
     me = None
     if settings.model_error_refine is not None:
         me = build_model_error(pb.forward, factor=settings.model_error_refine, c_max=settings.model_error_max,
-                               second=settings.model_error_second)
+                               floor=settings.model_error_floor)
         pb = _with_term(pb, me, base, settings)
     refit = _refit_theta(pb, base, library, settings, log)
     if me is not None:

@@ -16,10 +16,19 @@ judged on what it explains beyond the discretization error; the term sets the ve
 "consistent with the model's discretization error" and widens the theta interval.
 
 How much of the data's discretization error a term of this one shape misses (the *floor*
-against which a residual is significant) is measured, not assumed: a second refinement, by
-``r^2`` (three grids, as in a grid-convergence study), gives ``D2``, the change two steps
-away; the part of ``D2`` that theta's sensitivities and ``c * D`` cannot represent
-(``leftover``) is the shape the term misses one step further, and its energy is the floor.
+against which a residual is significant) is measured, not assumed, in one of two ways:
+
+- ``shifts`` (the default): the same model with its particles, and every box of its
+  contract, moved against the fixed grid by half a cell along x, y, z and the diagonal
+  (:data:`FLOOR_SHIFTS`). Each placement is as valid a discretization of the object as the
+  model's own; where the model is not resolved its response depends on the placement (at ci
+  by 5-24 % of the Probe-A response, ``benchmarks/model_error_span.py``). The floor is the
+  mean energy of the placements' changes ``D_k`` that theta's sensitivities and ``c * D``
+  cannot represent (``leftover``). It costs one model rollout per placement.
+- ``second_refinement``: a second refinement, by ``r^2`` (three grids, as in a
+  grid-convergence study), gives ``D2``, the change two steps away; its part that theta's
+  sensitivities and ``c * D`` cannot represent is the shape the term misses one step
+  further. At ci it overestimates the floor that a finer world leaves (docs/discrepancy.md).
 
 The refined model is the loop's own contract with the grid and the interior fill refined by
 ``factor`` (the same Gaussians, a new fill, the contracts' time-step rule). Displacements of
@@ -39,7 +48,13 @@ import numpy as np
 from ..errors import InputError
 from ._forward import ForwardModel, ModelSpec
 
-__all__ = ["refined_contract", "ModelError", "displacement_at", "build_model_error"]
+__all__ = ["FLOOR_SHIFTS", "FLOOR_KINDS", "refined_contract", "translated", "ModelError", "displacement_at",
+           "build_model_error"]
+
+#: placements of the floor's ensemble: shifts of the particles against the grid, in cells
+FLOOR_SHIFTS = ((0.5, 0.0, 0.0), (0.0, 0.5, 0.0), (0.0, 0.0, 0.5), (0.5, 0.5, 0.5))
+#: how the discretization floor is measured (``LoopSettings.model_error_floor``)
+FLOOR_KINDS = ("shifts", "second_refinement", "term")
 
 
 def refined_contract(contract, factor: float):
@@ -54,6 +69,43 @@ def refined_contract(contract, factor: float):
     out = dataclasses.replace(contract, sim=dataclasses.replace(sim, n_grid=n_grid), fill=fill)
     dt = out.cfl_dt()
     return dataclasses.replace(out, sim=dataclasses.replace(out.sim, dt=float(dt)))
+
+
+def _moved(obj, shift):
+    """``obj`` with every :class:`~knockgs_core.sim.Box` in it (through dataclass fields,
+    tuples, lists and dicts) moved by ``shift`` [m]; untouched parts are returned as they are."""
+    from ..sim import Box
+
+    if isinstance(obj, Box):
+        return Box(tuple(float(c) + float(s) for c, s in zip(obj.center, shift)), obj.half_size)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        changes = {}
+        for f in dataclasses.fields(obj):
+            if f.init:
+                value = getattr(obj, f.name)
+                new = _moved(value, shift)
+                if new is not value:
+                    changes[f.name] = new
+        return dataclasses.replace(obj, **changes) if changes else obj
+    if isinstance(obj, (tuple, list)):
+        items = [_moved(x, shift) for x in obj]
+        return type(obj)(items) if any(a is not b for a, b in zip(items, obj)) else obj
+    if isinstance(obj, dict):
+        items = {k: _moved(v, shift) for k, v in obj.items()}
+        return items if any(items[k] is not obj[k] for k in obj) else obj
+    return obj
+
+
+def translated(contract, particles, shift):
+    """The same discretized object placed elsewhere on the same grid: ``contract`` with every
+    box (supports, probe and region boxes) and ``particles`` moved by ``shift`` [m] (3,).
+    Particle order, volumes and count are unchanged, so particle i of the result is particle i
+    of ``particles``. Returns (contract, particles)."""
+    shift = np.asarray(shift, dtype=np.float64).reshape(3)
+    if not np.all(np.isfinite(shift)):
+        raise InputError("translated", "shift", f"must be finite, got {shift.tolist()}")
+    moved = (np.asarray(particles.positions, dtype=np.float64) + shift).astype(np.float32)
+    return _moved(contract, tuple(shift.tolist())), dataclasses.replace(particles, positions=moved)
 
 
 def displacement_at(rest: np.ndarray, displacement: np.ndarray, points: np.ndarray, *, length: float, k: int = 8) -> np.ndarray:
@@ -90,6 +142,8 @@ class ModelError:
     c_max: float
     length: float
     second: ForwardModel | None = None
+    placements: tuple[ForwardModel, ...] = ()
+    floor: str = "shifts"
     spec: ModelSpec | None = None
     term: np.ndarray | None = None
     change: np.ndarray | None = None
@@ -115,22 +169,39 @@ class ModelError:
         ur = displacement_at(Xr[0], Xr - Xr[0], points, length=self.length)
         return ur - u
 
+    def placement_difference(self, model: ForwardModel, spec: ModelSpec, probe: str, index: np.ndarray, k: int) -> np.ndarray:
+        """D_k [T, P, 3] = displacement of the model at placement ``k`` minus the model's, of
+        the particles ``index`` [P] under ``probe`` at ``spec`` (the same particles: no kernel)."""
+        X = np.asarray(model.rollout(spec, probe), dtype=np.float64)[:, index]
+        Xk = np.asarray(self.placements[k].rollout(spec, probe), dtype=np.float64)[:, index]
+        return (Xk - Xk[0]) - (X - X[0])
+
     def to_dict(self) -> dict:
         c = self.refined.contract
         d = {"refine_factor": self.factor, "refined_n_grid": c.sim.n_grid, "refined_fill_resolution": c.fill.resolution,
              "refined_dt": c.sim.dt, "refined_particles": len(self.refined.particles.positions),
-             "richardson_coefficient": self.richardson, "coefficient_max": self.c_max, "kernel_length": self.length}
+             "richardson_coefficient": self.richardson, "coefficient_max": self.c_max, "kernel_length": self.length,
+             "floor": self.floor}
         if self.second is not None:
             c2 = self.second.contract
             d.update({"second_n_grid": c2.sim.n_grid, "second_fill_resolution": c2.fill.resolution,
-                      "second_particles": len(self.second.particles.positions), "leftover_share": self.leftover_share})
+                      "second_particles": len(self.second.particles.positions)})
+        if self.placements:
+            d["placement_shifts_cells"] = [list(s) for s in FLOOR_SHIFTS[: len(self.placements)]]
+        if self.floor != "term":
+            d["leftover_share"] = self.leftover_share
         return d
 
 
-def build_model_error(model: ForwardModel, *, factor: float, c_max: float, second: bool = True) -> ModelError:
+def build_model_error(model: ForwardModel, *, factor: float, c_max: float, floor: str = "shifts") -> ModelError:
     """The refined model of ``model`` (its contract refined by ``factor``, particles rebuilt)
-    and, with ``second``, the model refined by ``factor**2`` that measures the floor."""
+    and what measures the floor (``floor``, :data:`FLOOR_KINDS`): the model at the grid
+    placements :data:`FLOOR_SHIFTS` (``shifts``), the model refined by ``factor**2``
+    (``second_refinement``), or nothing (``term``: the term's own energy is the floor)."""
     from ..assets import build_asset
+
+    if floor not in FLOOR_KINDS:
+        raise InputError("LoopSettings", "model_error_floor", f"unknown '{floor}'; known: {list(FLOOR_KINDS)}")
 
     def refine(f):
         contract = refined_contract(model.contract, f)
@@ -138,5 +209,13 @@ def build_model_error(model: ForwardModel, *, factor: float, c_max: float, secon
 
     refined = refine(factor)
     length = refined.contract.sim.grid_lim / refined.contract.sim.n_grid
+    placements = ()
+    if floor == "shifts":
+        dx = model.contract.sim.grid_lim / model.contract.sim.n_grid
+        placements = tuple(
+            ForwardModel(*translated(model.contract, model.particles, np.asarray(s) * dx), catalogue=dict(model.catalogue),
+                         device=model.device)
+            for s in FLOOR_SHIFTS)
     return ModelError(refined=refined, factor=float(factor), c_max=float(c_max), length=float(length),
-                      second=refine(factor * factor) if second else None)
+                      second=refine(factor * factor) if floor == "second_refinement" else None, placements=placements,
+                      floor=floor)

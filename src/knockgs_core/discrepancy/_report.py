@@ -197,6 +197,8 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
             L.append(
                 f"| {row['rank']} | {row['label']} (`{row['key']}`) | "
                 + (f"{row['explained_val']:.3f}"
+                   + (f" ({row['explained_excess']:.3f} beyond the floor)"
+                      if rd.get("model_floor_val") and "explained_excess" in row else "")
                    + ("" if row.get("signature_ok", True) else f"; time signature off ({row['signature_share']:.2f})")
                    + f" | {row['explained_fit']:.3f} | {row['delta_bic']:.4g}" if refined
                    else "not refined | | ")

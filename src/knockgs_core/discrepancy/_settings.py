@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from ..errors import InputError
 from ._catalogue import CATALOGUE_KEYS
+from ._model_error import FLOOR_KINDS
 
 __all__ = ["LoopSettings"]
 
@@ -21,7 +22,8 @@ class LoopSettings:
     min_excess: the theta-corrected validation residual must exceed the noise floor by this
         fraction (of the floor's energy) to count as significant.
     min_explained: an effect must explain this share of the theta-only residual on the
-        validation window to be tried.
+        validation window to be tried: of its part above the noise and the discretization
+        floor where that part is significant (``AttributionRound.decision_share``).
     min_confirm: the joint nonlinear recalibration must remove this share of the residual
         energy above the noise floor to keep the effect.
     max_effects: most effects added; max_tries: candidates tried per round.
@@ -34,9 +36,10 @@ class LoopSettings:
         the model's discretization error (``_model_error``); None: no discretization term.
     model_error_max: bound of the term's coefficient c (``r / (r - 1)`` is the continuum
         limit under first-order convergence: 3 at r = 1.5).
-    model_error_second: measure the discretization floor with a second refinement (ratio
-        r^2): the floor is the energy of what it changes that theta and the term cannot
-        represent; False: the term's own energy (a cruder, larger floor).
+    model_error_floor: how the discretization floor is measured (``_model_error``):
+        ``shifts``, the mean energy of what moving the particles by half a cell against the
+        grid changes that theta and the term cannot represent; ``second_refinement``, the same
+        for a second refinement (ratio r^2); ``term``, the term's own energy (cruder, larger).
     model_error_updates: times the term is recomputed at the refitted theta (until theta moves
         less than 1%).
     model_error_ramp: (c0, c1): the discretization floor is the floor shape's energy times a
@@ -66,7 +69,7 @@ class LoopSettings:
     catalogue: tuple[str, ...] | None = None
     model_error_refine: float | None = 1.5
     model_error_max: float = 6.0
-    model_error_second: bool = True
+    model_error_floor: str = "shifts"
     model_error_updates: int = 4
     model_error_ramp: tuple[float, float] = (0.15, 0.4)
     signature_min: float = 0.5
@@ -79,6 +82,8 @@ class LoopSettings:
         c0, c1 = self.model_error_ramp
         if not (0 <= c0 < c1):
             raise InputError("LoopSettings", "model_error_ramp", "must be (c0, c1) with 0 <= c0 < c1")
+        if self.model_error_floor not in FLOOR_KINDS:
+            raise InputError("LoopSettings", "model_error_floor", f"must be one of {list(FLOOR_KINDS)}")
         if not (self.model_error_max > 0):
             raise InputError("LoopSettings", "model_error_max", "must be > 0")
         if self.catalogue is not None:

@@ -627,6 +627,22 @@ def g2p(
 
 
 @wp.kernel
+def gather_positions(x0: wp.array(dtype=wp.vec3), u: wp.array(dtype=wp.vec3), index: wp.array(dtype=wp.int32),
+                     out: wp.array(dtype=wp.vec3)):
+    """Export row ``i``: the position x0 + u of particle ``index[i]`` [m]."""
+    i = wp.tid()
+    p = index[i]
+    out[i] = x0[p] + u[p]
+
+
+@wp.kernel
+def gather_F(F: wp.array(dtype=wp.mat33d), index: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.mat33)):
+    """Export row ``i``: the deformation gradient of particle ``index[i]``, in float32."""
+    i = wp.tid()
+    out[i] = mat33_to_f32(F[index[i]])
+
+
+@wp.kernel
 def particle_stats(
     x0: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),

@@ -34,8 +34,17 @@ def particle_volumes(positions: np.ndarray, dx: float) -> np.ndarray:
     """Particle volume [m^3] from initial particles per grid cell (PhysGaussian):
     each particle gets ``dx^3 / (particles in its cell)``. Shape (particle_count,)."""
     cells = np.floor(np.asarray(positions, dtype=np.float64) / dx).astype(np.int64)
-    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    return (dx**3 / counts[inverse.reshape(-1)]).astype(np.float32)
+    if len(cells) == 0:
+        return np.zeros(0, dtype=np.float32)
+    cells -= cells.min(axis=0)
+    span = cells.max(axis=0) + 1
+    key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]  # the cell's index in the particles' box
+    if int(np.prod(span)) <= max(8 * len(key), 1 << 22):
+        counts = np.bincount(key)[key]
+    else:  # a sparse box (particles far apart): count the occupied cells only
+        _, inverse, per_cell = np.unique(key, return_inverse=True, return_counts=True)
+        counts = per_cell[inverse]
+    return (dx**3 / counts).astype(np.float32)
 
 
 @dataclass
@@ -314,6 +323,12 @@ class MPMSolver:
     ``p2g``: ``"scatter"`` (one float atomic per particle and stencil node; the CPU's),
     ``"cells"`` (particles sorted by base cell every substep, chunk sums with one atomic per
     chunk and node; the GPU's) or ``"auto"``.
+
+    ``graph``: replay each substep as a captured CUDA graph (one per probe state and set of
+    active supports, captured again when the guard moves the active box), which skips the
+    host's launch overhead; ``"auto"``: on a CUDA device, for models without effects and
+    particle translations (whose host-side hooks run every substep). The same kernels, in the
+    same order, with the same arguments.
     """
 
     #: cap on the warm-started polar iterations per particle and substep (they stop when the
@@ -323,11 +338,22 @@ class MPMSolver:
     #: 6.5 % per halving (docs/assets.md). tests/test_sim_physics.py checks that it never binds.
     polar_iters = 32
 
-    def __init__(self, model: Model, *, p2g: str = "auto"):
+    def __init__(self, model: Model, *, p2g: str = "auto", graph: bool | str = "auto"):
         self.model = model
         p = model.params
+        cuda = wp.get_device(model.device).is_cuda
+        if graph == "auto":
+            graph = cuda and not p.effects and not model.translations
+        if graph not in (True, False):
+            raise InputError("MPMSolver", "graph", f"must be 'auto', True or False, got {graph!r}")
+        if graph and not cuda:
+            raise InputError("MPMSolver", "graph", "substep graphs need a CUDA device")
+        if graph and (p.effects or model.translations):
+            raise InputError("MPMSolver", "graph", "substep graphs take models without effects and particle translations")
+        self.graph = bool(graph)
+        self._graphs: dict = {}
         if p2g == "auto":  # by cells on a GPU (atomics on shared nodes serialize there); the scatter on the CPU
-            p2g = "cells" if wp.get_device(model.device).is_cuda else "scatter"
+            p2g = "cells" if cuda else "scatter"
         if p2g not in ("scatter", "cells"):
             raise InputError("MPMSolver", "p2g", f"must be 'auto', 'scatter' or 'cells', got {p2g!r}")
         self.p2g = p2g
@@ -486,6 +512,7 @@ class MPMSolver:
         )
         self._cmds = cmds
         self._cmds_key = (id(state), self._lo, self._hi)
+        self._graphs = {}  # graphs of the launches recorded before
         self._box = (lo, dims)  # the active box as the effects' grid hooks take it
 
     def step(self, state: State) -> None:
@@ -495,10 +522,29 @@ class MPMSolver:
         m, p = self.model, self.model.params
         if getattr(self, "_cmds_key", None) != (id(state), self._lo, self._hi):
             self._record(state)
-        cmds = self._cmds
         t = state.step * p.dt
         probe_on = int(m.probe_steps > 0 and m.probe_first <= state.step < m.probe_first + m.probe_steps)
+        active = tuple(isinstance(bc, DomainWalls) or bc.start_time <= t < bc.end_time for bc, _ in self._cmds["bcs"])
+        if self.graph:
+            key = (probe_on, active)
+            graph = self._graphs.get(key)
+            if graph is None:
+                with wp.ScopedCapture(device=m.device) as capture:
+                    self._launch(state, t, probe_on, active)
+                graph = self._graphs[key] = capture.graph
+            wp.capture_launch(graph)
+        else:
+            self._launch(state, t, probe_on, active)
+        for effect, scratch in zip(p.effects, self.effect_scratch):
+            effect.apply_particles(m, state, scratch, t)
+        state.step += 1
 
+    def _launch(self, state: State, t: float, probe_on: int, active: tuple[bool, ...]) -> None:
+        """The substep's launches at time ``t`` [s] up to G2P: P2G with the probe ``probe_on``,
+        the grid update, the supports flagged ``active``, the effects on the grid, G2P with the
+        particle translation active at ``t`` (:meth:`step` adds the effects on the particles)."""
+        m, p = self.model, self.model.params
+        cmds = self._cmds
         cmds["zero"].launch()
         cmds["p2g"].set_param_by_name("probe_on", probe_on)
         cmds["p2g"].launch()
@@ -510,17 +556,14 @@ class MPMSolver:
             cmds["p2g_chunk_list"].launch()
             cmds["p2g_cells"].launch()
         cmds["update"].launch()
-        for bc, cmd in cmds["bcs"]:
-            if isinstance(bc, DomainWalls) or bc.start_time <= t < bc.end_time:
+        for (_, cmd), on in zip(cmds["bcs"], active):
+            if on:
                 cmd.launch()
         for effect, scratch in zip(p.effects, self.effect_scratch):
             effect.apply_grid(m, state, scratch, *self._box, t)
         if m.translations:
             self._set_translation(cmds["g2p"], t)
         cmds["g2p"].launch()
-        for effect, scratch in zip(p.effects, self.effect_scratch):
-            effect.apply_particles(m, state, scratch, t)
-        state.step += 1
 
     def _set_translation(self, g2p, t: float) -> None:
         """Point the recorded G2P launch at the particle translation active at ``t``, if any
@@ -556,6 +599,39 @@ def simulate(
     return simulate_many([(model, state)], frame_dt=frame_dt, n_frames=n_frames, export_F=export_F, progress=report)[0]
 
 
+class _Exporter:
+    """Writes a state's positions (and the first ``n_F`` deformation gradients) into frame
+    arrays: on the host as the state holds them, or, with ``index``, gathered on the device
+    in that order (row i is particle ``index[i]``)."""
+
+    def __init__(self, model: Model, n_F: int, index: np.ndarray | None):
+        self.n_F = n_F
+        self.index = None
+        if index is not None:
+            index = np.asarray(index)
+            n = model.particle_count
+            if index.shape != (n,) or (n and (index.min() < 0 or index.max() >= n)):
+                raise InputError("simulation", "export_index", f"must be {n} particle indices, got shape {index.shape}")
+            dev = model.device
+            self.index = wp.array(index.astype(np.int32), dtype=wp.int32, device=dev)
+            self.x = wp.empty(n, dtype=wp.vec3, device=dev)
+            self.F = wp.empty(n_F, dtype=wp.mat33, device=dev) if n_F else None
+
+    def export(self, state: State, X: np.ndarray, F: np.ndarray | None, frame: int) -> None:
+        if self.index is None:
+            X[frame] = state.positions()
+            if F is not None:
+                F[frame] = state.particle_F.numpy()[: self.n_F].astype(np.float32)
+            return
+        dev = self.x.device
+        wp.launch(K.gather_positions, dim=len(self.x), inputs=[state.particle_x0, state.particle_u, self.index],
+                  outputs=[self.x], device=dev)
+        X[frame] = self.x.numpy()
+        if F is not None:
+            wp.launch(K.gather_F, dim=self.n_F, inputs=[state.particle_F, self.index], outputs=[self.F], device=dev)
+            F[frame] = self.F.numpy()
+
+
 def simulate_many(
     runs: list[tuple[Model, State]],
     *,
@@ -564,6 +640,7 @@ def simulate_many(
     export_F: int = 0,
     progress: Callable[[int, int, int, dict], None] | None = None,
     concurrent: bool = False,
+    export_index: np.ndarray | None = None,
 ) -> list[SimResult]:
     """Run several independent simulations (``runs``: (model, state) pairs, all with the same
     time step) in lockstep and export the same frames from each, as :func:`simulate` does.
@@ -574,7 +651,10 @@ def simulate_many(
     gets its own stream, so the GPU overlaps the runs' kernels (P2G's atomics on different
     grids do not wait for each other); a guard check waits only for its own run's stream.
     ``progress(run, frame, n_frames, stats)`` is called after each exported frame of each
-    run. Returns one :class:`SimResult` per run, in order."""
+    run. ``export_index`` [particle_count] int: exported row i is particle ``export_index[i]``
+    (gathered on the device: a model simulated in another order, e.g. by grid cell, exports in
+    its particle set's order); the first ``export_F`` rows of it give the deformation gradients.
+    Returns one :class:`SimResult` per run, in order."""
     import contextlib
 
     if not runs:
@@ -596,6 +676,7 @@ def simulate_many(
     def on(i):
         return wp.ScopedStream(streams[i]) if streams else contextlib.nullcontext()
 
+    exporters = [_Exporter(model, export_F, export_index) for model, _ in runs]
     solvers, positions, Fs, stats = [], [], [], []
     for i, (model, state) in enumerate(runs):
         with on(i):
@@ -604,9 +685,7 @@ def simulate_many(
             X = np.empty((n_frames, n, 3), dtype=np.float32)
             F = np.empty((n_frames, export_F, 3, 3), dtype=np.float32) if export_F else None
             stats.append(solver.check(state))
-            X[0] = state.positions()
-            if F is not None:
-                F[0] = state.particle_F.numpy()[:export_F].astype(np.float32)
+            exporters[i].export(state, X, F, 0)
         solvers.append(solver)
         positions.append(X)
         Fs.append(F)
@@ -624,9 +703,7 @@ def simulate_many(
         for i, (model, state) in enumerate(runs):
             with on(i):
                 stats[i] = solvers[i].check(state)
-                positions[i][frame] = state.positions()
-                if Fs[i] is not None:
-                    Fs[i][frame] = state.particle_F.numpy()[:export_F].astype(np.float32)
+                exporters[i].export(state, positions[i], Fs[i], frame)
             if progress is not None:
                 progress(i, frame, n_frames, stats[i])
     times = np.arange(n_frames, dtype=np.float64) * frame_dt
