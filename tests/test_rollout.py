@@ -168,6 +168,23 @@ def test_the_background_writer_writes_the_same_bytes_and_raises_a_failed_write(t
     with pytest.raises(InputError, match="non-finite"):
         w.close()
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("bad")) == []
+    # several workers (a batch that finishes together): the same files, a failure still raised
+    rollouts = {f"w{k}": _synthetic(seed=10 + k) for k in range(4)}
+    with BackgroundWriter(workers=3) as w:
+        for name, ro in rollouts.items():
+            w.submit(tmp_path / f"{name}.parquet", ro, tmp_path / f"{name}.F.parquet")
+    for name, ro in rollouts.items():
+        write_rollout(tmp_path / f"{name}_direct.parquet", ro)
+        assert (tmp_path / f"{name}.parquet").read_bytes() == (tmp_path / f"{name}_direct.parquet").read_bytes()
+        assert (tmp_path / f"{name}.F.parquet").exists()
+    w = BackgroundWriter(workers=2)
+    w.submit(tmp_path / "bad3.parquet", bad)
+    w.submit(tmp_path / "d.parquet", a)
+    with pytest.raises(InputError, match="non-finite"):
+        w.close()
+    assert (tmp_path / "d.parquet").exists() and not (tmp_path / "bad3.parquet").exists()
+    with pytest.raises(InputError, match="workers"):
+        BackgroundWriter(workers=0)
 
 
 def test_rollouts_simulated_together_equal_separate_rollouts_bit_for_bit(pillow_ci):

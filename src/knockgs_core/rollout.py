@@ -281,38 +281,44 @@ def write_deformation(path, rollout: Rollout) -> None:
 
 
 class BackgroundWriter:
-    """Writes finished rollouts on one background thread while the caller simulates the next.
+    """Writes finished rollouts on background threads while the caller simulates the next.
 
     ``submit(path, rollout, F_path=None)`` hands a rollout over (positions, and its deformation
-    gradients to ``F_path`` when given); it first waits for the previous write, so at most one
-    rollout is in flight and a failed write is raised by the next ``submit`` or by ``close``
-    (the context manager's exit), never lost. Files are written exactly as
-    :func:`write_rollout` and :func:`write_deformation` write them, in submission order.
+    gradients to ``F_path`` when given). At most ``workers`` rollouts are in flight, each on its
+    own thread: ``submit`` first waits for the oldest write when that many are, so a failed
+    write is raised by a later ``submit`` or by ``close`` (the context manager's exit), never
+    lost. Files are written exactly as :func:`write_rollout` and :func:`write_deformation`
+    write them, each atomically; with one worker in submission order. Several workers suit a
+    batch of rollouts that finish together (a GPU's library job): their writes overlap.
     """
 
-    def __init__(self):
+    def __init__(self, workers: int = 1):
+        from collections import deque
         from concurrent.futures import ThreadPoolExecutor
 
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="rollout-writer")
-        self._pending = None
+        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+            raise InputError("BackgroundWriter", "workers", f"must be an integer >= 1, got {workers!r}")
+        self.workers = workers
+        self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="rollout-writer")
+        self._pending = deque()
 
-    def _wait(self) -> None:
-        pending, self._pending = self._pending, None
-        if pending is not None:
-            pending.result()
+    def _wait(self, keep: int = 0) -> None:
+        """Wait for the oldest writes until at most ``keep`` are in flight (raising the first error)."""
+        while len(self._pending) > keep:
+            self._pending.popleft().result()
 
     def submit(self, path, rollout: Rollout, F_path=None) -> None:
-        self._wait()
+        self._wait(self.workers - 1)
 
         def write():
             write_rollout(path, rollout)
             if F_path is not None:
                 write_deformation(F_path, rollout)
 
-        self._pending = self._pool.submit(write)
+        self._pending.append(self._pool.submit(write))
 
     def close(self) -> None:
-        """Wait for the last write (raising its error) and stop the thread."""
+        """Wait for every write (raising the first error) and stop the threads."""
         try:
             self._wait()
         finally:

@@ -37,10 +37,11 @@ def schedule(run):
 
 # On a GPU the runs of one schedule are simulated together, each on its own CUDA stream
 # (P2G's atomics on separate grids overlap); on the CPU one after the other (the results are
-# the same bit for bit either way). Each finished rollout is written on a background thread.
+# the same bit for bit either way). Each finished rollout is written on a background thread,
+# the rollouts of a batch (which finish together) on one thread each.
 groups = batches(p.runs, schedule, together=p.device.startswith("cuda"))
 extra = {} if passive is None else passive.run_kwargs()
-with BackgroundWriter() as writer:
+with BackgroundWriter(workers=max((len(g) for g in groups), default=1)) as writer:
     for group in groups:
         tags = [f"[{i + 1}/{len(p.runs)}] theta ({run['theta'][0]:.6f}, {run['theta'][1]:.6f}) probe {run['probe']}"
                 for i, run in group]
