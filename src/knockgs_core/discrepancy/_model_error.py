@@ -162,7 +162,8 @@ class ModelError:
         same kernel)."""
         refined = self.refined if level == 1 else self.second
         if refined is None:
-            raise InputError("LoopSettings", "model_error_second", "the second refinement was not built")
+            raise InputError("LoopSettings", "model_error_floor",
+                             "the second refinement was not built (model_error_floor is not 'second_refinement')")
         X = np.asarray(model.rollout(spec, probe), dtype=np.float64)
         Xr = np.asarray(refined.rollout(spec, probe), dtype=np.float64)
         u = displacement_at(X[0], X - X[0], points, length=self.length)
