@@ -11,6 +11,8 @@ twice as fine):
 - the grid placements of the floor (``_model_error.FLOOR_SHIFTS``: the particles and every
   box moved by half a cell): their change, and its part that theta and D leave (the floor's
   shapes), against the world gap's leftover;
+- fill seeds and a shift of mass between the Gaussian and the fill particles: their change,
+  and how much of the world gap they add to what theta and D represent;
 - each catalogue effect's signature (its middle trial strength): the share of its energy
   that theta and D represent, i.e. what the term can take from it.
 
@@ -22,6 +24,7 @@ prints a Markdown table (docs/discrepancy.md, "What the term can represent").
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import numpy as np
 
@@ -35,12 +38,14 @@ def main(argv=None) -> None:
 
     from knockgs_core.assets import build_asset
     from knockgs_core.contract import load_contract
-    from knockgs_core.discrepancy import LoopSettings
-    from knockgs_core.discrepancy._catalogue import CatalogueContext, default_catalogue, dev_strain_norm
+    from knockgs_core.discrepancy import LoopSettings, Measurement
+    from knockgs_core.discrepancy._catalogue import default_catalogue
+    from knockgs_core.discrepancy._fitting import Problem
     from knockgs_core.discrepancy._forward import ForwardModel, ModelSpec
+    from knockgs_core.discrepancy._loop import _context
     from knockgs_core.discrepancy._model_error import FLOOR_SHIFTS, displacement_at, refined_contract, translated
     from knockgs_core.discrepancy._worlds import world_contract
-    from knockgs_core.sim import viscous_stability_limit
+    from knockgs_core.sim import particle_volumes
 
     c = load_contract(args.object, args.profile)
     probe = c.roles["calibration"]
@@ -96,18 +101,28 @@ def main(argv=None) -> None:
     print(f"\nfloor (mean leftover energy of the placements) / world leftover energy: "
           f"{np.mean(energies) / float(leftover(gap, [J, D]) @ leftover(gap, [J, D])):.2f}\n")
 
-    # catalogue signatures, sized as the loop sizes them at this theta
-    F = fw.deformation(spec, probe)
-    E, nu, rho = fw.base_materials()
-    p_mod = theta[0] * E * (1 - nu) / ((1 + nu) * (1 - 2 * nu))
-    ctx = CatalogueContext(
-        horizon=float(c.probes[probe].export.frame_dt * (c.probes[probe].export.n_frames - 1)),
-        rms_displacement=float(np.sqrt(np.mean(np.sum(U ** 2, -1)))),
-        max_dev_strain=float(np.quantile(dev_strain_norm(F.reshape(-1, 3, 3)), 0.999)),
-        shear_modulus=float(np.mean(E / (2 * (1 + nu)))), nu_range=(float(nu.min()), float(nu.max())),
-        has_gravity=fw.has_gravity(), has_support=fw.has_still_support(),
-        viscous_limit=viscous_stability_limit(dx, float(np.sqrt(np.max(p_mod / (theta[1] * rho)))), c.sim.dt))
-    cands = {k.key: k for k in default_catalogue(ctx)}
+    # other valid discretizations that are not placements: fill seeds, and mass moved between
+    # the Gaussian-associated and the fill particles (5 % more on the Gaussian ones, the total kept)
+    print("| other change | size / \\|W\\| | theta + D represent | theta + D + it represent the world gap |")
+    print("|---|---:|---:|---:|")
+    for k in (1, 2, 3):
+        seeded = dataclasses.replace(c, fill=dataclasses.replace(c.fill, seed=c.fill.seed + k))
+        Dk = (field(built(seeded), spec) - U).ravel()
+        print(f"| fill seed + {k} | {np.linalg.norm(Dk) / norm_W:.3f} | {share(Dk, [J, D]):.3f} | {share(gap, [J, D, Dk]):.3f} |")
+    vol = particle_volumes(np.asarray(asset.particles.positions), dx).astype(np.float64)
+    gs = np.arange(len(vol)) < n_gs
+    vol[gs] *= 1.05
+    vol[~gs] -= (vol[gs].sum() / 1.05 * 0.05) * vol[~gs] / vol[~gs].sum()
+    heavier = dataclasses.replace(asset.particles, volumes=vol.astype(np.float32))
+    Dm = (field(ForwardModel(c, heavier, device="cpu"), spec) - U).ravel()
+    print(f"| 5 % of the mass to the Gaussian particles | {np.linalg.norm(Dm) / norm_W:.3f} | {share(Dm, [J, D]):.3f} | "
+          f"{share(gap, [J, D, Dm]):.3f} |\n")
+
+    # catalogue signatures, sized as the loop sizes them at this theta (its own context)
+    X = np.asarray(fw.rollout(spec, probe), np.float64)
+    T = X.shape[0]
+    seen = Measurement(points=X[:, :n_gs], frames=np.arange(T), times=None, particle=np.arange(n_gs), track=np.arange(n_gs))
+    cands = {k.key: k for k in default_catalogue(_context(Problem(seen, fw, probe, LoopSettings()), spec))}
     fwc = ForwardModel(c, asset.particles, catalogue=cands, device="cpu")
     print("| effect (middle trial) | size / \\|W\\| | theta represents | theta + D represent |")
     print("|---|---:|---:|---:|")

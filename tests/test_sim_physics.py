@@ -418,15 +418,62 @@ def test_guard_stops_an_unstable_run_under_the_p2g_by_cells():
     assert state.step > model.probe_first  # the substeps ran until the probe made the run unstable
 
 
-def test_substep_graphs_are_refused_where_they_cannot_replay():
-    """Substep graphs need a CUDA device and a model without per-substep host hooks (effects,
-    particle translations); on the CPU ``auto`` keeps the launches as they are."""
+def test_substep_graphs_replay_the_same_substeps_bit_for_bit():
+    """A run with each substep replayed as a captured graph (on the CPU: Warp's recorded
+    launches) equals the plain run bit for bit through a probe that switches off, a support
+    whose time window closes and the guard's moves of the active box (each a new graph); a
+    model with effects is refused, ``auto`` keeps the CPU's launches as they are."""
     from knockgs_core.errors import InputError
+    from knockgs_core.sim import Gravity, with_effects
 
-    X = np.full((8, 3), 1.0, dtype=np.float32) + 0.01 * np.arange(24, dtype=np.float32).reshape(8, 3)
-    model = build_model(X, E=1e4, nu=0.3, rho=1000.0, params=SimParams(n_grid=16, dt=1e-3), device="cpu")
+    h = 1 / 32
+    axis = np.arange(0.85 + h / 2, 1.15, h)
+    zaxis = np.arange(0.8 + h / 2, 1.2, h)
+    X = np.stack(np.meshgrid(axis, axis, zaxis, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
+    support = FixedCuboid(Box((1.0, 1.0, 0.78), (0.3, 0.3, 0.05)), start_time=0.0, end_time=0.05)
+    params = SimParams(n_grid=32, dt=1e-3, boundaries=(DomainWalls(), support))
+    model = build_model(X, E=1e4, nu=0.3, rho=1000.0, params=params, probe=Probe("knock", (-0.6, 0.0, 0.0), dt_ref=1e-3),
+                        device="cpu")
+    assert model.probe_steps > 0
+    runs = {}
+    for graph in (False, True):
+        # two states stepped in turn by one solver: every switch records the launches (and
+        # their graphs) again for the other state's arrays
+        states = [make_state(model, X), make_state(model, X)]
+        solver = MPMSolver(model, graph=graph)
+        solver.check(states[0])
+        for i in range(240):
+            state = states[i % 2 if i < 40 else int(i >= 140)]
+            solver.step(state)
+            if state.step % params.guard_every == 0:
+                solver.check(state)
+        runs[graph] = [a.numpy().copy() for st in states for a in (st.particle_u, st.particle_v, st.particle_F, st.particle_C)]
+        assert solver.graph is graph and (not graph or solver._graphs)
+    for plain, replayed in zip(runs[False], runs[True]):
+        np.testing.assert_array_equal(plain, replayed)
+    assert np.abs(runs[False][0]).max() > 1e-4
     assert MPMSolver(model).graph is False
     with pytest.raises(InputError, match="graph"):
-        MPMSolver(model, graph=True)
-    with pytest.raises(InputError, match="graph"):
         MPMSolver(model, graph="yes")
+    heavy = build_model(X, E=1e4, nu=0.3, rho=1000.0, params=with_effects(params, Gravity(g=1.0)), device="cpu")
+    with pytest.raises(InputError, match="graph"):
+        MPMSolver(heavy, graph=True)
+
+
+def test_particle_volumes_share_each_cell_among_its_particles(rng):
+    """dx^3 split evenly among the particles of each occupied cell, counted by one key per
+    cell: the same volumes as counting rows of cell indices, for a dense set and for a sparse
+    one (particles far apart, where the cell box is too large to count densely)."""
+    from knockgs_core.sim import particle_volumes
+
+    def by_rows(X, dx):
+        cells = np.floor(np.asarray(X, dtype=np.float64) / dx).astype(np.int64)
+        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+        return (dx**3 / counts[inverse.reshape(-1)]).astype(np.float32)
+
+    dense = (rng.random((20000, 3)) * 0.5 + 0.7).astype(np.float32)
+    sparse = np.array([[0.0, 0.0, 0.0], [500.0, 500.0, 500.0], [0.001, 0.002, 0.0], [500.01, 500.0, 500.0]], np.float32)
+    for X, dx in ((dense, 2.0 / 64), (sparse, 0.1)):
+        np.testing.assert_array_equal(particle_volumes(X, dx), by_rows(X, dx))
+    np.testing.assert_allclose(particle_volumes(sparse, 0.1), [0.0005, 0.0005, 0.0005, 0.0005], rtol=1e-6)
+    assert particle_volumes(np.zeros((0, 3), np.float32), 0.1).shape == (0,)

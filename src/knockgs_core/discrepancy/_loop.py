@@ -245,7 +245,7 @@ def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loop
     term[1:] = perp.reshape(D[1:].shape)
     me.spec, me.term, me.change = spec, term, D
     out = problem.with_term(term, me.c_max)
-    me.leftover, me.leftover_share = None, None
+    me.leftover_share = None
     # the floor's shapes are needed only where the data show the term: at the model's own
     # resolution (c below half the ramp's start) the floor's weight is 0, and neither the
     # placements nor the second refinement are simulated
@@ -253,16 +253,13 @@ def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loop
         # the floor: what other placements on the grid (or one more refinement step) change
         # that theta and the term cannot represent
         if me.floor == "shifts":
-            index = problem.corr.index
-            changes = [me.placement_difference(fw, spec, problem.probe, index, k)[problem.frames][1:].reshape(-1)
-                       for k in range(len(me.placements))]
+            changes = [Dk[problem.frames][1:].reshape(-1)
+                       for Dk in me.placement_differences(fw, spec, problem.probe, problem.corr.index)]
         else:
             changes = [me.difference(fw, spec, problem.probe, points, level=2)[problem.frames][1:].reshape(-1)]
         A = np.column_stack([J, flat])
         shapes = np.stack([Dk - A @ np.linalg.lstsq(A, Dk, rcond=None)[0] for Dk in changes])
         out.floor_shape = shapes
-        me.leftover = np.zeros((len(shapes),) + D.shape)
-        me.leftover[:, 1:] = shapes.reshape((len(shapes),) + D[1:].shape)
         me.leftover_share = float(np.sum(shapes * shapes)) / max(float(sum(Dk @ Dk for Dk in changes)), 1e-300)
     return out
 

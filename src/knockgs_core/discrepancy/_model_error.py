@@ -24,7 +24,7 @@ against which a residual is significant) is measured, not assumed, in one of two
   model's own; where the model is not resolved its response depends on the placement (at ci
   by 5-24 % of the Probe-A response, ``benchmarks/model_error_span.py``). The floor is the
   mean energy of the placements' changes ``D_k`` that theta's sensitivities and ``c * D``
-  cannot represent (``leftover``). It costs one model rollout per placement.
+  cannot represent (the floor's shapes). It costs one model rollout per placement.
 - ``second_refinement``: a second refinement, by ``r^2`` (three grids, as in a
   grid-convergence study), gives ``D2``, the change two steps away; its part that theta's
   sensitivities and ``c * D`` cannot represent is the shape the term misses one step
@@ -132,10 +132,11 @@ class ModelError:
     log theta that moves the model like the refinement does (least squares on D); ``refined`` the refined
     forward model; ``factor`` the refinement ratio r; ``c_max`` the bound of the coefficient;
     ``richardson`` ``r / (r - 1)``: the coefficient of the continuum limit under first-order
-    convergence; ``length`` the kernel length [m]. ``second``: the model refined by ``r^2``
-    (None: no floor measurement) and ``leftover`` [T, M, 3] (m): the part of its change that
-    theta and the term cannot represent, ``leftover_share``: its energy as a share of that
-    change's."""
+    convergence; ``length`` the kernel length [m]. ``floor``: how the floor is measured
+    (:data:`FLOOR_KINDS`); ``second``: the model refined by ``r^2`` (``second_refinement``);
+    ``placements``: the model at the grid placements :data:`FLOOR_SHIFTS` (``shifts``);
+    ``leftover_share``: the energy of the parts of their changes that theta and the term cannot
+    represent (the floor's shapes, held by the problem), as a share of those changes'."""
 
     refined: ForwardModel
     factor: float
@@ -148,7 +149,6 @@ class ModelError:
     term: np.ndarray | None = None
     change: np.ndarray | None = None
     theta_shift: np.ndarray | None = None
-    leftover: np.ndarray | None = None
     leftover_share: float | None = None
 
     @property
@@ -170,12 +170,16 @@ class ModelError:
         ur = displacement_at(Xr[0], Xr - Xr[0], points, length=self.length)
         return ur - u
 
-    def placement_difference(self, model: ForwardModel, spec: ModelSpec, probe: str, index: np.ndarray, k: int) -> np.ndarray:
-        """D_k [T, P, 3] = displacement of the model at placement ``k`` minus the model's, of
-        the particles ``index`` [P] under ``probe`` at ``spec`` (the same particles: no kernel)."""
+    def placement_differences(self, model: ForwardModel, spec: ModelSpec, probe: str, index: np.ndarray) -> list[np.ndarray]:
+        """D_k [T, P, 3] for each placement k: its displacement minus the model's, of the
+        particles ``index`` [P] under ``probe`` at ``spec`` (the same particles: no kernel)."""
         X = np.asarray(model.rollout(spec, probe), dtype=np.float64)[:, index]
-        Xk = np.asarray(self.placements[k].rollout(spec, probe), dtype=np.float64)[:, index]
-        return (Xk - Xk[0]) - (X - X[0])
+        U = X - X[0]
+        out = []
+        for placed in self.placements:
+            Xk = np.asarray(placed.rollout(spec, probe), dtype=np.float64)[:, index]
+            out.append((Xk - Xk[0]) - U)
+        return out
 
     def to_dict(self) -> dict:
         c = self.refined.contract

@@ -324,11 +324,12 @@ class MPMSolver:
     ``"cells"`` (particles sorted by base cell every substep, chunk sums with one atomic per
     chunk and node; the GPU's) or ``"auto"``.
 
-    ``graph``: replay each substep as a captured CUDA graph (one per probe state and set of
-    active supports, captured again when the guard moves the active box), which skips the
-    host's launch overhead; ``"auto"``: on a CUDA device, for models without effects and
-    particle translations (whose host-side hooks run every substep). The same kernels, in the
-    same order, with the same arguments.
+    ``graph``: replay each substep as a captured graph (one per probe state and set of active
+    supports, captured again when the guard moves the active box), which skips the host's
+    launch overhead: a CUDA graph on a GPU; on the CPU (on request only) Warp replays the
+    recorded launches, bit for bit the same substeps. ``"auto"``: on a CUDA device, for models
+    without effects and particle translations (whose host-side hooks run every substep). The
+    same kernels, in the same order, with the same arguments.
     """
 
     #: cap on the warm-started polar iterations per particle and substep (they stop when the
@@ -346,8 +347,6 @@ class MPMSolver:
             graph = cuda and not p.effects and not model.translations
         if graph not in (True, False):
             raise InputError("MPMSolver", "graph", f"must be 'auto', True or False, got {graph!r}")
-        if graph and not cuda:
-            raise InputError("MPMSolver", "graph", "substep graphs need a CUDA device")
         if graph and (p.effects or model.translations):
             raise InputError("MPMSolver", "graph", "substep graphs take models without effects and particle translations")
         self.graph = bool(graph)
