@@ -112,6 +112,50 @@ def test_coefficient_is_profiled_on_the_fit_window_and_bounded(rng):
     assert plain.model_floor(plain.val_rows) == 0.0 and plain.coefficient(plain.raw_residual(spec)) == 0.0
 
 
+class _ForwardWithEffect(_Forward):
+    """positions = rest + s_E * A(t) + u * B(t), u the strength of effect ``"set"``."""
+
+    def __init__(self, X0, A, B):
+        super().__init__(X0, A)
+        self.B = B
+
+    def rollout(self, spec, probe):
+        return super().rollout(spec, probe) + dict(spec.effects).get("set", 0.0) * self.B
+
+
+def test_time_signature_reads_only_thirds_the_discretization_floor_cannot_move(rng):
+    """A contribution that grows in time (a permanent set) held by the data at 0.3 in the
+    first third and fully after it: the share 0.3 is read there, unless the floor's shapes
+    project on the contribution in that third by as much as the limit (then the third is not
+    judged); a floor too small to move the share leaves it read."""
+    from knockgs_core.discrepancy._attribution import _window_shares
+
+    T, M = 12, 20
+    X0 = rng.uniform(0, 1, size=(M, 3))
+    t = np.arange(T)[:, None, None] / (T - 1)
+    A = np.sin(7 * t) * rng.normal(size=(1, M, 3)) * 1e-3
+    B = t**2 * rng.normal(size=(1, M, 3)) * 1e-3
+    fw = _ForwardWithEffect(X0, A, B)
+    spec = ModelSpec((1.0, 1.0)).with_effect("set", 1.0)
+    held = np.where(np.arange(T) <= 4, 0.3, 1.0)[:, None, None]  # thirds of the 11 frames after t = 0: 1-4, 5-8, 9-11
+    Y = X0[None] + A + held * B
+    m = Measurement(points=Y, frames=np.arange(T), times=None, particle=np.arange(M), track=np.arange(M))
+    term = np.zeros_like(A)
+    first = np.zeros_like(B)
+    first[1:5] = B[1:5]
+    for scale, weight, expected_first in [(3.0, 0.0, 0.3), (3.0, 1.0, None), (0.2, 1.0, 0.3)]:
+        pb = Problem(m, fw, "p", LoopSettings()).with_term(term, 6.0, floor_shape=scale * first[1:].reshape(-1))
+        shares = _window_shares(pb, spec, "set", 1e-16, floor_weight=weight, limit=0.5)
+        assert shares[1:] == pytest.approx([1.0, 1.0], abs=1e-9)
+        if expected_first is None:
+            assert np.isnan(shares[0])
+        else:
+            assert shares[0] == pytest.approx(expected_first, abs=1e-9)
+    # a contribution lost in the noise is not judged either
+    pb = Problem(m, fw, "p", LoopSettings()).with_term(term, 6.0)
+    assert all(np.isnan(_window_shares(pb, spec, "set", 1.0)))
+
+
 def test_settings_refuse_a_refinement_that_refines_nothing():
     with pytest.raises(InputError, match="model_error_refine"):
         LoopSettings(model_error_refine=1.0)
@@ -251,3 +295,33 @@ def test_a_push_that_starts_late_is_not_named_gravity(pillow):
     row = next(r for r in res.rounds[0]["table"] if r["key"] == "gravity")
     assert row["signature_ok"] and row["signature_share"] > 0.8
     assert res.effects[0]["value"] == pytest.approx(0.03, rel=0.1)
+
+
+def test_a_yield_in_a_finer_world_is_judged_with_its_own_discretization_term(pillow):
+    """Plasticity in data from the same MPM on a grid twice as fine. A yield resolved on the
+    finer grid sets in elsewhere, so the model with a yield moves under refinement in its own
+    way: scored with the term of the theta-only model the yield explains too little of the
+    residual beyond the floor and is not added (a stiffness gradient is named in its place);
+    scored with the term of its own fitted model it is named and its theta interval holds
+    the truth."""
+    from knockgs_core.assets import build_asset
+    from knockgs_core.sim import VonMisesPlasticity
+
+    contract, particles = pillow
+    world = refined_contract(contract, 2.0)
+    truth = (0.95, 1.35)
+    m, _ = _tracks(world, build_asset(world).particles, truth, "standard_x", (VonMisesPlasticity(yield_stress=80.0),),
+                   np.random.default_rng(11))
+    catalogue = ("plasticity", "damping", "stiffness_gradient_z")
+    res = run_discrepancy(m, contract, particles, settings=LoopSettings(catalogue=catalogue))
+    assert res.identified == ["plasticity"], res.verdict
+    row = next(r for r in res.rounds[0]["table"] if r["key"] == "plasticity")
+    assert row["own_term"] and row["signature_ok"]
+    assert 40.0 < res.effects[0]["value"] < 160.0
+    (lo_e, hi_e), (lo_r, hi_r) = res.theta_interval
+    assert lo_e <= truth[0] <= hi_e and lo_r <= truth[1] <= hi_r, res.theta_interval
+    # with the theta-only model's term the yield is not named (another effect may be, wrongly)
+    old = run_discrepancy(m, contract, particles, settings=LoopSettings(catalogue=catalogue, model_error_own_term=False))
+    assert "plasticity" not in old.identified, old.verdict
+    old_row = next(r for r in old.rounds[0]["table"] if r["key"] == "plasticity")
+    assert "own_term" not in old_row and old_row["explained_excess"] < row["explained_excess"]

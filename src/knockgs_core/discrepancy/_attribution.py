@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -43,10 +44,13 @@ class AttributionRow:
     of the theta-only residual above the noise and the discretization floor (NaN where there
     is none): what the effect explains beyond the floor. Time signature (sustained and permanent candidates, refined):
     ``signature_share``, the smallest share of the candidate's contribution that the data
-    hold in a third of the record where it is visible above the noise (:func:`_window_shares`),
+    hold in a third of the record where it is visible above the noise and the discretization
+    floor (:func:`_window_shares`),
     and ``signature_ok`` (at least ``LoopSettings.signature_min``): a load that stays on acts
-    from t = 0 to the end, a push that starts later or ends does not. ``refined_spec``: the
-    refined model, used by the decision, never written.
+    from t = 0 to the end, a push that starts later or ends does not. ``own_term``: the
+    refined model was scored with the discretization term recomputed at it (where the data
+    show the term). ``refined_spec`` and ``refined_problem``: the refined model and the
+    problem it was scored in, used by the decision, never written.
     """
 
     key: str
@@ -69,8 +73,10 @@ class AttributionRow:
     explained_excess: float = math.nan
     signature_share: float = math.nan
     signature_ok: bool = True
+    own_term: bool = False
     rank: int = 0
     refined_spec: ModelSpec | None = field(default=None, repr=False)
+    refined_problem: Problem | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
         """The row as written to ``result.json`` and read by the report (only the fields its
@@ -96,6 +102,10 @@ class AttributionRow:
                       "explained_val": self.explained_val, "delta_bic": self.delta_bic})
             if not math.isnan(self.signature_share):
                 d.update({"signature_share": self.signature_share, "signature_ok": self.signature_ok})
+            if self.own_term:
+                d["own_term"] = True
+            if self.refine_error is not None:
+                d["refine_error"] = self.refine_error
         else:
             if self.refine_error is not None:
                 d["refine_error"] = self.refine_error
@@ -267,38 +277,53 @@ def _screen(problem: Problem, spec: ModelSpec, cand: Candidate, lin: _Linearizat
     )
 
 
-def _window_shares(problem: Problem, fitted: ModelSpec, key: str, floor: float) -> list[float]:
+def _window_shares(problem: Problem, fitted: ModelSpec, key: str, floor: float, *, floor_weight: float = 0.0,
+                   limit: float = math.inf) -> list[float]:
     """How much of the candidate's contribution the data hold in each third of the record.
 
     At the candidate's fitted model, S is its contribution (the rollout minus the same
     without it) and R what the data need on top of the model without it (measured minus that
     rollout, minus the fitted discretization term). For each third W of the frames after
     t = 0, ``a_W = <R_W, S_W> / <S_W, S_W>`` (1: the data hold the contribution there; 0: they
-    have none). Windows where the contribution is too small to be seen in the noise (standard
-    error of ``a_W``, ``sqrt(floor) / |S_W|``, above 0.1) give NaN. A load that stays on acts
-    from t = 0 and in every window; a push that starts later or has ended does not."""
+    have none). Windows where the share cannot be read give NaN: where the contribution is
+    too small to be seen in the noise (standard error of ``a_W``, ``sqrt(floor) / |S_W|``,
+    above 0.1), or where the discretization floor alone could move the share by ``limit``
+    (the RMS over the floor's shapes f_k of ``<f_k,W, S_W> / <S_W, S_W>``, times the square
+    root of ``floor_weight``). A load that stays on acts from t = 0 and in every window; a
+    push that starts later or has ended does not."""
     without = problem.observe(fitted.with_effect(key, 0.0))
     S = (problem.observe(fitted) - without)[1:]
     R = (problem.Y - without)[1:]
     if problem.term is not None:
         c = problem.coefficient(problem.raw_residual(fitted))
         R = R - c * problem.term.reshape(R.shape)
-    shares = []
+    shapes = None
+    if floor_weight > 0 and problem.floor_shape is not None:
+        shapes = problem.floor_shape.reshape((-1,) + S.shape)
+    out = []
     for w in np.array_split(np.arange(S.shape[0]), 3):
         s_w, r_w = S[w].reshape(-1), R[w].reshape(-1)
         ss = float(s_w @ s_w)
         if ss <= 0 or math.sqrt(max(floor, 0.0) / ss) > 0.1:
-            shares.append(math.nan)
-        else:
-            shares.append(float(r_w @ s_w) / ss)
-    return shares
+            out.append(math.nan)
+            continue
+        if shapes is not None:
+            moved = [float(f[w].reshape(-1) @ s_w) / ss for f in shapes]
+            if math.sqrt(floor_weight * float(np.mean(np.square(moved)))) >= limit:
+                out.append(math.nan)
+                continue
+        out.append(float(r_w @ s_w) / ss)
+    return out
 
 
 def _refine(problem: Problem, spec: ModelSpec, row: AttributionRow, cand: Candidate, rss_theta: tuple[float, float],
-            settings: LoopSettings, log: list, floor: float = 0.0, lin: _Linearization | None = None) -> None:
+            settings: LoopSettings, log: list, floor: float = 0.0, lin: _Linearization | None = None,
+            retarget: Callable[[ModelSpec], Problem] | None = None, floor_weight: float = 0.0) -> None:
     """Fit the candidate nonlinearly (theta, the strengths in ``spec`` and its own) on the fit
     window and score it against the theta-only refit energies ``rss_theta`` (fit,
-    validation); updates ``row`` in place."""
+    validation); updates ``row`` in place. ``retarget``: ``spec -> problem`` with the
+    discretization term recomputed at ``spec``; given, the fitted model is scored with its own
+    term."""
     F, V = problem.fit_rows, problem.val_rows
     # start from the best (on the fit window) of the screen's estimate and its trials, each as
     # it is and with theta re-tuned by one Gauss-Newton step of the linearization ``lin``: an
@@ -336,6 +361,15 @@ def _refine(problem: Problem, spec: ModelSpec, row: AttributionRow, cand: Candid
         row.refine_error = str(exc)[:200]
         row.explained_val = row.screen_explained_val
         return
+    scored = problem
+    if retarget is not None:
+        try:
+            scored = retarget(fitted)
+            rr = scored.residual(fitted)
+            row.own_term = True
+        except (SimulationError, InputError) as exc:
+            scored = problem
+            row.refine_error = f"the term at the refined model: {str(exc)[:160]}"
     rF, rV = float(rr[F] @ rr[F]), float(rr[V] @ rr[V])
     u = dict(fitted.effects)[cand.key]
     row.refined = True
@@ -346,9 +380,11 @@ def _refine(problem: Problem, spec: ModelSpec, row: AttributionRow, cand: Candid
     row.explained_val = 1.0 - rV / max(rss_theta[1], 1e-300)
     row.delta_bic = F.size * math.log(max(rF, 1e-300) / max(rss_theta[0], 1e-300)) + math.log(F.size)
     row.refined_spec = fitted
+    row.refined_problem = scored
     if cand.time_signature and u != 0.0:
         try:
-            shares = [a for a in _window_shares(problem, fitted, cand.key, floor) if not math.isnan(a)]
+            shares = [a for a in _window_shares(scored, fitted, cand.key, floor, floor_weight=floor_weight,
+                                                limit=settings.signature_min) if not math.isnan(a)]
         except (SimulationError, InputError):
             shares = []
         row.signature_share = min(shares) if shares else math.nan
@@ -356,11 +392,14 @@ def _refine(problem: Problem, spec: ModelSpec, row: AttributionRow, cand: Candid
 
 
 def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], floor: float, settings: LoopSettings,
-              log: list) -> AttributionRound:
+              log: list, retarget: Callable[[ModelSpec], Problem] | None = None) -> AttributionRound:
     """Rank the candidates at ``spec``: screen every candidate not yet in the model (nor
     excluded by one that is); refine the ``refine_top`` best screened ones and every
     threshold-type one, unless the theta-only residual is not significant against the noise
-    ``floor`` [m^2 per residual scalar]; rank refined candidates first, by validated share."""
+    ``floor`` [m^2 per residual scalar]; rank refined candidates first, by validated share.
+    ``retarget`` (``spec -> problem`` with the discretization term recomputed at ``spec``):
+    where the data show the term (its floor applies, ``Problem.floor_weight`` > 0), each
+    refined candidate is scored with the term of its own fitted model."""
     F, V = problem.fit_rows, problem.val_rows
     lin = _linearize(problem, spec, settings)
     present = set(spec.effect_keys)
@@ -387,9 +426,11 @@ def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], fl
     chosen += [key for key in screened if by_key[key].threshold and key not in chosen]
     if not visible:  # nothing above the noise to explain: the screen is reported, no refinement is needed
         chosen = []
+    own = retarget if (retarget is not None and weight > 0) else None
     for row in rows:
         if row.key in chosen:
-            _refine(problem, spec, row, by_key[row.key], (rss_nl_theta_F, rss_nl_theta_V), settings, log, floor, lin)
+            _refine(problem, spec, row, by_key[row.key], (rss_nl_theta_F, rss_nl_theta_V), settings, log, floor, lin, own,
+                    weight)
         else:
             row.explained_val = row.screen_explained_val
     rows.sort(key=lambda row: (not row.refined, -row.explained_val))

@@ -228,21 +228,32 @@ def _sensitivities(problem: Problem, spec: ModelSpec, settings: LoopSettings) ->
     return np.column_stack(cols)
 
 
-def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: LoopSettings) -> Problem:
-    """``problem`` with the discretization term computed at ``spec``: the refined minus the
-    model displacement at the observed points' rest positions and measured frames, less its
-    projection on the theta sensitivities (what re-tuning theta can absorb is left to theta
-    and reported in its interval, so the term never trades off against E or rho)."""
+def _term_at(problem: Problem, me: ModelError, spec: ModelSpec, settings: LoopSettings):
+    """The discretization term at ``spec``: the refined minus the model displacement at the
+    observed points' rest positions and measured frames ``D`` [T, M, 3], the theta
+    sensitivities ``J`` [rows, 2], the change of log theta that moves the model like the
+    refinement ``shift`` [2], and the term [T, M, 3] (D less its projection on J; zero at
+    frame 0)."""
     fw = problem.forward
     points = np.asarray(fw.particles.positions, dtype=np.float64)[problem.corr.index]
     D = me.difference(fw, spec, problem.probe, points)[problem.frames]
     J = _sensitivities(problem, spec, settings)
     flat = D[1:].reshape(-1)
     shift = np.linalg.lstsq(J, flat, rcond=None)[0]
-    perp = flat - J @ shift
-    me.theta_shift = shift  # d log theta that makes the model move like the refined one
     term = np.zeros_like(D)
-    term[1:] = perp.reshape(D[1:].shape)
+    term[1:] = (flat - J @ shift).reshape(D[1:].shape)
+    return D, J, shift, term
+
+
+def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: LoopSettings) -> Problem:
+    """``problem`` with the discretization term computed at ``spec``: the refined minus the
+    model displacement at the observed points' rest positions and measured frames, less its
+    projection on the theta sensitivities (what re-tuning theta can absorb is left to theta
+    and reported in its interval, so the term never trades off against E or rho)."""
+    fw = problem.forward
+    D, J, shift, term = _term_at(problem, me, spec, settings)
+    flat = D[1:].reshape(-1)
+    me.theta_shift = shift  # d log theta that makes the model move like the refined one
     me.spec, me.term, me.change = spec, term, D
     out = problem.with_term(term, me.c_max)
     me.leftover_share = None
@@ -256,12 +267,26 @@ def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loop
             changes = [Dk[problem.frames][1:].reshape(-1)
                        for Dk in me.placement_differences(fw, spec, problem.probe, problem.corr.index)]
         else:
+            points = np.asarray(fw.particles.positions, dtype=np.float64)[problem.corr.index]
             changes = [me.difference(fw, spec, problem.probe, points, level=2)[problem.frames][1:].reshape(-1)]
         A = np.column_stack([J, flat])
         shapes = np.stack([Dk - A @ np.linalg.lstsq(A, Dk, rcond=None)[0] for Dk in changes])
         out.floor_shape = shapes
         me.leftover_share = float(np.sum(shapes * shapes)) / max(float(sum(Dk @ Dk for Dk in changes)), 1e-300)
     return out
+
+
+def _term_moved(problem: Problem, me: ModelError, spec: ModelSpec, settings: LoopSettings, *, adopt: bool = False) -> Problem:
+    """``problem`` with the discretization term recomputed at ``spec`` and its floor's shapes
+    kept: a model with an effect moves under refinement in its own way (a yield resolved on a
+    finer grid sets in elsewhere), so an effect is judged with the term of the model that
+    carries it. ``adopt``: ``me`` records the new term (the final model's); else ``me`` is
+    left as it is."""
+    D, _, shift, term = _term_at(problem, me, spec, settings)
+    if adopt:
+        me.theta_shift = shift
+        me.spec, me.term, me.change = spec, term, D
+    return problem.with_term(term, me.c_max, floor_shape=problem.floor_shape)
 
 
 def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, settings: LoopSettings, log: list) -> dict:
@@ -307,13 +332,15 @@ def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, se
 # 3-5. attribution and augmentation
 # --------------------------------------------------------------------------------------
 def _try_candidates(problem: Problem, spec: ModelSpec, att: AttributionRound, floor: float, settings: LoopSettings,
-                    log: list) -> tuple[tuple[str, ModelSpec] | None, list[dict]]:
+                    log: list) -> tuple[tuple[str, ModelSpec, bool] | None, list[dict]]:
     """Phase 4: jointly recalibrate (theta, strengths) with each of the best ``max_tries``
     rows that pass the screen, from its refined model, on all calibration frames; the first
     that removes ``min_confirm`` of the residual energy above the noise and the discretization
     floor (or, where the residual lies within that floor, lowers it at all: the validation
-    window has already shown that the effect explains most of it) is accepted.
-    Returns (key, new model) or None, and the record of the tries."""
+    window has already shown that the effect explains most of it) is accepted. A row scored
+    with its own discretization term (``AttributionRow.own_term``) is fitted with that term.
+    Returns (key, new model, whether it carries its own term) or None, and the record of the
+    tries."""
     tried = []
     rss_cur = float(np.sum(problem.residual(spec) ** 2))
     for row in att.table[: settings.max_tries]:
@@ -321,9 +348,10 @@ def _try_candidates(problem: Problem, spec: ModelSpec, att: AttributionRound, fl
             continue
         key = row.key
         start_spec = row.refined_spec
+        fit_problem = row.refined_problem if row.refined_problem is not None else problem
         try:
-            new, rr = lm_fit(problem, start_spec, list(start_spec.effect_keys), slice(None), settings, settings.joint_iterations,
-                             log)
+            new, rr = lm_fit(fit_problem, start_spec, list(start_spec.effect_keys), slice(None), settings,
+                             settings.joint_iterations, log)
         except SimulationError as exc:
             tried.append({"key": key, "error": str(exc)[:200]})
             continue
@@ -339,21 +367,24 @@ def _try_candidates(problem: Problem, spec: ModelSpec, att: AttributionRound, fl
                       "theta": list(new.theta), "effects": [list(e) for e in new.effects]})
         confirmed = cost < rss_cur if within else gain >= settings.min_confirm
         if confirmed and dict(new.effects)[key] != 0.0:
-            return (key, new), tried
+            return (key, new, row.own_term), tried
     return None, tried
 
 
 def _augment(problem: Problem, spec: ModelSpec, candidates: list[Candidate], floor: float, settings: LoopSettings, log: list,
-             say: Callable[[str], None]) -> tuple[ModelSpec, list[AttributionRound], bool, str]:
+             say: Callable[[str], None], retarget: Callable[[ModelSpec], Problem] | None = None
+             ) -> tuple[ModelSpec, Problem, list[AttributionRound], bool, str]:
     """Phases 3-5 from the model ``spec``: attribute, add the best confirmed effect, repeat
     until no residual is visible above the noise, ``max_effects`` are in, or no candidate
-    passes. Returns the final model, the rounds, whether a residual stays unexplained (one
-    significant beyond the noise and the discretization floor), and why the loop stopped
-    (``no_residual``, ``max_effects``, ``discretization``: none passes and the residual is
-    within the floor, ``unexplained``)."""
+    passes. ``retarget`` (``spec -> problem`` with the discretization term recomputed at
+    ``spec``) lets candidates be scored with their own term; an effect added so moves the
+    term to the new model. Returns the final model, the problem at it, the rounds, whether a
+    residual stays unexplained (one significant beyond the noise and the discretization
+    floor), and why the loop stopped (``no_residual``, ``max_effects``, ``discretization``:
+    none passes and the residual is within the floor, ``unexplained``)."""
     rounds = []
     while True:
-        att = attribute(problem, spec, candidates, floor, settings, log)
+        att = attribute(problem, spec, candidates, floor, settings, log, retarget)
         rounds.append(att)
         top = att.best
         say(f"round {len(rounds)}: excess over noise {att.excess_noise_val:.3g}, over noise and floor {att.excess_val:.3g}; "
@@ -362,18 +393,20 @@ def _augment(problem: Problem, spec: ModelSpec, candidates: list[Candidate], flo
             + (f" ({top.explained_excess:.3f} beyond the floor)" if top and att.model_floor_val > 0 else ""))
         if not att.visible:
             att.decision = "no residual above the noise left"
-            return spec, rounds, False, "no_residual"
+            return spec, problem, rounds, False, "no_residual"
         if len(spec.effects) >= settings.max_effects:
             att.decision = f"stop: at most {settings.max_effects} effects are added"
-            return spec, rounds, att.significant, "max_effects"
+            return spec, problem, rounds, att.significant, "max_effects"
         accepted, att.tried = _try_candidates(problem, spec, att, floor, settings, log)
         if accepted is None:
             if not att.significant:
                 att.decision = "no catalogue effect explains the residual, which is within the model's discretization floor"
-                return spec, rounds, False, "discretization"
+                return spec, problem, rounds, False, "discretization"
             att.decision = "residual unexplained by the catalogue"
-            return spec, rounds, True, "unexplained"
-        key, spec = accepted
+            return spec, problem, rounds, True, "unexplained"
+        key, spec, own_term = accepted
+        if own_term:
+            problem = retarget(spec)
         att.decision = f"added {key}"
         say(f"added {key}: theta = ({spec.theta[0]:.4f}, {spec.theta[1]:.4f}), strengths {dict(spec.effects)}")
 
@@ -594,7 +627,13 @@ def run_discrepancy(
             refit = _refit_theta(pb, refit, library, settings, log)
             say(f"theta refit with the discretization term at the new theta: ({refit.theta[0]:.4f}, {refit.theta[1]:.4f})")
     say(f"theta refit: ({refit.theta[0]:.4f}, {refit.theta[1]:.4f})")
-    final, rounds, unexplained, stop_reason = _augment(pb, refit, cands, floor, settings, log, say)
+    retarget = None
+    if me is not None and settings.model_error_own_term:
+        base_pb = pb
+        retarget = lambda s: _term_moved(base_pb, me, s, settings)  # noqa: E731
+    final, final_pb, rounds, unexplained, stop_reason = _augment(pb, refit, cands, floor, settings, log, say, retarget)
+    if final_pb is not pb:  # an effect came in with its own term: the final model's term is the one reported
+        pb = _term_moved(pb, me, final, settings, adopt=True)
 
     stages = {"before": base, "refit": refit, "after": final}
     coefficients = {name: pb.coefficient(pb.raw_residual(s)) for name, s in stages.items() if name != "before"}

@@ -200,10 +200,14 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
                    + (f" ({row['explained_excess']:.3f} beyond the floor)"
                       if rd.get("model_floor_val") and "explained_excess" in row else "")
                    + ("" if row.get("signature_ok", True) else f"; time signature off ({row['signature_share']:.2f})")
+                   + ("; own term" if row.get("own_term") else "")
                    + f" | {row['explained_fit']:.3f} | {row['delta_bic']:.4g}" if refined
                    else "not refined | | ")
                 + f" | {row['screen_explained_val']:.3f} | {row['parameter']} = {_fmt(row['value_estimate'])} {row['unit']} |"
             )
+        if any(row.get("own_term") for row in rd["table"]):
+            L.append("\n'own term': scored with the discretization term recomputed at the effect's fitted model "
+                     "(a model with the effect moves under refinement in its own way).")
         for t in rd.get("tried") or []:
             if "error" in t:
                 L.append(f"\nTried {t['key']}: joint recalibration failed ({t['error']}).")

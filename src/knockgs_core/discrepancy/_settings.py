@@ -47,9 +47,14 @@ class LoopSettings:
         model's own resolution, all of it from 0.4 of a refinement step on. c0 sits above the
         coefficients that planted effects alone project on the term in the standard cases
         (up to 0.09 at ci).
+    model_error_own_term: where the data show the discretization term (its floor applies), a
+        refined candidate is scored with the term recomputed at its own fitted model (one
+        refined rollout each), and an effect added so moves the term to the new model; False:
+        every candidate is scored with the term of the theta-only model.
     signature_min: a sustained-load or permanent-set candidate's contribution must be held by
         the data at least at this share in every third of the record where it is visible
-        above the noise (time signature).
+        above the noise and where the discretization floor alone cannot move the share by
+        as much (time signature).
     """
 
     fit_fraction: float = 2.0 / 3.0
@@ -72,6 +77,7 @@ class LoopSettings:
     model_error_floor: str = "shifts"
     model_error_updates: int = 4
     model_error_ramp: tuple[float, float] = (0.15, 0.4)
+    model_error_own_term: bool = True
     signature_min: float = 0.5
 
     def __post_init__(self):
