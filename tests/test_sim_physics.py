@@ -477,3 +477,25 @@ def test_particle_volumes_share_each_cell_among_its_particles(rng):
         np.testing.assert_array_equal(particle_volumes(X, dx), by_rows(X, dx))
     np.testing.assert_allclose(particle_volumes(sparse, 0.1), [0.0005, 0.0005, 0.0005, 0.0005], rtol=1e-6)
     assert particle_volumes(np.zeros((0, 3), np.float32), 0.1).shape == (0,)
+
+
+def test_cell_crowding_counts_for_particles_not_cells():
+    """The crowding that picks the GPU's P2G: particles sharing a particle's stencil base cell,
+    averaged over particles. A cluster of 100 particles in one base cell beside 100 lone ones
+    gives (100 * 100 + 100 * 1) / 200; a block at 2 x 2 x 2 per cell gives 8 inside, less at
+    its faces; the CPU solver keeps the scatter whatever the crowding."""
+    from knockgs_core.sim import MPMSolver, SimParams, build_model, cell_crowding
+
+    dx = 0.1
+    cluster = np.full((100, 3), 1.07) + np.linspace(0.0, 0.02, 100)[:, None]  # base cell (10, 10, 10)
+    lone = 0.6 + 3 * dx * np.stack([np.arange(100) % 5, (np.arange(100) // 5) % 5, np.arange(100) // 25], 1)
+    assert cell_crowding(np.concatenate([cluster, lone]), dx) == pytest.approx((100 * 100 + 100) / 200)
+    axis = dx * (np.arange(40) + 0.5) / 2 + 0.3  # two particles per cell and axis, 20 cells
+    X = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    faces = 8 * (19 / 20) ** 3 + 4 * 3 * (19 / 20) ** 2 / 20 + 2 * 3 * (19 / 20) / 400 + 1 / 8000  # interior, face, edge, corner
+    assert cell_crowding(X, dx) == pytest.approx(faces)
+    assert cell_crowding(np.zeros((0, 3)), dx) == 0.0
+    X32 = cluster.astype(np.float32)
+    model = build_model(X32, E=1e4, nu=0.3, rho=1e3, params=SimParams(n_grid=20, dt=1e-4), device="cpu")
+    solver = MPMSolver(model)
+    assert solver.p2g == "scatter" and solver.crowding is None

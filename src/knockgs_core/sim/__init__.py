@@ -36,8 +36,8 @@ from ._effects import (
     with_effects,
 )
 from ._protocol import Effect
-from ._solver import (MPMSolver, Model, SimResult, State, build_model, default_device, make_state, particle_volumes, simulate,
-                      simulate_many)
+from ._solver import (MPMSolver, Model, SimResult, State, build_model, cell_crowding, default_device, make_state,
+                      particle_volumes, simulate, simulate_many)
 
 __all__ = [
     "BoundaryCondition",
@@ -58,6 +58,7 @@ __all__ = [
     "default_device",
     "make_state",
     "particle_volumes",
+    "cell_crowding",
     "simulate",
     "simulate_many",
     "Effect",

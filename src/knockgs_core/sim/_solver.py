@@ -22,12 +22,24 @@ from . import _kernels as K
 from ._config import DomainWalls, FixedCuboid, ParticleTranslation, Probe, SimParams
 from ._protocol import Effect
 
-__all__ = ["Model", "State", "MPMSolver", "SimResult", "build_model", "particle_volumes", "default_device", "simulate",
-           "simulate_many"]
+__all__ = ["Model", "State", "MPMSolver", "SimResult", "build_model", "particle_volumes", "cell_crowding", "default_device",
+           "simulate", "simulate_many"]
 
 def default_device() -> str:
     """The Warp device used when none is given: ``$KNOCKGS_DEVICE`` or ``"cpu"``."""
     return os.environ.get("KNOCKGS_DEVICE", "cpu")
+
+
+def _sharing(cells: np.ndarray) -> np.ndarray:
+    """For integer cells [N, 3]: how many of the rows share each row's cell, (N,) int64."""
+    cells = cells - cells.min(axis=0)
+    span = cells.max(axis=0) + 1
+    key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]  # the cell's index in the particles' box
+    if int(np.prod(span)) <= max(8 * len(key), 1 << 22):
+        return np.bincount(key)[key]
+    # a sparse box (particles far apart): count the occupied cells only
+    _, inverse, per_cell = np.unique(key, return_inverse=True, return_counts=True)
+    return per_cell[inverse]
 
 
 def particle_volumes(positions: np.ndarray, dx: float) -> np.ndarray:
@@ -36,15 +48,18 @@ def particle_volumes(positions: np.ndarray, dx: float) -> np.ndarray:
     cells = np.floor(np.asarray(positions, dtype=np.float64) / dx).astype(np.int64)
     if len(cells) == 0:
         return np.zeros(0, dtype=np.float32)
-    cells -= cells.min(axis=0)
-    span = cells.max(axis=0) + 1
-    key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]  # the cell's index in the particles' box
-    if int(np.prod(span)) <= max(8 * len(key), 1 << 22):
-        counts = np.bincount(key)[key]
-    else:  # a sparse box (particles far apart): count the occupied cells only
-        _, inverse, per_cell = np.unique(key, return_inverse=True, return_counts=True)
-        counts = per_cell[inverse]
-    return (dx**3 / counts).astype(np.float32)
+    return (dx**3 / _sharing(cells)).astype(np.float32)
+
+
+def cell_crowding(positions: np.ndarray, dx: float) -> float:
+    """How crowded the particles' stencil base cells (``floor(x / dx - 0.5)``) are: the number
+    of particles that share a particle's base cell, averaged over the particles [-]. A thin
+    shell of many particles in few cells counts for its particles, not its cells: 8 for a block
+    at 8 particles per cell, ~100 for the paper-scale Pillow's shell. ``positions`` [N, 3] m."""
+    if len(positions) == 0:
+        return 0.0
+    cells = np.floor(np.asarray(positions, dtype=np.float64) / dx - 0.5).astype(np.int64)
+    return float(np.mean(_sharing(cells)))
 
 
 @dataclass
@@ -322,7 +337,9 @@ class MPMSolver:
 
     ``p2g``: ``"scatter"`` (one float atomic per particle and stencil node; the CPU's),
     ``"cells"`` (particles sorted by base cell every substep, chunk sums with one atomic per
-    chunk and node; the GPU's) or ``"auto"``.
+    chunk and node) or ``"auto"``: by cells on a CUDA device where the particles crowd their
+    cells (:func:`cell_crowding` at least :attr:`CELLS_CROWDING`, recorded in ``crowding``),
+    else the scatter.
 
     ``graph``: replay each substep as a captured graph (one per probe state and set of active
     supports, captured again when the guard moves the active box), which skips the host's
@@ -338,6 +355,9 @@ class MPMSolver:
     #: 4 (the former value) moved its Probe-A response by 9 % and its dt sensitivity from 1.8 % to
     #: 6.5 % per halving (docs/assets.md). tests/test_sim_physics.py checks that it never binds.
     polar_iters = 32
+    #: ``p2g="auto"`` on a CUDA device sums by cells from this :func:`cell_crowding` on (particles
+    #: sharing a particle's base cell, on average), and scatters below it
+    CELLS_CROWDING = 16.0
 
     def __init__(self, model: Model, *, p2g: str = "auto", graph: bool | str = "auto"):
         self.model = model
@@ -351,8 +371,15 @@ class MPMSolver:
             raise InputError("MPMSolver", "graph", "substep graphs take models without effects and particle translations")
         self.graph = bool(graph)
         self._graphs: dict = {}
-        if p2g == "auto":  # by cells on a GPU (atomics on shared nodes serialize there); the scatter on the CPU
-            p2g = "cells" if cuda else "scatter"
+        self.crowding = None
+        if p2g == "auto":
+            # by cells on a GPU where particles crowd their cells (atomics on shared nodes serialize
+            # there); the scatter elsewhere, and always on the CPU
+            p2g = "scatter"
+            if cuda:
+                x0 = model.particle_x0_host
+                self.crowding = cell_crowding(x0, p.dx) if x0 is not None else math.inf
+                p2g = "cells" if self.crowding >= self.CELLS_CROWDING else "scatter"
         if p2g not in ("scatter", "cells"):
             raise InputError("MPMSolver", "p2g", f"must be 'auto', 'scatter' or 'cells', got {p2g!r}")
         self.p2g = p2g
