@@ -26,7 +26,10 @@ def test_world_cases_and_their_validation():
     cases = world_cases()
     assert [c.name for c in cases][:2] == ["finer_null", "finer_damping"] and {c.world for c in cases} == {"finer", "fem"}
     assert all(c.observation == "gs_tracks" and c.level == "high" for c in cases)
-    assert {"finer_vertical_push", "fem_null", "fem_damping", "fem_gravity"} <= {c.name for c in cases}
+    assert {"finer_vertical_push", "fem_null", "fem_damping", "fem_gravity", "fem_stiffness_gradient_z"} <= {
+        c.name for c in cases}
+    # the cases before the FEM stiffness gradient keep their seeds and thetas
+    assert [c.seed for c in cases] == list(range(2000, 2000 + len(cases))) and cases[-1].name == "fem_stiffness_gradient_z"
     with pytest.raises(InputError, match="world"):
         CaseSpec("x", "none", world="moon")
 
@@ -79,6 +82,11 @@ def test_the_fem_world_delivers_the_contracts_impulse_and_tracks_the_mpm(pillow)
     Yd = fem_world_rollout(contract, particles, (0.8, 1.2), "standard_x", pts, world=FemWorld(rayleigh_alpha=3.0))
     ud = Yd - Yd[0]
     assert np.abs(ud[-1]).mean() < np.abs(u[-1]).mean()
+    # a modulus graded along z (slope 0: the same world; a softer base moves the body more)
+    Yg = fem_world_rollout(contract, particles, (0.8, 1.2), "standard_x", pts, world=FemWorld(stiffness_slope=2.0))
+    np.testing.assert_array_equal(fem_world_rollout(contract, particles, (0.8, 1.2), "standard_x", pts,
+                                                    world=FemWorld(stiffness_slope=0.0)), Y)
+    assert np.sqrt(np.mean((Yg - Yg[0]) ** 2)) > 1.02 * np.sqrt(np.mean(u**2))
 
 
 def test_a_fem_case_is_observed_without_identity_and_its_truth_kept_apart(pillow, tmp_path):

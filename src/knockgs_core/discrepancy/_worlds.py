@@ -45,6 +45,7 @@ FEM_EFFECTS = {
     "damping": (lambda s, H: {"rayleigh_alpha": s, "rayleigh_beta": s * (H / (4.0 * np.pi)) ** 2}, 1.0, True,
                 lambda s: ("rayleigh_alpha", s, "1/s")),
     "gravity": (lambda s, H: {"gravity": s}, 0.02, True, lambda s: ("g", s, "m/s^2")),
+    "stiffness_gradient_z": (lambda s, H: {"stiffness_slope": s}, 1.0, True, lambda s: ("slope", s, "")),
 }
 #: planted effects of the finer world (simulator effects of :data:`PLANTED_EFFECTS`)
 FINER_EFFECTS = ("damping", "gravity", "plasticity", "stiffness_gradient_z", "support_slip", "vertical_push", "force_pulse")

@@ -14,7 +14,7 @@ nonlinearity), below every discretization error compared here.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal, Sequence
+from typing import Callable, Literal, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -66,12 +66,16 @@ class ElasticSystem:
 
 
 def assemble_elasticity(mesh: skfem.MeshTet, *, E: float, nu: float, rho: float, degree: int = 1,
-                        mass: Literal["consistent", "lumped"] = "consistent") -> ElasticSystem:
-    """Assemble stiffness and mass of a uniform isotropic body on ``mesh``.
+                        mass: Literal["consistent", "lumped"] = "consistent",
+                        stiffness_field: Callable[[np.ndarray], np.ndarray] | None = None) -> ElasticSystem:
+    """Assemble stiffness and mass of an isotropic body on ``mesh``.
 
     ``degree`` 1: linear tetrahedra (P1, the reference); 2: quadratic (P2, a cross-check of
     the P1 mesh convergence). ``mass``: ``"consistent"`` (the Galerkin mass) or
-    ``"lumped"`` (row sums on the diagonal; P1 only, where they are positive)."""
+    ``"lumped"`` (row sums on the diagonal; P1 only, where they are positive).
+    ``stiffness_field``: the modulus varies in space, ``E(x) = E * stiffness_field(x)``, a
+    positive factor of the coordinates ``x`` [3, ...] m (evaluated at the quadrature points);
+    None: a uniform body. ``nu`` and ``rho`` stay uniform."""
     if mass not in MASS_KINDS:
         raise ValueError(f"mass must be one of {', '.join(MASS_KINDS)}, got {mass!r}")
     if degree not in (1, 2):
@@ -88,12 +92,17 @@ def assemble_elasticity(mesh: skfem.MeshTet, *, E: float, nu: float, rho: float,
     @skfem.BilinearForm
     def stiffness(u, v, w):
         eu, ev = sym_grad(u), sym_grad(v)
-        return 2.0 * mu * ddot(eu, ev) + lam * trace(eu) * trace(ev)
+        f = 1.0 if stiffness_field is None else stiffness_field(np.asarray(w.x))
+        return f * (2.0 * mu * ddot(eu, ev) + lam * trace(eu) * trace(ev))
 
     @skfem.BilinearForm
     def inertia(u, v, w):
         return rho * dot(u, v)
 
+    if stiffness_field is not None:
+        f = np.asarray(stiffness_field(np.asarray(basis.global_coordinates())), dtype=np.float64)
+        if not (np.all(np.isfinite(f)) and np.all(f > 0)):
+            raise InputError("fem.assemble_elasticity", "stiffness_field", "must be a finite positive factor everywhere")
     K = stiffness.assemble(basis).tocsr()
     M = inertia.assemble(basis).tocsr()
     if mass == "lumped":

@@ -37,23 +37,28 @@ class FemWorld:
     ``degree``: 2 (P2 tetrahedra; P1 locks in bending, docs/verification.md);
     ``steps_per_frame``: Newmark steps per export interval; ``rayleigh_alpha`` [1/s] and
     ``rayleigh_beta`` [s]: Rayleigh damping ``C = alpha M + beta K``; ``gravity`` [m/s^2]: a
-    body acceleration along -z from t = 0, the body starting at rest and unloaded."""
+    body acceleration along -z from t = 0, the body starting at rest and unloaded;
+    ``stiffness_slope`` [-]: Young's modulus varying along z as the simulator's
+    :class:`~knockgs_core.sim.StiffnessGradient` (``E exp(slope s)``, ``s = (z - mid) / extent``
+    over the particles' extent along z, so the modulus ratio top/bottom is ``exp(slope)``)."""
 
     degree: int = 2
     steps_per_frame: int = 2
     rayleigh_alpha: float = 0.0
     rayleigh_beta: float = 0.0
     gravity: float = 0.0
+    stiffness_slope: float = 0.0
 
     def __post_init__(self):
         if self.degree not in (1, 2):
             raise InputError("FemWorld", "degree", f"must be 1 or 2, got {self.degree!r}")
         if int(self.steps_per_frame) < 1:
             raise InputError("FemWorld", "steps_per_frame", f"must be >= 1, got {self.steps_per_frame!r}")
-        for name in ("rayleigh_alpha", "rayleigh_beta", "gravity"):
+        for name in ("rayleigh_alpha", "rayleigh_beta", "gravity", "stiffness_slope"):
             v = getattr(self, name)
-            if not (math.isfinite(v) and (v >= 0 or name == "gravity")):
-                raise InputError("FemWorld", name, f"must be finite{' and >= 0' if name != 'gravity' else ''}, got {v!r}")
+            signed = name in ("gravity", "stiffness_slope")
+            if not (math.isfinite(v) and (v >= 0 or signed)):
+                raise InputError("FemWorld", name, f"must be finite{' and >= 0' if not signed else ''}, got {v!r}")
 
 
 def _cells(positions: np.ndarray, dx: float) -> tuple[np.ndarray, np.ndarray]:
@@ -137,7 +142,13 @@ def fem_world_rollout(contract, particles, theta, probe: str, points, *, world: 
         raise InputError(contract.source, f"probes.{probe}", "the FEM world applies a probe shorter than its step at t = 0 only")
     m = contract.materials["base"]
     geo = fem_world_mesh(contract, particles, world=world)
-    system = assemble_elasticity(geo["mesh"], E=m.E * float(theta[0]), nu=m.nu, rho=m.rho * float(theta[1]), degree=world.degree)
+    field = None
+    if world.stiffness_slope:
+        z = np.asarray(particles.positions, dtype=np.float64)[:, 2]
+        mid, extent = 0.5 * (z.min() + z.max()), max(float(z.max() - z.min()), 1e-12)
+        field = lambda x: np.exp(world.stiffness_slope * (x[2] - mid) / extent)  # noqa: E731
+    system = assemble_elasticity(geo["mesh"], E=m.E * float(theta[0]), nu=m.nu, rho=m.rho * float(theta[1]), degree=world.degree,
+                                 stiffness_field=field)
     fixed = []
     for bc in contract.sim.boundaries:
         box = getattr(bc, "box", None)
