@@ -499,3 +499,7 @@ def test_cell_crowding_counts_for_particles_not_cells():
     model = build_model(X32, E=1e4, nu=0.3, rho=1e3, params=SimParams(n_grid=20, dt=1e-4), device="cpu")
     solver = MPMSolver(model)
     assert solver.p2g == "scatter" and solver.crowding is None
+    # the GPU's choice: by cells from the threshold on (the block at 8 per cell keeps the scatter)
+    t = MPMSolver.CELLS_CROWDING
+    assert [MPMSolver.auto_p2g(True, c) for c in (8.0, t, 124.0)] == ["scatter", "cells", "cells"]
+    assert MPMSolver.auto_p2g(False, 124.0) == "scatter"

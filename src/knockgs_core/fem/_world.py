@@ -144,9 +144,11 @@ def fem_world_rollout(contract, particles, theta, probe: str, points, *, world: 
     geo = fem_world_mesh(contract, particles, world=world)
     field = None
     if world.stiffness_slope:
+        from ..sim import StiffnessGradient
+
+        grad = StiffnessGradient(slope=float(world.stiffness_slope), axis=2)
         z = np.asarray(particles.positions, dtype=np.float64)[:, 2]
-        mid, extent = 0.5 * (z.min() + z.max()), max(float(z.max() - z.min()), 1e-12)
-        field = lambda x: np.exp(world.stiffness_slope * (x[2] - mid) / extent)  # noqa: E731
+        field = lambda x: grad.factor(x[2], float(z.min()), float(z.max()))  # noqa: E731
     system = assemble_elasticity(geo["mesh"], E=m.E * float(theta[0]), nu=m.nu, rho=m.rho * float(theta[1]), degree=world.degree,
                                  stiffness_field=field)
     fixed = []

@@ -333,11 +333,15 @@ class StiffnessGradient(Effect):
         if self.axis not in (0, 1, 2):
             raise InputError("StiffnessGradient", "axis", f"must be 0, 1 or 2, got {self.axis!r}")
 
+    def factor(self, c, lo: float, hi: float) -> np.ndarray:
+        """The modulus factor ``exp(slope * s)`` at coordinates ``c`` (any shape, m) along
+        ``axis``, ``s = (c - mid) / extent`` over the extent ``[lo, hi]`` [m] (the particles')."""
+        s = (np.asarray(c, dtype=np.float64) - 0.5 * (lo + hi)) / max(hi - lo, 1e-12)
+        return np.exp(self.slope * s)
+
     def materials(self, positions, E, nu, rho):
         c = np.asarray(positions, dtype=np.float64)[:, self.axis]
-        lo, hi = c.min(), c.max()
-        s = (c - 0.5 * (lo + hi)) / max(hi - lo, 1e-12)
-        return np.asarray(E, dtype=np.float64) * np.exp(self.slope * s), nu, rho
+        return np.asarray(E, dtype=np.float64) * self.factor(c, c.min(), c.max()), nu, rho
 
 
 @dataclass(frozen=True)

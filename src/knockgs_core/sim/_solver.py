@@ -359,6 +359,13 @@ class MPMSolver:
     #: sharing a particle's base cell, on average), and scatters below it
     CELLS_CROWDING = 16.0
 
+    @classmethod
+    def auto_p2g(cls, cuda: bool, crowding: float | None) -> str:
+        """``p2g="auto"``'s choice: by cells on a CUDA device where the particles crowd their
+        cells (atomics on shared nodes serialize there), the scatter elsewhere and always on
+        the CPU."""
+        return "cells" if cuda and crowding is not None and crowding >= cls.CELLS_CROWDING else "scatter"
+
     def __init__(self, model: Model, *, p2g: str = "auto", graph: bool | str = "auto"):
         self.model = model
         p = model.params
@@ -373,13 +380,10 @@ class MPMSolver:
         self._graphs: dict = {}
         self.crowding = None
         if p2g == "auto":
-            # by cells on a GPU where particles crowd their cells (atomics on shared nodes serialize
-            # there); the scatter elsewhere, and always on the CPU
-            p2g = "scatter"
             if cuda:
                 x0 = model.particle_x0_host
                 self.crowding = cell_crowding(x0, p.dx) if x0 is not None else math.inf
-                p2g = "cells" if self.crowding >= self.CELLS_CROWDING else "scatter"
+            p2g = self.auto_p2g(cuda, self.crowding)
         if p2g not in ("scatter", "cells"):
             raise InputError("MPMSolver", "p2g", f"must be 'auto', 'scatter' or 'cells', got {p2g!r}")
         self.p2g = p2g
