@@ -4,7 +4,9 @@ catalogue and every effect run in the workflow, results/<profile>/tables/discrep
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 
 import numpy as np
 import pandas as pd
@@ -173,6 +175,72 @@ def test_an_effect_is_judged_beyond_the_floor_where_the_residual_is_significant(
     assert round_(False, 7.5).decision_share(row) == 0.27  # within the floor: of the whole residual
     assert round_(True, 0.0).decision_share(row) == 0.27  # no discretization floor (the model's own resolution)
     assert row.to_dict()["explained_excess"] == pytest.approx(0.27 * 18 / 9.5)
+    # a row judged with its own term carries its own floor: the round's is not used
+    row.model_floor_val, row.significant = 7.5, True
+    assert round_(True, 0.0).decision_share(row) == pytest.approx(0.27 * 18 / 9.5)
+    row.significant = False
+    assert round_(True, 7.5).decision_share(row) == 0.27
+
+
+class _TermProblem:
+    """A problem reduced to what judging a row with its own term reads: a fixed raw residual
+    at every spec, the term, its profiled coefficient (fit rows = all rows, clipped to [0, 6])
+    and the floor's weight and energy (the term's own, as :class:`Problem` does without floor
+    shapes)."""
+
+    def __init__(self, raw, term, settings):
+        from knockgs_core.discrepancy._fitting import Problem
+
+        self.raw, self.term, self.term_max, self.settings = raw, term, 6.0, settings
+        self.fit_rows = self.val_rows = np.arange(raw.size)
+        self.floor_shape = None
+        self.coefficient = lambda raw: Problem.coefficient(self, raw)
+        self.floor_weight = lambda c: Problem.floor_weight(self, c)
+        self.model_floor = lambda rows, weight=1.0: Problem.model_floor(self, rows, weight)
+
+    def raw_residual(self, spec):
+        return self.raw
+
+
+def test_a_candidate_is_judged_beyond_the_floor_its_own_model_shows():
+    """Where theta has absorbed part of an effect, the theta-only model shows no
+    discretization term; the candidate's own model does, and its floor (weight at its
+    coefficient, at least the round's) sets what the candidate must explain."""
+    from knockgs_core.discrepancy import AttributionRound, AttributionRow, LoopSettings
+    from knockgs_core.discrepancy._attribution import _judge, _own_term, _passes
+    from knockgs_core.discrepancy._forward import ModelSpec
+
+    settings = LoopSettings()
+    rng = np.random.default_rng(3)
+    term = rng.normal(size=400)
+    term *= 5.0 / np.linalg.norm(term)  # energy 25 m^2 per unit coefficient
+    c = 0.3  # the own model's data lie 0.3 of a refinement step away: weight (0.3 - 0.15) / 0.25 = 0.6
+    left = rng.normal(size=400)
+    left -= term * float(left @ term) / float(term @ term)  # what the term cannot take
+    left *= math.sqrt(50.0) / np.linalg.norm(left)
+    problem = _TermProblem(-c * term + left, term, settings)  # simulated minus measured
+    row = AttributionRow("damping", "velocity damping", refined=True, delta_bic=-50.0,
+                         refined_spec=ModelSpec((1.0, 1.0), (("damping", 1.0),)))
+    rss_val = float(left @ left) + 40.0  # the theta-only model leaves 40 m^2 more
+    _own_term(problem, row, lambda spec: problem, (rss_val, rss_val), 0.0)
+    assert row.own_term and row.refined_problem is problem
+    assert row.explained_val == pytest.approx(40.0 / rss_val)  # the term's part is taken by the term
+    assert row.floor_weight == pytest.approx(0.6)
+    assert row.model_floor_val == pytest.approx(0.6 * float(term @ term))
+    noise = 1.0
+    _judge([row], rss_val, noise, 0.0, settings)
+    assert row.explained_excess == pytest.approx(40.0 / (rss_val - noise - 0.6 * float(term @ term)))
+    att = AttributionRound([1.0, 1.0], [], 400, 400, rss_val, rss_val, [1.0, 1.0], rss_val, noise, 1.0, 1.0, True, True,
+                           [row], model_floor_val=0.0)
+    # on the round's floor (none) the row explains under half; beyond its own floor, more
+    assert row.explained_val < settings.min_explained <= att.decision_share(row)
+    assert _passes(att, row, settings)
+    theta_floor = dataclasses.replace(row, model_floor_val=math.nan, significant=None)
+    _judge([theta_floor], rss_val, noise, 0.0, settings)
+    assert not _passes(att, theta_floor, settings)  # judged on the theta-only model's floor it fails
+    # the round's weight is a lower bound
+    _own_term(problem, row, lambda spec: problem, (rss_val, rss_val), 1.0)
+    assert row.floor_weight == 1.0
 
 
 def test_catalogue_viscosity_stays_within_the_explicit_stability_limit():

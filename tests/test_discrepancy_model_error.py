@@ -317,7 +317,10 @@ def test_a_yield_in_a_finer_world_is_judged_with_its_own_discretization_term(pil
     assert res.identified == ["plasticity"], res.verdict
     row = next(r for r in res.rounds[0]["table"] if r["key"] == "plasticity")
     assert row["own_term"] and row["signature_ok"]
+    assert row["floor_weight"] >= res.rounds[0]["floor_weight"] > 0  # its own floor, at least the round's
     assert 40.0 < res.effects[0]["value"] < 160.0
+    # the term reported (and the theta interval's refinement shift) is the final model's
+    assert res.model_error["computed_at_theta"] == pytest.approx(list(res.theta_final), rel=1e-12)
     (lo_e, hi_e), (lo_r, hi_r) = res.theta_interval
     assert lo_e <= truth[0] <= hi_e and lo_r <= truth[1] <= hi_r, res.theta_interval
     # with the theta-only model's term the yield is not named (another effect may be, wrongly)

@@ -11,6 +11,7 @@ is an :class:`AttributionRound`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Callable
@@ -19,7 +20,7 @@ import numpy as np
 
 from ..errors import InputError, SimulationError
 from ._catalogue import Candidate
-from ._fitting import Problem, lm_fit
+from ._fitting import Problem, lm_fit, theta_sensitivities
 from ._forward import ModelSpec
 from ._settings import LoopSettings
 
@@ -49,8 +50,13 @@ class AttributionRow:
     and ``signature_ok`` (at least ``LoopSettings.signature_min``): a load that stays on acts
     from t = 0 to the end, a push that starts later or ends does not. ``own_term``: the
     refined model was scored with the discretization term recomputed at it (where the data
-    show the term). ``refined_spec`` and ``refined_problem``: the refined model and the
-    problem it was scored in, used by the decision, never written.
+    show the term, or where the theta-only model's floor would leave the candidate short).
+    With an own term, ``floor_weight`` and ``model_floor_val`` [m^2]: the discretization floor
+    that the candidate's own model shows (at least the theta-only model's), and
+    ``significant``: whether the theta-only validation residual exceeds the noise and that
+    floor; the candidate is judged beyond it (:meth:`AttributionRound.decision_share`).
+    ``refined_spec`` and ``refined_problem``: the refined model and the problem it was scored
+    in, used by the decision, never written.
     """
 
     key: str
@@ -74,6 +80,9 @@ class AttributionRow:
     signature_share: float = math.nan
     signature_ok: bool = True
     own_term: bool = False
+    floor_weight: float = math.nan
+    model_floor_val: float = math.nan
+    significant: bool | None = None
     rank: int = 0
     refined_spec: ModelSpec | None = field(default=None, repr=False)
     refined_problem: Problem | None = field(default=None, repr=False)
@@ -103,7 +112,8 @@ class AttributionRow:
             if not math.isnan(self.signature_share):
                 d.update({"signature_share": self.signature_share, "signature_ok": self.signature_ok})
             if self.own_term:
-                d["own_term"] = True
+                d.update({"own_term": True, "floor_weight": self.floor_weight, "model_floor_val": self.model_floor_val,
+                          "significant": self.significant})
             if self.refine_error is not None:
                 d["refine_error"] = self.refine_error
         else:
@@ -163,8 +173,12 @@ class AttributionRound:
         """The share of the residual that ``row`` must explain (``LoopSettings.min_explained``):
         of the part above the noise and the discretization floor where that part is
         significant (an effect is judged on what it explains beyond the floor), else of the
-        whole theta-only validation residual."""
-        if self.significant and self.model_floor_val > 0 and not math.isnan(row.explained_excess):
+        whole theta-only validation residual. The floor is the candidate's own where it was
+        scored with its own term (``AttributionRow.model_floor_val``), else the round's."""
+        own = not math.isnan(row.model_floor_val)
+        significant = row.significant if own else self.significant
+        model_floor = row.model_floor_val if own else self.model_floor_val
+        if significant and model_floor > 0 and not math.isnan(row.explained_excess):
             return row.explained_excess
         return row.explained_val
 
@@ -223,12 +237,7 @@ def _rss(A, coef, r, rows):
 def _linearize(problem: Problem, spec: ModelSpec, settings: LoopSettings) -> _Linearization:
     base = problem.observe(spec)
     r = (problem.Y - base)[1:].reshape(-1)  # measured minus simulated: what a change must add
-    h = settings.theta_step
-    cols = []
-    for j in range(2):
-        th = list(spec.theta)
-        th[j] *= math.exp(h)
-        cols.append((problem.observe(spec.with_theta(th)) - base)[1:].reshape(-1) / h)
+    cols = list(theta_sensitivities(problem, spec, settings, base).T)
     lower, upper = [-np.inf, -np.inf], [np.inf, np.inf]
     if problem.term is not None:
         cols.append(problem.term)
@@ -324,7 +333,7 @@ def _refine(problem: Problem, spec: ModelSpec, row: AttributionRow, cand: Candid
     validation); updates ``row`` in place. ``retarget``: ``spec -> problem`` with the
     discretization term recomputed at ``spec``; given, the fitted model is scored with its own
     term."""
-    F, V = problem.fit_rows, problem.val_rows
+    F = problem.fit_rows
     # start from the best (on the fit window) of the screen's estimate and its trials, each as
     # it is and with theta re-tuned by one Gauss-Newton step of the linearization ``lin``: an
     # effect that theta has partly absorbed (a yield softens like a lower E) comes in only
@@ -361,26 +370,18 @@ def _refine(problem: Problem, spec: ModelSpec, row: AttributionRow, cand: Candid
         row.refine_error = str(exc)[:200]
         row.explained_val = row.screen_explained_val
         return
-    scored = problem
-    if retarget is not None:
-        try:
-            scored = retarget(fitted)
-            rr = scored.residual(fitted)
-            row.own_term = True
-        except (SimulationError, InputError) as exc:
-            scored = problem
-            row.refine_error = f"the term at the refined model: {str(exc)[:160]}"
-    rF, rV = float(rr[F] @ rr[F]), float(rr[V] @ rr[V])
-    u = dict(fitted.effects)[cand.key]
     row.refined = True
+    row.refined_spec = fitted
+    row.refined_problem = problem
+    _score(problem, row, rr, rss_theta)
+    u = dict(fitted.effects)[cand.key]
     row.strength_estimate = u
     row.value_estimate = cand.value(u)
     row.theta_estimate = list(fitted.theta)
-    row.explained_fit = 1.0 - rF / max(rss_theta[0], 1e-300)
-    row.explained_val = 1.0 - rV / max(rss_theta[1], 1e-300)
-    row.delta_bic = F.size * math.log(max(rF, 1e-300) / max(rss_theta[0], 1e-300)) + math.log(F.size)
-    row.refined_spec = fitted
-    row.refined_problem = scored
+    scored = problem
+    if retarget is not None:
+        _own_term(problem, row, retarget, rss_theta, floor_weight)
+        scored = row.refined_problem
     if cand.time_signature and u != 0.0:
         try:
             shares = [a for a in _window_shares(scored, fitted, cand.key, floor, floor_weight=floor_weight,
@@ -391,6 +392,51 @@ def _refine(problem: Problem, spec: ModelSpec, row: AttributionRow, cand: Candid
         row.signature_ok = bool(not shares or row.signature_share >= settings.signature_min)
 
 
+def _score(problem: Problem, row: AttributionRow, rr: np.ndarray, rss_theta: tuple[float, float]) -> None:
+    """``row``'s shares of the theta-only energies ``rss_theta`` (fit, validation) removed by
+    its residual ``rr``, and its BIC difference on the fit window."""
+    F, V = problem.fit_rows, problem.val_rows
+    rF, rV = float(rr[F] @ rr[F]), float(rr[V] @ rr[V])
+    row.explained_fit = 1.0 - rF / max(rss_theta[0], 1e-300)
+    row.explained_val = 1.0 - rV / max(rss_theta[1], 1e-300)
+    row.delta_bic = F.size * math.log(max(rF, 1e-300) / max(rss_theta[0], 1e-300)) + math.log(F.size)
+
+
+def _own_term(problem: Problem, row: AttributionRow, retarget: Callable[[ModelSpec], Problem], rss_theta: tuple[float, float],
+              floor_weight: float) -> None:
+    """Rescore the refined ``row`` with the discretization term recomputed at its fitted model
+    and judge it beyond the floor that model shows: the floor's weight at the term's
+    coefficient there (:meth:`Problem.floor_weight`), at least the theta-only model's
+    ``floor_weight``. Where theta has absorbed part of an effect, the theta-only model shows
+    less of the discretization error than the model with the effect does (a stiffer body
+    decays like a damped one)."""
+    try:
+        scored = retarget(row.refined_spec)
+        raw = scored.raw_residual(row.refined_spec)
+    except (SimulationError, InputError) as exc:
+        row.refine_error = f"the term at the refined model: {str(exc)[:160]}"
+        return
+    c = scored.coefficient(raw)
+    _score(problem, row, raw + c * scored.term, rss_theta)
+    row.own_term = True
+    row.refined_problem = scored
+    row.floor_weight = max(float(floor_weight), scored.floor_weight(c))
+    row.model_floor_val = scored.model_floor(scored.val_rows, row.floor_weight)
+
+
+def _judge(rows: list[AttributionRow], rss_val: float, noise_val: float, model_floor_val: float, settings: LoopSettings) -> None:
+    """Each row's share of the validation energy above the noise and the discretization floor
+    (``explained_excess``; its own floor where it has one) and, with its own floor, whether the
+    theta-only residual is significant beyond it."""
+    for row in rows:
+        own = not math.isnan(row.model_floor_val)
+        floor_val = noise_val + (row.model_floor_val if own else model_floor_val)
+        above = rss_val - floor_val
+        row.explained_excess = row.explained_val * rss_val / above if above > 0 and math.isfinite(row.explained_val) else math.nan
+        if own:
+            row.significant = bool((rss_val / floor_val - 1.0 if floor_val > 0 else math.inf) > settings.min_excess)
+
+
 def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], floor: float, settings: LoopSettings,
               log: list, retarget: Callable[[ModelSpec], Problem] | None = None) -> AttributionRound:
     """Rank the candidates at ``spec``: screen every candidate not yet in the model (nor
@@ -399,7 +445,10 @@ def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], fl
     ``floor`` [m^2 per residual scalar]; rank refined candidates first, by validated share.
     ``retarget`` (``spec -> problem`` with the discretization term recomputed at ``spec``):
     where the data show the term (its floor applies, ``Problem.floor_weight`` > 0), each
-    refined candidate is scored with the term of its own fitted model."""
+    refined candidate is scored with the term of its own fitted model and judged beyond the
+    floor that model shows; where they do not, but no candidate among the ``max_tries`` best
+    passes, those are rescored so, and keep their own term where their model shows a floor
+    (theta may have absorbed the effect and, with it, the signs of the discretization error)."""
     F, V = problem.fit_rows, problem.val_rows
     lin = _linearize(problem, spec, settings)
     present = set(spec.effect_keys)
@@ -427,19 +476,14 @@ def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], fl
     if not visible:  # nothing above the noise to explain: the screen is reported, no refinement is needed
         chosen = []
     own = retarget if (retarget is not None and weight > 0) else None
+    rss_theta = (rss_nl_theta_F, rss_nl_theta_V)
     for row in rows:
         if row.key in chosen:
-            _refine(problem, spec, row, by_key[row.key], (rss_nl_theta_F, rss_nl_theta_V), settings, log, floor, lin, own,
-                    weight)
+            _refine(problem, spec, row, by_key[row.key], rss_theta, settings, log, floor, lin, own, weight)
         else:
             row.explained_val = row.screen_explained_val
-    rows.sort(key=lambda row: (not row.refined, -row.explained_val))
-    above = rss_nl_theta_V - floor_V
-    for rank, row in enumerate(rows, 1):
-        row.rank = rank
-        if above > 0 and math.isfinite(row.explained_val):
-            row.explained_excess = row.explained_val * rss_nl_theta_V / above
-    return AttributionRound(
+    _judge(rows, rss_nl_theta_V, noise_V, model_floor_V, settings)
+    att = AttributionRound(
         theta=list(spec.theta), effects=[list(e) for e in spec.effects], n_fit=F.size, n_val=V.size,
         rss_theta_fit=rss_nl_theta_F, rss_theta_val=rss_nl_theta_V, theta_fit_window=list(theta_fit.theta),
         screen_rss_theta_val=lin.rss_val, noise_floor_val=V.size * floor, model_floor_val=model_floor_V, floor_weight=weight,
@@ -448,3 +492,28 @@ def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], fl
         term_coefficient=term_c if problem.term is not None else None,
         rss_theta_val_without_term=rss_raw_V if problem.term is not None else None,
     )
+    if retarget is not None and own is None and problem.term is not None and chosen:
+        # the theta-only model shows no discretization floor: where no candidate passes on that
+        # floor, the best ones are judged with their own term and the floor their model shows
+        rows.sort(key=lambda row: (not row.refined, -row.explained_val))
+        top = [row for row in rows[: settings.max_tries] if row.refined]
+        if top and not any(_passes(att, row, settings) for row in top):
+            for row in top:
+                if row.explained_val > 0 and row.delta_bic < 0 and row.signature_ok:
+                    before = dataclasses.replace(row)
+                    _own_term(problem, row, retarget, rss_theta, weight)
+                    if not row.floor_weight > weight:  # its model shows no floor either: judged as before
+                        row.__dict__.update(before.__dict__)
+            _judge(rows, rss_nl_theta_V, noise_V, model_floor_V, settings)
+    rows.sort(key=lambda row: (not row.refined, -row.explained_val))
+    for rank, row in enumerate(rows, 1):
+        row.rank = rank
+    return att
+
+
+def _passes(att: AttributionRound, row: AttributionRow, settings: LoopSettings) -> bool:
+    """Whether ``row`` passes the attribution's rule for a joint recalibration: refined,
+    explaining ``min_explained`` of the residual (:meth:`AttributionRound.decision_share`), a
+    negative BIC difference and a matching time signature."""
+    return bool(row.refined and att.decision_share(row) >= settings.min_explained and row.delta_bic < 0
+                and row.signature_ok)

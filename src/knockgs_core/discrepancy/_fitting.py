@@ -15,7 +15,21 @@ from ._forward import ForwardModel, ModelSpec
 from ._measured import Correspondence, Measurement, match_points
 from ._settings import LoopSettings
 
-__all__ = ["Problem", "Parametrization", "levenberg_marquardt", "lm_fit"]
+__all__ = ["Problem", "Parametrization", "levenberg_marquardt", "lm_fit", "theta_sensitivities"]
+
+
+def theta_sensitivities(problem: Problem, spec: ModelSpec, settings: LoopSettings, base: np.ndarray | None = None) -> np.ndarray:
+    """Forward-difference sensitivities of the observed positions to log s_E and log s_rho
+    (step ``settings.theta_step``), frames after t = 0, flattened: [rows, 2]. ``base``: the
+    model's observed positions at ``spec`` [T, M, 3] when already simulated."""
+    base = problem.observe(spec) if base is None else base
+    h = settings.theta_step
+    cols = []
+    for j in range(2):
+        th = list(spec.theta)
+        th[j] *= math.exp(h)
+        cols.append((problem.observe(spec.with_theta(th)) - base)[1:].reshape(-1) / h)
+    return np.column_stack(cols)
 
 
 # --------------------------------------------------------------------------------------

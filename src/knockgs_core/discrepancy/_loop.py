@@ -35,9 +35,9 @@ import numpy as np
 from .._io import json_safe
 from ..errors import InputError, SimulationError
 from ..sim import viscous_stability_limit
-from ._attribution import AttributionRound, attribute
+from ._attribution import AttributionRound, _passes, attribute
 from ._catalogue import Candidate, CatalogueContext, default_catalogue, dev_strain_norm
-from ._fitting import Parametrization, Problem, levenberg_marquardt, lm_fit
+from ._fitting import Parametrization, Problem, levenberg_marquardt, lm_fit, theta_sensitivities
 from ._forward import ForwardModel, ModelSpec
 from ._measured import Measurement
 from ._model_error import ModelError, build_model_error
@@ -215,19 +215,6 @@ def _refit_theta(problem: Problem, base: ModelSpec, library: LibrarySource | Non
     return par.to_spec(x, base)
 
 
-def _sensitivities(problem: Problem, spec: ModelSpec, settings: LoopSettings) -> np.ndarray:
-    """Forward-difference sensitivities of the observed positions to log s_E and log s_rho,
-    frames after t = 0, flattened: [rows, 2]."""
-    base = problem.observe(spec)
-    h = settings.theta_step
-    cols = []
-    for j in range(2):
-        th = list(spec.theta)
-        th[j] *= math.exp(h)
-        cols.append((problem.observe(spec.with_theta(th)) - base)[1:].reshape(-1) / h)
-    return np.column_stack(cols)
-
-
 def _term_at(problem: Problem, me: ModelError, spec: ModelSpec, settings: LoopSettings):
     """The discretization term at ``spec``: the refined minus the model displacement at the
     observed points' rest positions and measured frames ``D`` [T, M, 3], the theta
@@ -237,7 +224,7 @@ def _term_at(problem: Problem, me: ModelError, spec: ModelSpec, settings: LoopSe
     fw = problem.forward
     points = np.asarray(fw.particles.positions, dtype=np.float64)[problem.corr.index]
     D = me.difference(fw, spec, problem.probe, points)[problem.frames]
-    J = _sensitivities(problem, spec, settings)
+    J = theta_sensitivities(problem, spec, settings)
     flat = D[1:].reshape(-1)
     shift = np.linalg.lstsq(J, flat, rcond=None)[0]
     term = np.zeros_like(D)
@@ -253,8 +240,7 @@ def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loop
     fw = problem.forward
     D, J, shift, term = _term_at(problem, me, spec, settings)
     flat = D[1:].reshape(-1)
-    me.theta_shift = shift  # d log theta that makes the model move like the refined one
-    me.spec, me.term, me.change = spec, term, D
+    me.record(spec, D, term, shift)
     out = problem.with_term(term, me.c_max)
     me.leftover_share = None
     # the floor's shapes are needed only where the data show the term: at the model's own
@@ -284,8 +270,7 @@ def _term_moved(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loo
     left as it is."""
     D, _, shift, term = _term_at(problem, me, spec, settings)
     if adopt:
-        me.theta_shift = shift
-        me.spec, me.term, me.change = spec, term, D
+        me.record(spec, D, term, shift)
     return problem.with_term(term, me.c_max, floor_shape=problem.floor_shape)
 
 
@@ -300,7 +285,7 @@ def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, se
     (``continuum``: ``refined + (refined - estimate) / (r - 1)`` in log theta) is reported,
     not included: where the convergence is not yet asymptotic (the Pillow's, docs/assets.md)
     it extrapolates past any plausible value."""
-    J = _sensitivities(problem, spec, settings)
+    J = theta_sensitivities(problem, spec, settings)
     r = problem.residual(spec)
     A = np.column_stack([J, problem.term]) if problem.term is not None else J
     dof = max(r.size - A.shape[1], 1)
@@ -338,13 +323,14 @@ def _try_candidates(problem: Problem, spec: ModelSpec, att: AttributionRound, fl
     that removes ``min_confirm`` of the residual energy above the noise and the discretization
     floor (or, where the residual lies within that floor, lowers it at all: the validation
     window has already shown that the effect explains most of it) is accepted. A row scored
-    with its own discretization term (``AttributionRow.own_term``) is fitted with that term.
+    with its own discretization term (``AttributionRow.own_term``) is fitted with that term and
+    judged against the floor its model shows.
     Returns (key, new model, whether it carries its own term) or None, and the record of the
     tries."""
     tried = []
     rss_cur = float(np.sum(problem.residual(spec) ** 2))
     for row in att.table[: settings.max_tries]:
-        if not row.refined or att.decision_share(row) < settings.min_explained or row.delta_bic >= 0 or not row.signature_ok:
+        if not _passes(att, row, settings):
             continue
         key = row.key
         start_spec = row.refined_spec
@@ -359,7 +345,8 @@ def _try_candidates(problem: Problem, spec: ModelSpec, att: AttributionRound, fl
         # the share of the energy above the noise and the discretization floor that the joint fit
         # removes (any gain when the residual lies within the floor: the validation window has
         # already shown that the effect explains most of it)
-        excess_all = rss_cur - rr.size * floor - problem.model_floor(slice(None), att.floor_weight)
+        weight = att.floor_weight if math.isnan(row.floor_weight) else row.floor_weight
+        excess_all = rss_cur - rr.size * floor - fit_problem.model_floor(slice(None), weight)
         within = excess_all <= 0.0
         gain = (rss_cur - cost) / excess_all if not within else None
         new = ModelSpec(new.theta, tuple((k, u) for k, u in new.effects if u != 0.0 or k == key))

@@ -155,6 +155,11 @@ class ModelError:
     def richardson(self) -> float:
         return self.factor / (self.factor - 1.0)
 
+    def record(self, spec: ModelSpec, change: np.ndarray, term: np.ndarray, theta_shift: np.ndarray) -> None:
+        """Keep the term computed at ``spec`` (``change`` D and ``term`` [T, M, 3], the theta
+        change ``theta_shift`` [2] that moves the model like the refinement) as the model's."""
+        self.spec, self.change, self.term, self.theta_shift = spec, change, term, theta_shift
+
     def difference(self, model: ForwardModel, spec: ModelSpec, probe: str, points: np.ndarray, *,
                    level: int = 1) -> np.ndarray:
         """D [T, P, 3] = refined (``level`` 1: by r; 2: by r^2) minus model displacement at rest

@@ -49,8 +49,10 @@ class LoopSettings:
         (up to 0.09 at ci).
     model_error_own_term: where the data show the discretization term (its floor applies), a
         refined candidate is scored with the term recomputed at its own fitted model (one
-        refined rollout each), and an effect added so moves the term to the new model; False:
-        every candidate is scored with the term of the theta-only model.
+        refined rollout each) and judged beyond the floor that model shows (at least the
+        theta-only model's); where they do not and no candidate passes, the best ones are
+        rescored so; an effect added so moves the term to the new model. False: every
+        candidate is scored with the term and floor of the theta-only model.
     signature_min: a sustained-load or permanent-set candidate's contribution must be held by
         the data at least at this share in every third of the record where it is visible
         above the noise and where the discretization floor alone cannot move the share by
