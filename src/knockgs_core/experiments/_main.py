@@ -207,7 +207,7 @@ def render_rollout(gaussians, static_mask, gaussian_index, positions, F, camera,
 def render_outputs(gaussians, static_mask, gaussian_index, positions, F, camera, *, device: str = "cpu") -> list:
     """The :class:`knockgs_core.render.RenderOutput` of every frame of a rollout
     (:func:`render_rollout` says how the scene deforms)."""
-    from ..render import deformed_scene, render
+    from ..render import render_frames
 
     means0 = np.asarray(gaussians.means, dtype=np.float64)
     cov0 = np.asarray(gaussians.covariances(), dtype=np.float64)
@@ -221,8 +221,7 @@ def render_outputs(gaussians, static_mask, gaussian_index, positions, F, camera,
     if F is None or F.shape[1] != n_gs:
         got = "no deformation gradients" if F is None else f"{F.shape[1]} deformation gradients"
         raise InputError("deformation", "F", f"{got} for {n_gs} Gaussian-associated particles")
-    return [render(*deformed_scene(means0, cov0, colors, opac, positions[t, :n_gs], F[t], mask), camera, device=device)
-            for t in range(positions.shape[0])]
+    return render_frames(means0, cov0, colors, opac, mask, positions[:, :n_gs], F, camera, device=device)
 
 
 def render_metrics_rows(estimate: Mapping, targets: pd.DataFrame, render_path, probes: Sequence[str]) -> pd.DataFrame:

@@ -4,7 +4,8 @@ Layers: :func:`project` (EWA projection) -> :func:`bin_tiles` (square tiles, 16 
 the CPU; depth order) -> :func:`rasterize` (front-to-back compositing, one Warp thread per pixel);
 :func:`render` chains them. :func:`render_reference` is a slow NumPy reference of the
 same rule, for tests. :func:`deform_covariances` / :func:`deformed_scene` move
-Gaussians with simulated particles (PhysGaussian: ``Sigma_t = F Sigma_0 F^T``); :func:`deformed_gaussians` gives one frame as a
+Gaussians with simulated particles (PhysGaussian: ``Sigma_t = F Sigma_0 F^T``); :func:`render_frames` renders
+every frame of such a motion, checking the rest scene once; :func:`deformed_gaussians` gives one frame as a
 ``GaussianSet`` for a standard 3DGS PLY.
 
 Conventions: OpenCV camera (x right, y down, z forward); pixel ``(row, col)`` has its
@@ -13,7 +14,7 @@ centre at ``(u, v) = (col + 0.5, row + 0.5)``; colours are RGB in [0, 1].
 
 from ._camera import Camera, RenderOutput
 from ._constants import TILE_SIZE
-from ._deform import Scene, covariance_to_scale_rotation, deform_covariances, deformed_gaussians, deformed_scene
+from ._deform import Scene, covariance_to_scale_rotation, deform_covariances, deformed_gaussians, deformed_scene, render_frames
 from ._pipeline import Projection, TileBins, bin_tiles, project, rasterize, render
 from ._reference import render_reference
 
@@ -30,6 +31,7 @@ __all__ = [
     "render",
     "render_reference",
     "deform_covariances",
+    "render_frames",
     "deformed_scene",
     "deformed_gaussians",
     "covariance_to_scale_rotation",

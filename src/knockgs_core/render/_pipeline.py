@@ -104,7 +104,13 @@ def project(means, covariances, opacities, camera: Camera, *, device: str = "cpu
     check_range(opacities, 0.0, 1.0, src, "opacities")
     if not isinstance(camera, Camera):
         raise InputError(src, "camera", f"expected a Camera, got {type(camera).__name__}")
-    dev = _device(device)
+    return _project(means, covariances, opacities, camera, _device(device))
+
+
+def _project(means: np.ndarray, covariances: np.ndarray, opacities: np.ndarray, camera: Camera, dev) -> Projection:
+    """:func:`project` of checked float arrays (``means [N, 3]``, symmetric ``covariances
+    [N, 3, 3]``, ``opacities [N]``) on the Warp device ``dev``."""
+    n = means.shape[0]
     if n == 0:
         z2, z3 = np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32)
         return Projection(z2, z3, z3.copy(), np.zeros(0, np.float32), z2.copy())
@@ -266,7 +272,12 @@ def rasterize(
         raise InputError(src, "bins.tile_ranges", "does not match the bins' image size")
     if bins.gaussian_ids.size and int(bins.gaussian_ids.max()) >= n:
         raise InputError(src, "bins.gaussian_ids", f"refers to Gaussians beyond the {n} projected")
-    dev = _device(device)
+    return _rasterize(projection, colors, opacities, bins, bg, _device(device))
+
+
+def _rasterize(projection: Projection, colors: np.ndarray, opacities: np.ndarray, bins: TileBins, bg: np.ndarray,
+               dev) -> RenderOutput:
+    """:func:`rasterize` of checked inputs (``bg`` the background [3]) on the Warp device ``dev``."""
     h, w = bins.height, bins.width
     f32 = np.float32
 
@@ -343,10 +354,17 @@ def render(
     means, covariances, colors, opacities = check_scene(means, covariances, colors, opacities, src)
     if not isinstance(camera, Camera):
         raise InputError(src, "camera", f"expected a Camera, got {type(camera).__name__}")
-    check_background(background, src)
-    proj = project(means, covariances, opacities, camera, device=device)
+    bg = check_background(background, src)
+    return _render(means, 0.5 * (covariances + np.swapaxes(covariances, 1, 2)), colors, opacities, camera, bg, device)
+
+
+def _render(means: np.ndarray, covariances: np.ndarray, colors: np.ndarray, opacities: np.ndarray, camera: Camera,
+            bg: np.ndarray, device: str) -> RenderOutput:
+    """:func:`render` of checked float arrays (``covariances`` symmetric, ``bg`` the background
+    [3]): :func:`render_frames` checks a rollout's scene once and renders its frames here."""
     dev = _device(device)
+    proj = _project(means, covariances, opacities, camera, dev)
     # CUDA bins on the device; on the CPU the host sort is as fast and Warp runs one thread
     bins = bin_tiles(proj, camera.width, camera.height, tile_size=C.tile_size_for(dev, len(means)),
                      device=None if dev.is_cpu else device)
-    return rasterize(proj, colors, opacities, bins, background=background, device=device)
+    return _rasterize(proj, colors, opacities, bins, bg, dev)
