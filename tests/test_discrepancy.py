@@ -429,3 +429,47 @@ def test_library_members_are_named_by_theta_and_one_theta_is_refused(tmp_path):
     np.testing.assert_array_equal(lib.theta, [[1.15, 0.75], [0.5, 1.75]])
     with pytest.raises(InputError, match="metadata.knockgs.theta.*also the theta of"):
         library_source(paths)
+
+
+def test_where_the_theta_only_model_shows_no_floor_unpassed_candidates_are_rescored_with_their_own():
+    """``_rescore_unpassed``: with no floor at the theta-only refit and no candidate passing,
+    the best candidates are rescored with their own term; one whose model shows a floor is
+    judged beyond it (and now passes), one whose model shows none is left exactly as it was;
+    where a candidate already passes, nothing is rescored."""
+    from knockgs_core.discrepancy import AttributionRound, AttributionRow, LoopSettings
+    from knockgs_core.discrepancy._attribution import _passes, _rescore_unpassed
+    from knockgs_core.discrepancy._forward import ModelSpec
+
+    settings = LoopSettings()
+    rng = np.random.default_rng(4)
+    term = rng.normal(size=400)
+    term *= 5.0 / np.linalg.norm(term)
+    left = rng.normal(size=400)
+    left -= term * float(left @ term) / float(term @ term)
+    left *= math.sqrt(50.0) / np.linalg.norm(left)
+    rss_val, noise = float(left @ left) + 40.0, 1.0
+    shows = _TermProblem(-0.3 * term + left, term, settings)  # its model's data lie 0.3 of a step away
+    hides = _TermProblem(left, term, settings)  # c = 0: no floor at its model either
+
+    def round_(explained):
+        rows = [AttributionRow("damping", "velocity damping", refined=True, delta_bic=-50.0, explained_val=explained,
+                               refined_spec=ModelSpec((1.0, 1.0), (("damping", 1.0),)))]
+        return AttributionRound([1.0, 1.0], [], 400, 400, rss_val, rss_val, [1.0, 1.0], rss_val, noise, 1.0, 1.0, True,
+                                True, rows, model_floor_val=0.0, floor_weight=0.0)
+
+    att = round_(40.0 / rss_val)
+    assert not _passes(att, att.table[0], settings)
+    _rescore_unpassed(shows, att, lambda spec: shows, (rss_val, rss_val), settings)
+    row = att.table[0]
+    assert row.own_term and row.floor_weight == pytest.approx(0.6) and _passes(att, row, settings)
+
+    att = round_(40.0 / rss_val)
+    _rescore_unpassed(hides, att, lambda spec: hides, (rss_val, rss_val), settings)
+    row = att.table[0]
+    assert not row.own_term and row.refined_problem is None and row.explained_val == 40.0 / rss_val
+    assert math.isnan(row.floor_weight) and math.isnan(row.model_floor_val) and row.significant is None
+    assert not _passes(att, row, settings)
+
+    att = round_(0.9)  # passes on the round's floor: not rescored
+    _rescore_unpassed(shows, att, lambda spec: shows, (rss_val, rss_val), settings)
+    assert not att.table[0].own_term and att.table[0].explained_val == 0.9

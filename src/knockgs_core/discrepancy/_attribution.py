@@ -11,7 +11,6 @@ is an :class:`AttributionRound`.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Callable
@@ -403,13 +402,14 @@ def _score(problem: Problem, row: AttributionRow, rr: np.ndarray, rss_theta: tup
 
 
 def _own_term(problem: Problem, row: AttributionRow, retarget: Callable[[ModelSpec], Problem], rss_theta: tuple[float, float],
-              floor_weight: float) -> None:
+              floor_weight: float, *, only_above: bool = False) -> None:
     """Rescore the refined ``row`` with the discretization term recomputed at its fitted model
     and judge it beyond the floor that model shows: the floor's weight at the term's
     coefficient there (:meth:`Problem.floor_weight`), at least the theta-only model's
     ``floor_weight``. Where theta has absorbed part of an effect, the theta-only model shows
     less of the discretization error than the model with the effect does (a stiffer body
-    decays like a damped one)."""
+    decays like a damped one). ``only_above``: ``row`` is left as it is unless its model's
+    weight exceeds ``floor_weight``."""
     try:
         scored = retarget(row.refined_spec)
         raw = scored.raw_residual(row.refined_spec)
@@ -417,10 +417,13 @@ def _own_term(problem: Problem, row: AttributionRow, retarget: Callable[[ModelSp
         row.refine_error = f"the term at the refined model: {str(exc)[:160]}"
         return
     c = scored.coefficient(raw)
+    own_weight = scored.floor_weight(c)
+    if only_above and not own_weight > floor_weight:
+        return
     _score(problem, row, raw + c * scored.term, rss_theta)
     row.own_term = True
     row.refined_problem = scored
-    row.floor_weight = max(float(floor_weight), scored.floor_weight(c))
+    row.floor_weight = max(float(floor_weight), own_weight)
     row.model_floor_val = scored.model_floor(scored.val_rows, row.floor_weight)
 
 
@@ -493,22 +496,27 @@ def attribute(problem: Problem, spec: ModelSpec, candidates: list[Candidate], fl
         rss_theta_val_without_term=rss_raw_V if problem.term is not None else None,
     )
     if retarget is not None and own is None and problem.term is not None and chosen:
-        # the theta-only model shows no discretization floor: where no candidate passes on that
-        # floor, the best ones are judged with their own term and the floor their model shows
-        rows.sort(key=lambda row: (not row.refined, -row.explained_val))
-        top = [row for row in rows[: settings.max_tries] if row.refined]
-        if top and not any(_passes(att, row, settings) for row in top):
-            for row in top:
-                if row.explained_val > 0 and row.delta_bic < 0 and row.signature_ok:
-                    before = dataclasses.replace(row)
-                    _own_term(problem, row, retarget, rss_theta, weight)
-                    if not row.floor_weight > weight:  # its model shows no floor either: judged as before
-                        row.__dict__.update(before.__dict__)
-            _judge(rows, rss_nl_theta_V, noise_V, model_floor_V, settings)
+        _rescore_unpassed(problem, att, retarget, rss_theta, settings)
     rows.sort(key=lambda row: (not row.refined, -row.explained_val))
     for rank, row in enumerate(rows, 1):
         row.rank = rank
     return att
+
+
+def _rescore_unpassed(problem: Problem, att: AttributionRound, retarget: Callable[[ModelSpec], Problem],
+                      rss_theta: tuple[float, float], settings: LoopSettings) -> None:
+    """Where the theta-only model shows no discretization floor and no candidate among the
+    ``max_tries`` best of ``att`` passes on that floor, rescore those with their own term
+    (:func:`_own_term`); each keeps it only where its model shows a floor (else it is judged
+    as before)."""
+    att.table.sort(key=lambda row: (not row.refined, -row.explained_val))
+    top = [row for row in att.table[: settings.max_tries] if row.refined]
+    if not top or any(_passes(att, row, settings) for row in top):
+        return
+    for row in top:
+        if row.explained_val > 0 and row.delta_bic < 0 and row.signature_ok:
+            _own_term(problem, row, retarget, rss_theta, att.floor_weight, only_above=True)
+    _judge(att.table, att.rss_theta_val, att.noise_floor_val, att.model_floor_val, settings)
 
 
 def _passes(att: AttributionRound, row: AttributionRow, settings: LoopSettings) -> bool:

@@ -42,6 +42,15 @@ def _deform(cov0: np.ndarray, F: np.ndarray) -> np.ndarray:
     return (F @ cov0) @ np.swapaxes(F, 1, 2)
 
 
+def _check_mask(static_mask, n: int, src: str) -> np.ndarray:
+    """``static_mask`` as a bool array [n], or an :class:`InputError` naming ``src``."""
+    mask = np.asarray(static_mask)
+    if mask.dtype != bool or mask.shape != (n,):
+        raise InputError(src, "static_mask", f"expected a bool array of shape [{n}], got "
+                         f"{mask.dtype} {list(mask.shape)}")
+    return mask
+
+
 def deformed_scene(gaussians_means0, cov0, colors, opacities, positions_t, F_t, static_mask) -> Scene:
     """The Gaussian scene at one time: simulated Gaussians moved, static ones kept.
 
@@ -70,10 +79,7 @@ def deformed_scene(gaussians_means0, cov0, colors, opacities, positions_t, F_t, 
     src = "render.deformed_scene"
     means0, cov0, colors, opacities = check_scene(gaussians_means0, cov0, colors, opacities, src)
     n = means0.shape[0]
-    mask = np.asarray(static_mask)
-    if mask.dtype != bool or mask.shape != (n,):
-        raise InputError(src, "static_mask", f"expected a bool array of shape [{n}], got "
-                         f"{mask.dtype} {list(mask.shape)}")
+    mask = _check_mask(static_mask, n, src)
     dyn = np.flatnonzero(~mask)
     pos = as_float_array(positions_t, src, "positions_t", (-1, 3))
     F = as_float_array(F_t, src, "F_t", (-1, 3, 3))
@@ -110,10 +116,7 @@ def render_frames(gaussians_means0, cov0, colors, opacities, static_mask, positi
     src = "render.render_frames"
     means0, cov0, colors, opacities = check_scene(gaussians_means0, cov0, colors, opacities, src)
     n = means0.shape[0]
-    mask = np.asarray(static_mask)
-    if mask.dtype != bool or mask.shape != (n,):
-        raise InputError(src, "static_mask", f"expected a bool array of shape [{n}], got "
-                         f"{mask.dtype} {list(mask.shape)}")
+    mask = _check_mask(static_mask, n, src)
     if not isinstance(camera, Camera):
         raise InputError(src, "camera", f"expected a Camera, got {type(camera).__name__}")
     bg = check_background(background, src)
