@@ -224,3 +224,28 @@ def test_descriptor_table(tmp_path, rng):
     np.testing.assert_array_equal(table.iloc[1, 1:].to_numpy(float), descriptor(b))
     with pytest.raises(InputError, match="duplicate"):
         descriptor_table([("c", b), ("c", b)])
+
+
+def test_library_and_query_tables_read_by_threads_are_the_serial_tables(tmp_path, rng):
+    # rollout files read by several threads: the same rows in the candidates' order, and a bad
+    # file named as the serial loop names it
+    from knockgs_core.experiments import library_table, query_table
+    from knockgs_core.rollout import Rollout, write_rollout
+
+    names = [f"c{i}" for i in range(5)]
+    paths = {}
+    for name in names:
+        x = random_rollout(rng)
+        paths[name] = str(tmp_path / f"{name}.parquet")
+        write_rollout(paths[name], Rollout(positions=x.astype(np.float32), F=None, meta={"theta": [1.0, 1.0]}))
+    candidates = pd.DataFrame({"case_name": names[::-1], "E_scale": np.arange(5.0), "density_scale": np.ones(5)})
+    serial = library_table(candidates, paths)
+    threaded = library_table(candidates, paths, workers=3)
+    assert list(serial.case_name) == names[::-1]
+    pd.testing.assert_frame_equal(threaded, serial)
+    assert serial[list(FEATURE_NAMES)].nunique().min() == 5  # the files differ, so would a mix-up
+    pd.testing.assert_frame_equal(query_table(paths, workers=4), query_table(paths))
+    bad = tmp_path / "bad.parquet"
+    bad.write_text("not parquet")
+    with pytest.raises(InputError, match="bad.parquet"):
+        query_table({**paths, "bad": str(bad)}, workers=3)

@@ -6,5 +6,5 @@ from knockgs_core.contract import load_candidates
 from knockgs_core.experiments import library_table
 
 sys.stderr = open(snakemake.log[0], "w")
-table = library_table(load_candidates(), snakemake.params.rollouts)
+table = library_table(load_candidates(), snakemake.params.rollouts, workers=snakemake.threads)
 write_text(snakemake.output.table, table.to_csv(index=False, float_format="%.10g", lineterminator="\n"))

@@ -5,5 +5,5 @@ from knockgs_core._io import write_text
 from knockgs_core.experiments import query_table
 
 sys.stderr = open(snakemake.log[0], "w")
-table = query_table(dict(zip(snakemake.params.names, snakemake.params.rollouts)))
+table = query_table(dict(zip(snakemake.params.names, snakemake.params.rollouts)), workers=snakemake.threads)
 write_text(snakemake.output.table, table.to_csv(index=False, float_format="%.10g", lineterminator="\n"))

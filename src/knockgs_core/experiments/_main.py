@@ -48,21 +48,35 @@ def _descriptor_of(path) -> np.ndarray:
     return descriptor(ro.positions, n_frames=ro.positions.shape[0], source=str(path))
 
 
-def library_table(candidates: pd.DataFrame, rollouts: Mapping[str, str]) -> pd.DataFrame:
+def _descriptors_of(paths, workers: int) -> list[np.ndarray]:
+    """The descriptors of rollout files ``paths``, in order, read by ``workers`` threads (the
+    Parquet reads and most array work release the GIL); the first failing file's error is
+    raised, as a serial loop would."""
+    paths = list(paths)
+    if workers <= 1 or len(paths) <= 1:
+        return [_descriptor_of(p) for p in paths]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=min(int(workers), len(paths))) as pool:
+        return list(pool.map(_descriptor_of, paths))
+
+
+def library_table(candidates: pd.DataFrame, rollouts: Mapping[str, str], *, workers: int = 1) -> pd.DataFrame:
     """Candidate library: ``case_name, E_scale, density_scale`` + the five descriptor
-    features of each candidate's Probe-A rollout (``rollouts[case_name] -> path``)."""
-    rows = []
-    for rec in candidates.itertuples(index=False):
-        phi = _descriptor_of(rollouts[rec.case_name])
-        rows.append({"case_name": rec.case_name, "E_scale": rec.E_scale, "density_scale": rec.density_scale,
-                     **dict(zip(FEATURE_NAMES, phi))})
-    return pd.DataFrame(rows)
+    features of each candidate's Probe-A rollout (``rollouts[case_name] -> path``), the
+    rollouts read by ``workers`` threads (the same table for any count)."""
+    recs = list(candidates.itertuples(index=False))
+    phis = _descriptors_of((rollouts[rec.case_name] for rec in recs), workers)
+    return pd.DataFrame([{"case_name": rec.case_name, "E_scale": rec.E_scale, "density_scale": rec.density_scale,
+                          **dict(zip(FEATURE_NAMES, phi))} for rec, phi in zip(recs, phis)])
 
 
-def query_table(rollouts: Mapping[str, str]) -> pd.DataFrame:
+def query_table(rollouts: Mapping[str, str], *, workers: int = 1) -> pd.DataFrame:
     """Query descriptors of the targets' Probe-A rollouts: ``case_name`` + five features,
-    no labels (the labels never enter a deployable estimator)."""
-    return pd.DataFrame([{"case_name": name, **dict(zip(FEATURE_NAMES, _descriptor_of(p)))} for name, p in rollouts.items()])
+    no labels (the labels never enter a deployable estimator); ``workers`` as in
+    :func:`library_table`."""
+    phis = _descriptors_of(rollouts.values(), workers)
+    return pd.DataFrame([{"case_name": name, **dict(zip(FEATURE_NAMES, phi))} for name, phi in zip(rollouts, phis)])
 
 
 def frozen_estimate(method: str, library_csv, queries_csv, params: Mapping | None = None, *, config_hash: str = "") -> dict:
