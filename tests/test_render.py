@@ -418,3 +418,125 @@ def test_render_frames_equals_rendering_each_deformed_scene():
         render_frames(means, cov, colors, opac, static, pos, F, camera)
     with pytest.raises(InputError, match="positions"):
         render_frames(means, cov, colors, opac, static, pos[:, :-1], F, camera)
+
+
+def test_device_deformation_gives_the_host_float64_bits():
+    """The deformation kernel's float64 ``0.5 (C + C^T)``, ``C = F Sigma_0 F^T``, equals the host
+    ``_deform`` then symmetrization bit for bit (same summation order, no FMA), over a wide
+    range of magnitudes; and ``_deform`` is ``F Sigma_0 F^T`` to 2e-16 relative."""
+    import warp as wp
+
+    from knockgs_core.render._deform import _deform
+    from knockgs_core.render._kernels import EXACT_FP, deformed_covariance
+
+    @wp.kernel(module="unique", module_options=EXACT_FP)
+    def deform_f64(F: wp.array(dtype=wp.mat33d), cov0: wp.array(dtype=wp.mat33d), out: wp.array(dtype=wp.mat33d)):
+        i = wp.tid()
+        out[i] = deformed_covariance(F[i], cov0[i])
+
+    rng = np.random.default_rng(21)
+    n = 20_000
+    A = rng.normal(size=(n, 3, 3)) * 10.0 ** rng.uniform(-4, 1, (n, 1, 1))
+    cov0 = A @ np.swapaxes(A, 1, 2) + rng.normal(0.0, 1e-9, (n, 3, 3))  # not exactly symmetric
+    F = np.eye(3) + 0.5 * rng.normal(size=(n, 3, 3)) * 10.0 ** rng.uniform(-3, 1, (n, 1, 1))
+    out = wp.zeros(n, dtype=wp.mat33d, device="cpu")
+    wp.launch(deform_f64, dim=n, inputs=[wp.array(F, dtype=wp.mat33d, device="cpu"),
+                                         wp.array(cov0, dtype=wp.mat33d, device="cpu")], outputs=[out], device="cpu")
+    c = _deform(cov0, F)
+    np.testing.assert_array_equal(out.numpy(), 0.5 * (c + np.swapaxes(c, 1, 2)))
+    want = np.einsum("nij,njk,nlk->nil", F, cov0, F)
+    assert np.abs(c - want).max() <= 2e-15 * np.abs(want).max(axis=(1, 2)).max()
+    np.testing.assert_allclose(c, want, rtol=1e-12, atol=1e-14 * np.abs(want).max())
+
+
+@pytest.mark.parametrize("layout", ["simulated", "all"])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_render_frames_scene_buffers_equal_the_host_scene(layout, dtype):
+    """The device-resident scene of ``render_frames``, after each frame's kernel update, holds
+    exactly ``deformed_scene``'s centres and symmetrized covariances in float32 (what ``render``
+    gives ``project``), static and simulated rows mixed, float32 or float64 motion (float64 F is
+    copied in float64: its low bits reach the covariances)."""
+    from knockgs_core._warp import warp_device
+    from knockgs_core.render._deform import _DeviceScene, _frame_dtype
+
+    rng = np.random.default_rng(31)
+    n = 300
+    means, cov, colors, opac = random_scene(rng, n=n)
+    static = rng.uniform(size=n) < 0.4
+    dyn = np.flatnonzero(~static)
+    m = dyn.size
+    T = 3
+    pos = (means[dyn][None] + 0.1 * rng.normal(size=(T, m, 3))).astype(dtype)
+    F = (np.eye(3) + 0.4 * rng.normal(size=(T, m, 3, 3))).astype(dtype)
+    if layout == "all":
+        P, G = np.full((T, n, 3), np.nan, dtype), np.full((T, n, 3, 3), np.inf, dtype)  # static rows ignored
+        P[:, dyn], G[:, dyn] = pos, F
+    else:
+        P, G = pos, F
+    rows = dyn if layout == "all" else slice(None)
+    scene = _DeviceScene(means, cov, colors, opac, dyn, wide=_frame_dtype(G) == np.float64, dev=warp_device("cpu"))
+    for t in range(T):
+        scene.set_frame(P[t][rows], G[t][rows])
+        ref = deformed_scene(means, cov, colors, opac, pos[t], F[t], static)
+        np.testing.assert_array_equal(scene.means.numpy(), ref.means.astype(np.float32))
+        sym = 0.5 * (ref.covariances + np.swapaxes(ref.covariances, 1, 2))
+        np.testing.assert_array_equal(scene.covariances.numpy(), sym.astype(np.float32))
+    np.testing.assert_array_equal(scene.colors.numpy(), colors.astype(np.float32))
+    np.testing.assert_array_equal(scene.opacities.numpy(), opac.astype(np.float32))
+    if dtype is np.float64:  # a float32 copy of F would have lost these bits
+        F32 = F[-1].astype(np.float32).astype(np.float64)
+        c32 = deformed_scene(means, cov, colors, opac, pos[-1], F32, static).covariances[dyn]
+        assert not np.array_equal(scene.covariances.numpy()[dyn], (0.5 * (c32 + np.swapaxes(c32, 1, 2))).astype(np.float32))
+    frames = render_frames(means + [0.0, 0.0, 3.0], cov, colors, opac, static, P + np.array([0.0, 0.0, 3.0], dtype), G,
+                           axis_camera(30, 24, 28.0, 15.0, 12.0))
+    for t in range(T):
+        ref = render(*deformed_scene(means + [0.0, 0.0, 3.0], cov, colors, opac, pos[t] + np.array([0.0, 0.0, 3.0], dtype),
+                                     F[t], static), axis_camera(30, 24, 28.0, 15.0, 12.0))
+        for name in ("rgb", "depth", "alpha"):
+            np.testing.assert_array_equal(getattr(frames[t], name), getattr(ref, name))
+    assert frames[0].alpha.max() > 0.3
+
+
+def test_render_frames_all_static_all_simulated_and_bad_frames():
+    """No simulated Gaussians (the rest scene every frame), every Gaussian simulated, an empty
+    scene, and a non-finite position named with its frame."""
+    rng = np.random.default_rng(41)
+    means, cov, colors, opac = random_scene(rng, n=30)
+    means = means + [0.0, 0.0, 3.0]
+    camera = axis_camera(26, 20, 24.0, 13.0, 10.0)
+    rest = render(means, cov, colors, opac, camera)
+    frames = render_frames(means, cov, colors, opac, np.ones(30, bool), np.zeros((2, 0, 3)), np.zeros((2, 0, 3, 3)), camera)
+    assert len(frames) == 2 and all(np.array_equal(f.rgb, rest.rgb) for f in frames)
+    pos = means[None] + 0.05 * rng.normal(size=(2, 30, 3))
+    F = np.eye(3) + 0.3 * rng.normal(size=(2, 30, 3, 3))
+    frames = render_frames(means, cov, colors, opac, np.zeros(30, bool), pos, F, camera)
+    for t in range(2):
+        ref = render(*deformed_scene(means, cov, colors, opac, pos[t], F[t], np.zeros(30, bool)), camera)
+        np.testing.assert_array_equal(frames[t].rgb, ref.rgb)
+    empty = render_frames(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, bool),
+                          np.zeros((2, 0, 3)), np.zeros((2, 0, 3, 3)), camera)
+    assert len(empty) == 2 and np.all(empty[1].rgb == 1.0)
+    assert render_frames(means, cov, colors, opac, np.zeros(30, bool), pos[:0], F[:0], camera) == []
+    pos[1, 4, 2] = np.inf
+    with pytest.raises(InputError, match=r"render_frames.*positions\[1\].*NaN or infinite"):
+        render_frames(means, cov, colors, opac, np.zeros(30, bool), pos.astype(np.float32), F, camera)
+
+
+def test_cuda_build_of_the_deformation_kernel_has_no_fma(tmp_path):
+    """On CUDA the deformation must round as the host does: its PTX (sm_90, built with NVRTC, no
+    GPU needed) has separately rounded float64 products and sums and no fused multiply-add,
+    which NVRTC would otherwise emit (``EXACT_FP``)."""
+    import pathlib
+
+    import warp as wp
+
+    from knockgs_core.render._kernels import deform_rows_kernel
+
+    for dtype in (wp.float32, wp.float64):
+        wp.overload(deform_rows_kernel, {"frame": wp.array2d(dtype=dtype)})
+    try:
+        wp.compile_aot_module(deform_rows_kernel.module, arch=90, use_ptx=True, module_dir=tmp_path)
+    except Exception as exc:  # a Warp build without NVRTC
+        pytest.skip(f"no CUDA compiler in this Warp build ({exc})")
+    ptx = "".join(p.read_text() for p in pathlib.Path(tmp_path).rglob("*.ptx"))
+    assert ptx.count("mul.rn.f64") >= 2 * 54 and "fma.rn.f64" not in ptx

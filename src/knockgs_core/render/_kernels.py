@@ -5,7 +5,13 @@ The same kernels run on CPU and CUDA; the device is chosen at launch.
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
+
+EXACT_FP = {"fuse_fp": False, "enable_backward": False}
+"""Module options of :func:`deform_rows_kernel`: no fused multiply-add, so every float64 product
+and sum is rounded as NumPy's elementwise operations round it (``_deform._deform``), on CPU and CUDA."""
 
 
 @wp.kernel
@@ -208,3 +214,53 @@ def tile_ranges_kernel(
         else:
             hi = mid
     ends[t] = lo
+
+
+# -- deformed covariances on the device (``render_frames``) ------------------------------
+@wp.func
+def deformed_covariance(F: wp.mat33d, cov0: wp.mat33d) -> wp.mat33d:
+    """``0.5 (C + C^T)`` with ``C = (F cov0) F^T`` (PhysGaussian), float64.
+
+    Every entry is summed in index order, ``(p0 + p1) + p2``, as the host ``_deform`` and the
+    symmetrization of ``render`` do; compiled with :data:`EXACT_FP` (no FMA) it gives their bits.
+    """
+    a = wp.mat33d()
+    for i in range(3):
+        for j in range(3):
+            a[i, j] = F[i, 0] * cov0[0, j] + F[i, 1] * cov0[1, j] + F[i, 2] * cov0[2, j]
+    c = wp.mat33d()
+    for i in range(3):
+        for j in range(3):
+            c[i, j] = a[i, 0] * F[j, 0] + a[i, 1] * F[j, 1] + a[i, 2] * F[j, 2]
+    half = wp.float64(0.5)
+    s = wp.mat33d()
+    for i in range(3):
+        for j in range(3):
+            s[i, j] = half * (c[i, j] + c[j, i])
+    return s
+
+
+@wp.kernel(module="unique", module_options=EXACT_FP)
+def deform_rows_kernel(
+    frame: wp.array2d(dtype=Any),
+    rows: wp.array(dtype=wp.int32),
+    cov0: wp.array(dtype=wp.mat33d),
+    means: wp.array(dtype=wp.vec3f),
+    covariances: wp.array(dtype=wp.mat33f),
+):
+    """Simulated Gaussian ``i`` at one frame, written into the scene's float32 render buffers.
+
+    ``frame [M, 12]`` (float32 or float64): the position [m] (3) then ``F`` row-major (9) of
+    each simulated Gaussian; ``rows [M]``: its row in the scene; ``cov0 [M]``: its rest
+    covariance. Writes ``means[rows[i]]`` and the symmetrized ``covariances[rows[i]]``
+    (computed in float64, rounded once to float32, as the host path casts for ``project``).
+    """
+    i = wp.tid()
+    r = rows[i]
+    means[r] = wp.vec3f(wp.float32(frame[i, 0]), wp.float32(frame[i, 1]), wp.float32(frame[i, 2]))
+    F = wp.mat33d(
+        wp.float64(frame[i, 3]), wp.float64(frame[i, 4]), wp.float64(frame[i, 5]),
+        wp.float64(frame[i, 6]), wp.float64(frame[i, 7]), wp.float64(frame[i, 8]),
+        wp.float64(frame[i, 9]), wp.float64(frame[i, 10]), wp.float64(frame[i, 11]),
+    )
+    covariances[r] = wp.mat33f(deformed_covariance(F, cov0[i]))

@@ -119,6 +119,14 @@ def _project(means: np.ndarray, covariances: np.ndarray, opacities: np.ndarray, 
     w_means = wp.array(means.astype(f32), dtype=wp.vec3f, device=dev)
     w_covs = wp.array(covariances.astype(f32), dtype=wp.mat33f, device=dev)
     w_opac = wp.array(opacities.astype(f32), dtype=wp.float32, device=dev)
+    return _project_arrays(w_means, w_covs, w_opac, camera, dev)
+
+
+def _project_arrays(w_means, w_covs, w_opac, camera: Camera, dev) -> Projection:
+    """:func:`_project` of a scene already in Warp arrays on ``dev`` (N > 0): ``w_means [N]``
+    vec3f, symmetric ``w_covs [N]`` mat33f, ``w_opac [N]`` float32."""
+    f32 = np.float32
+    n = w_means.shape[0]
     means2d = wp.zeros(n, dtype=wp.vec2f, device=dev)
     conics = wp.zeros(n, dtype=wp.vec3f, device=dev)
     covs2d = wp.zeros(n, dtype=wp.vec3f, device=dev)
@@ -277,11 +285,14 @@ def rasterize(
 
 def _rasterize(projection: Projection, colors: np.ndarray, opacities: np.ndarray, bins: TileBins, bg: np.ndarray,
                dev) -> RenderOutput:
-    """:func:`rasterize` of checked inputs (``bg`` the background [3]) on the Warp device ``dev``."""
+    """:func:`rasterize` of checked inputs (``bg`` the background [3]) on the Warp device ``dev``;
+    ``colors`` and ``opacities`` may be float32 Warp arrays on ``dev`` already (vec3f, float32)."""
     h, w = bins.height, bins.width
     f32 = np.float32
 
     def arr(a, dtype):
+        if isinstance(a, wp.array):  # already on the device (render_frames' scene buffers)
+            return a
         a = np.ascontiguousarray(a)
         if a.shape[0] == 0:  # Warp needs a valid (non-null) array; pad with one unused entry
             a = np.zeros((1,) + a.shape[1:], dtype=a.dtype)
@@ -296,8 +307,8 @@ def _rasterize(projection: Projection, colors: np.ndarray, opacities: np.ndarray
         inputs=[
             arr(projection.means2d.astype(f32), wp.vec2f),
             arr(projection.conics.astype(f32), wp.vec3f),
-            arr(colors.astype(f32), wp.vec3f),
-            arr(opacities.astype(f32), wp.float32),
+            arr(_as_f32(colors), wp.vec3f),
+            arr(_as_f32(opacities), wp.float32),
             arr(projection.depths.astype(f32), wp.float32),
             arr(bins.gaussian_ids.astype(np.int32), wp.int32),
             arr(bins.tile_ranges[:, 0].astype(np.int32), wp.int32),
@@ -361,10 +372,28 @@ def render(
 def _render(means: np.ndarray, covariances: np.ndarray, colors: np.ndarray, opacities: np.ndarray, camera: Camera,
             bg: np.ndarray, device: str) -> RenderOutput:
     """:func:`render` of checked float arrays (``covariances`` symmetric, ``bg`` the background
-    [3]): :func:`render_frames` checks a rollout's scene once and renders its frames here."""
+    [3]); :func:`render_frames` keeps its scene on the device instead (:func:`_render_arrays`)."""
     dev = _device(device)
     proj = _project(means, covariances, opacities, camera, dev)
+    return _bin_and_rasterize(proj, colors, opacities, camera, bg, dev)
+
+
+def _render_arrays(means, covariances, colors, opacities, camera: Camera, bg: np.ndarray, dev) -> RenderOutput:
+    """:func:`_render` of a scene already in float32 Warp arrays on ``dev`` (N > 0): ``means
+    [N]`` vec3f, symmetric ``covariances [N]`` mat33f, ``colors [N]`` vec3f, ``opacities [N]``
+    float32. :func:`render_frames` keeps a motion's scene on the device and renders it here."""
+    proj = _project_arrays(means, covariances, opacities, camera, dev)
+    return _bin_and_rasterize(proj, colors, opacities, camera, bg, dev)
+
+
+def _bin_and_rasterize(proj: Projection, colors, opacities, camera: Camera, bg: np.ndarray, dev) -> RenderOutput:
+    """:func:`bin_tiles` and :func:`_rasterize` of a projected scene on the Warp device ``dev``."""
     # CUDA bins on the device; on the CPU the host sort is as fast and Warp runs one thread
-    bins = bin_tiles(proj, camera.width, camera.height, tile_size=C.tile_size_for(dev, len(means)),
-                     device=None if dev.is_cpu else device)
+    bins = bin_tiles(proj, camera.width, camera.height, tile_size=C.tile_size_for(dev, proj.depths.shape[0]),
+                     device=None if dev.is_cpu else dev.alias)
     return _rasterize(proj, colors, opacities, bins, bg, dev)
+
+
+def _as_f32(a):
+    """A host array as float32; a Warp array (already float32 on the device) as it is."""
+    return a if isinstance(a, wp.array) else a.astype(np.float32)
