@@ -334,3 +334,30 @@ def test_discrepancy_cases_run_at_their_configured_resolution(tmp_path):
     assert "discrepancy_library" not in shared and shared.get("rollout_library") == 9 and shared.get("asset") == 1
     bad = snakemake(work, "-n", "--config", "discrepancy={resolution: huge}", "--", table)
     assert bad.returncode != 0 and "huge" in bad.stdout + bad.stderr
+
+
+def test_a_library_without_deformation_gradients_moves_them_to_the_evaluation_job(tmp_path):
+    # render.library_deformation_gradients: false (the paper profile's setting): the library
+    # writes positions only, and the evaluation job of a theta on a candidate simulates Probe A
+    # too, with F, so the renders read positions and F of one run; the ladder, which renders the
+    # library, stops with the setting named
+    work = scratch_copy(tmp_path)
+    first = load_candidates().iloc[0]
+    tag = f"sE{first.E_scale:.6f}_sR{first.density_scale:.6f}"
+    cfg = yaml.safe_load((ROOT / "config/ci.yaml").read_text())
+    cfg["render"]["library_deformation_gradients"] = False
+    (work / "config/ci_no_library_F.yaml").write_text(yaml.safe_dump(cfg))
+    flag = ["--configfile=config/ci_no_library_F.yaml", "--config", "objects=[pillow]"]
+    run = snakemake(work, f"{CI}/rollouts/pillow/lib/chunk0", f"{CI}/rollouts/pillow/eval/{tag}", "--cores", "2", *flag)
+    assert run.returncode == 0, run.stderr[-3000:]
+    lib = sorted(p.name for p in (work / f"{CI}/rollouts/pillow/lib/chunk0").glob("*.parquet"))
+    assert len(lib) == 6 and not any(n.endswith(".F.parquet") for n in lib) and f"{tag}.parquet" in lib
+    ev = sorted(p.name for p in (work / f"{CI}/rollouts/pillow/eval/{tag}").glob("*.parquet"))
+    probes = ["standard_x", "standard_y", "strong_x"]
+    assert ev == sorted([f"{p}.parquet" for p in probes] + [f"{p}.F.parquet" for p in probes]), ev
+    # the evaluation job's Probe-A run is the library's, bit for bit (CPU rollouts are deterministic)
+    a = pd.read_parquet(work / f"{CI}/rollouts/pillow/lib/chunk0/{tag}.parquet")
+    b = pd.read_parquet(work / f"{CI}/rollouts/pillow/eval/{tag}/standard_x.parquet")
+    pd.testing.assert_frame_equal(a, b)
+    ladder = snakemake(work, "-n", f"{CI}/ladder/observations/pillow/lib/chunk0.csv", *flag)
+    assert ladder.returncode != 0 and "library_deformation_gradients" in ladder.stdout + ladder.stderr

@@ -9,6 +9,7 @@ import os
 import re
 from functools import cache
 
+from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 from knockgs_core.calibration import DEPLOYABLE_METHODS, METHOD_NAMES, ORACLE_METHOD
@@ -35,6 +36,8 @@ OBJECTS = list(config["objects"])
 SPLIT = config["split"]
 METHODS = list(config["methods"])
 RENDER = config["render"]
+# whether the library's rollouts keep their deformation gradients (config render.library_deformation_gradients)
+LIBRARY_F = RENDER["library_deformation_gradients"]
 DISCREPANCY = config["discrepancy"]
 SHIFTS = config["probe_shifts"]
 
@@ -145,17 +148,30 @@ def library_runs(chunk, probe, root, *, export_F):
     ]
 
 
+def ladder_library_runs(wc):
+    """The library rollouts of chunk ``wc.chunk``, with the deformation gradients the video
+    rungs render (a library written without them cannot be observed)."""
+    if not LIBRARY_F:  # the ladder's library jobs (ladder.smk)
+        raise WorkflowError(f"config render.library_deformation_gradients is false (profile {PROFILE}), but the "
+                            "observation ladder renders the library's rollouts: set it to true")
+    return library_runs(wc.chunk, calibration_probe(wc.object), library_root(wc.object), export_F=True)
+
+
 def simulated_probes(obj, tag):
     """The probes the evaluation job of theta ``tag`` simulates: a candidate's Probe-A
-    evaluation rollout is its library rollout, so a candidate needs only the held-out probes."""
-    return heldout_probes(obj) if tag in _CANDIDATE_OF_TAG else eval_probes(obj)
+    evaluation rollout is its library rollout, so a candidate needs only the held-out probes
+    (and Probe A too, for its deformation gradients, where the library has none: LIBRARY_F)."""
+    return heldout_probes(obj) if tag in _CANDIDATE_OF_TAG and LIBRARY_F else eval_probes(obj)
 
 
-def eval_rollout(obj, probe, theta, suffix=".parquet"):
+def eval_rollout(obj, probe, theta, suffix=".parquet", *, with_F=False):
     """The evaluation rollout of (probe, theta): a candidate's library rollout under Probe A,
-    else the evaluation job's file (suffix ".F.parquet": the deformation gradients)."""
+    else the evaluation job's file (suffix ".F.parquet": the deformation gradients).
+    ``with_F``: the rollout of a run that has deformation gradients (a consumer of the
+    gradients reads positions and gradients of one run): the evaluation job's where the
+    library has none (LIBRARY_F false)."""
     tag = theta_tag(theta)
-    if probe == calibration_probe(obj) and tag in _CANDIDATE_OF_TAG:
+    if probe == calibration_probe(obj) and tag in _CANDIDATE_OF_TAG and (LIBRARY_F or not (with_F or suffix == ".F.parquet")):
         return library_rollout(library_root(obj), _CANDIDATE_OF_TAG[tag], suffix)
     return f"{P}/rollouts/{obj}/eval/{tag}/{probe}{suffix}"
 
@@ -164,7 +180,7 @@ def evaluation_runs(wc):
     """The rollouts of the evaluation job of (object, theta), with deformation gradients."""
     theta = parse_theta(wc.theta)
     return [
-        {"theta": theta, "probe": probe, "rollout": eval_rollout(wc.object, probe, theta),
+        {"theta": theta, "probe": probe, "rollout": eval_rollout(wc.object, probe, theta, with_F=True),
          "F": eval_rollout(wc.object, probe, theta, ".F.parquet")}
         for probe in simulated_probes(wc.object, wc.theta)
     ]
@@ -184,7 +200,7 @@ def render_jobs(wc):
     job of (object, theta)."""
     theta = parse_theta(wc.theta)
     return [
-        {"rollout": eval_rollout(wc.object, probe, theta), "F": eval_rollout(wc.object, probe, theta, ".F.parquet"),
+        {"rollout": eval_rollout(wc.object, probe, theta, with_F=True), "F": eval_rollout(wc.object, probe, theta, ".F.parquet"),
          "frames": frames_file(wc.object, probe, theta)}
         for probe in eval_probes(wc.object)
     ]
@@ -435,7 +451,7 @@ def cmaes_target_rollouts(obj, split):
     """target name -> {"rollout", "F"}: its Probe-A evaluation rollout and deformation
     gradients (the video CMA-ES fits), in targets.csv order."""
     probe = calibration_probe(obj)
-    return {name: {"rollout": eval_rollout(obj, probe, th), "F": eval_rollout(obj, probe, th, ".F.parquet")}
+    return {name: {"rollout": eval_rollout(obj, probe, th, with_F=True), "F": eval_rollout(obj, probe, th, ".F.parquet")}
             for name, th in target_thetas(split).items()}
 
 

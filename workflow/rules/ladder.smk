@@ -31,8 +31,7 @@ rule ladder_observe_library:
     input:
         ply=f"{P}/assets/{{object}}.ply",
         scene=f"{P}/assets/{{object}}.scene.npz",
-        rollouts=lambda wc: folders(run["rollout"] for run in library_runs(wc.chunk, calibration_probe(wc.object),
-                                                                            library_root(wc.object), export_F=True)),
+        rollouts=lambda wc: folders(run["rollout"] for run in ladder_library_runs(wc)),
     output:
         table=f"{P}/ladder/observations/{{object}}/lib/chunk{{chunk}}.csv",
     log:
@@ -41,8 +40,7 @@ rule ladder_observe_library:
         f"{P}/benchmarks/ladder/{{object}}/lib/chunk{{chunk}}.tsv"
     params:
         runs=lambda wc: [{"case_name": case, **run} for case, run in
-                         zip(LIBRARY_CHUNKS[int(wc.chunk)],
-                             library_runs(wc.chunk, calibration_probe(wc.object), library_root(wc.object), export_F=True))],
+                         zip(LIBRARY_CHUNKS[int(wc.chunk)], ladder_library_runs(wc))],
         camera=lambda wc: contract(wc.object).camera,
         width=RENDER["width"],
         height=RENDER["height"],

@@ -12,7 +12,8 @@
 
 rule rollout_library:
     """Probe-A rollouts of one chunk of candidates (library members), with the deformation
-    gradients: a candidate's library rollout is also its Probe-A evaluation rollout."""
+    gradients unless LIBRARY_F is false: a candidate's library rollout is also its Probe-A
+    evaluation rollout."""
     conda:
         "../envs/knockgs.yaml"
     input:
@@ -26,7 +27,7 @@ rule rollout_library:
     params:
         profile=PROFILE,
         object=lambda wc: wc.object,
-        runs=lambda wc: library_runs(wc.chunk, calibration_probe(wc.object), library_root(wc.object), export_F=True),
+        runs=lambda wc: library_runs(wc.chunk, calibration_probe(wc.object), library_root(wc.object), export_F=LIBRARY_F),
         device=DEVICE,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
