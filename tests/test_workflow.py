@@ -361,3 +361,21 @@ def test_a_library_without_deformation_gradients_moves_them_to_the_evaluation_jo
     pd.testing.assert_frame_equal(a, b)
     ladder = snakemake(work, "-n", f"{CI}/ladder/observations/pillow/lib/chunk0.csv", *flag)
     assert ladder.returncode != 0 and "library_deformation_gradients" in ladder.stdout + ladder.stderr
+
+
+def test_evaluation_jobs_write_deformation_gradients_only_for_renders(tmp_path):
+    # render.enabled: false: the evaluation job writes positions only (no consumer reads F), and
+    # a render or a video route asked for anyway stops with the setting named
+    work = scratch_copy(tmp_path)
+    cfg = yaml.safe_load((ROOT / "config/ci.yaml").read_text())
+    cfg["render"]["enabled"] = False
+    (work / "config/ci_no_render.yaml").write_text(yaml.safe_dump(cfg))
+    flag = ["--configfile=config/ci_no_render.yaml", "--config", "objects=[pillow]"]
+    tag = "sE0.910000_sR1.230000"  # not a candidate: every evaluation probe is simulated here
+    run = snakemake(work, f"{CI}/rollouts/pillow/eval/{tag}", "--cores", "2", *flag)
+    assert run.returncode == 0, run.stderr[-3000:]
+    ev = sorted(p.name for p in (work / f"{CI}/rollouts/pillow/eval/{tag}").glob("*.parquet"))
+    assert ev == ["standard_x.parquet", "standard_y.parquet", "strong_x.parquet"], ev
+    for target in (f"{CI}/frames/pillow/{tag}", f"{CI}/ladder/observations/pillow/targets_main.csv"):
+        out = snakemake(work, "-n", target, *flag)
+        assert out.returncode != 0 and "render.enabled is false" in out.stdout + out.stderr, target

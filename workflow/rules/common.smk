@@ -36,7 +36,9 @@ OBJECTS = list(config["objects"])
 SPLIT = config["split"]
 METHODS = list(config["methods"])
 RENDER = config["render"]
-# whether the library's rollouts keep their deformation gradients (config render.library_deformation_gradients)
+# the evaluation jobs write deformation gradients only for renders (config render.enabled; at paper
+# scale 0.5 GB a rollout), and the library only where render.library_deformation_gradients
+EVAL_F = RENDER["enabled"]
 LIBRARY_F = RENDER["library_deformation_gradients"]
 DISCREPANCY = config["discrepancy"]
 SHIFTS = config["probe_shifts"]
@@ -161,7 +163,7 @@ def simulated_probes(obj, tag):
     """The probes the evaluation job of theta ``tag`` simulates: a candidate's Probe-A
     evaluation rollout is its library rollout, so a candidate needs only the held-out probes
     (and Probe A too, for its deformation gradients, where the library has none: LIBRARY_F)."""
-    return heldout_probes(obj) if tag in _CANDIDATE_OF_TAG and LIBRARY_F else eval_probes(obj)
+    return heldout_probes(obj) if tag in _CANDIDATE_OF_TAG and (LIBRARY_F or not EVAL_F) else eval_probes(obj)
 
 
 def eval_rollout(obj, probe, theta, suffix=".parquet", *, with_F=False):
@@ -176,12 +178,29 @@ def eval_rollout(obj, probe, theta, suffix=".parquet", *, with_F=False):
     return f"{P}/rollouts/{obj}/eval/{tag}/{probe}{suffix}"
 
 
+def need_eval_F(consumer):
+    """Stop with the setting named where ``consumer`` renders evaluation rollouts that have no
+    deformation gradients (render.enabled false)."""
+    if not EVAL_F:
+        raise WorkflowError(f"config render.enabled is false (profile {PROFILE}), so the evaluation rollouts have "
+                            f"no deformation gradients, but {consumer} renders them: set it to true")
+
+
+def ladder_target_runs(wc):
+    """The split's targets as the ladder observes them: name, theta, Probe-A rollout and its
+    deformation gradients (one run)."""
+    need_eval_F("the observation ladder")
+    probe = calibration_probe(wc.object)
+    return [{"case_name": name, "theta": th, "rollout": eval_rollout(wc.object, probe, th, with_F=True),
+             "F": eval_rollout(wc.object, probe, th, ".F.parquet")} for name, th in target_thetas(wc.split).items()]
+
+
 def evaluation_runs(wc):
     """The rollouts of the evaluation job of (object, theta), with deformation gradients."""
     theta = parse_theta(wc.theta)
     return [
         {"theta": theta, "probe": probe, "rollout": eval_rollout(wc.object, probe, theta, with_F=True),
-         "F": eval_rollout(wc.object, probe, theta, ".F.parquet")}
+         "F": eval_rollout(wc.object, probe, theta, ".F.parquet") if EVAL_F else None}
         for probe in simulated_probes(wc.object, wc.theta)
     ]
 
@@ -198,6 +217,7 @@ def frames_file(obj, probe, theta):
 def render_jobs(wc):
     """Rollout, deformation gradients and frames file of each evaluation probe of the render
     job of (object, theta)."""
+    need_eval_F("the render rule")
     theta = parse_theta(wc.theta)
     return [
         {"rollout": eval_rollout(wc.object, probe, theta, with_F=True), "F": eval_rollout(wc.object, probe, theta, ".F.parquet"),
@@ -450,6 +470,7 @@ def ladder_table_inputs(wc):
 def cmaes_target_rollouts(obj, split):
     """target name -> {"rollout", "F"}: its Probe-A evaluation rollout and deformation
     gradients (the video CMA-ES fits), in targets.csv order."""
+    need_eval_F("the CMA-ES video route")
     probe = calibration_probe(obj)
     return {name: {"rollout": eval_rollout(obj, probe, th, with_F=True), "F": eval_rollout(obj, probe, th, ".F.parquet")}
             for name, th in target_thetas(split).items()}

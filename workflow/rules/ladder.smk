@@ -57,7 +57,7 @@ rule ladder_observe_targets:
     input:
         ply=f"{P}/assets/{{object}}.ply",
         scene=f"{P}/assets/{{object}}.scene.npz",
-        rollouts=lambda wc: folders(query_rollouts(wc)),
+        rollouts=lambda wc: folders(run["rollout"] for run in ladder_target_runs(wc)),
     output:
         table=f"{P}/ladder/observations/{{object}}/targets_{{split}}.csv",
     log:
@@ -65,8 +65,7 @@ rule ladder_observe_targets:
     benchmark:
         f"{P}/benchmarks/ladder/{{object}}/targets_{{split}}.tsv"
     params:
-        runs=lambda wc: [{"case_name": name, "theta": th, "rollout": path, "F": path.removesuffix(".parquet") + ".F.parquet"}
-                         for (name, th), path in zip(target_thetas(wc.split).items(), query_rollouts(wc))],
+        runs=ladder_target_runs,
         camera=lambda wc: contract(wc.object).camera,
         width=RENDER["width"],
         height=RENDER["height"],
