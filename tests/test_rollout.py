@@ -187,6 +187,25 @@ def test_the_background_writer_writes_the_same_bytes_and_raises_a_failed_write(t
         BackgroundWriter(workers=0)
 
 
+def test_a_failed_job_leaves_no_output_once_its_writes_have_stopped(tmp_path):
+    # a job's block fails (or is interrupted) after handing over a rollout: the writer finishes
+    # that write, then removes the job's output folder (or file), so a resumed run redoes it
+    from knockgs_core.rollout import BackgroundWriter
+
+    a = _synthetic(seed=5)
+    for output, target in [(tmp_path / "job", tmp_path / "job" / "r.parquet"), (tmp_path / "one.parquet",) * 2]:
+        (tmp_path / "job").mkdir(exist_ok=True)
+        with pytest.raises(KeyboardInterrupt):
+            with BackgroundWriter(output=output) as w:
+                w.submit(target, a)
+                raise KeyboardInterrupt
+        assert not output.exists()
+    # a block that succeeds keeps its output
+    with BackgroundWriter(output=tmp_path / "job") as w:
+        w.submit(tmp_path / "job" / "r.parquet", a)
+    assert (tmp_path / "job" / "r.parquet").exists()
+
+
 def test_rollouts_simulated_together_equal_separate_rollouts_bit_for_bit(pillow_ci):
     from knockgs_core.rollout import run_rollouts
 

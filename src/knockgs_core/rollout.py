@@ -20,8 +20,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import shutil
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -288,17 +290,21 @@ class BackgroundWriter:
     own thread: ``submit`` first waits for the oldest write when that many are, so a failed
     write is raised by a later ``submit`` or by ``close`` (the context manager's exit), never
     lost. Files are written exactly as :func:`write_rollout` and :func:`write_deformation`
-    write them, each atomically; with one worker in submission order. Several workers suit a
+    write them, each atomically; with one worker in submission order. ``output`` (a job's
+    output folder or file): removed when the block fails or is interrupted, once the writes
+    under way have finished, so no partial output outlives the job (a workflow manager may
+    remove it earlier, while a write is still under way). Several workers suit a
     batch of rollouts that finish together (a GPU's library job): their writes overlap.
     """
 
-    def __init__(self, workers: int = 1):
+    def __init__(self, workers: int = 1, *, output=None):
         from collections import deque
         from concurrent.futures import ThreadPoolExecutor
 
         if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
             raise InputError("BackgroundWriter", "workers", f"must be an integer >= 1, got {workers!r}")
         self.workers = workers
+        self.output = None if output is None else Path(output)
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="rollout-writer")
         self._pending = deque()
 
@@ -335,6 +341,11 @@ class BackgroundWriter:
                 self.close()
             except Exception:
                 pass
+            if self.output is not None:  # no write can follow now: the job's output goes
+                if self.output.is_dir():
+                    shutil.rmtree(self.output, ignore_errors=True)
+                else:
+                    self.output.unlink(missing_ok=True)
         return False
 
 

@@ -173,7 +173,8 @@ def eval_rollout(obj, probe, theta, suffix=".parquet", *, with_F=False):
     gradients reads positions and gradients of one run): the evaluation job's where the
     library has none (LIBRARY_F false)."""
     tag = theta_tag(theta)
-    if probe == calibration_probe(obj) and tag in _CANDIDATE_OF_TAG and (LIBRARY_F or not (with_F or suffix == ".F.parquet")):
+    with_F = with_F or suffix == ".F.parquet"
+    if probe == calibration_probe(obj) and tag in _CANDIDATE_OF_TAG and (LIBRARY_F or not with_F):
         return library_rollout(library_root(obj), _CANDIDATE_OF_TAG[tag], suffix)
     return f"{P}/rollouts/{obj}/eval/{tag}/{probe}{suffix}"
 

@@ -3,7 +3,6 @@ job's output folder (+ deformation gradients). The contract, particles and Warp 
 loaded once. With an input ``protocol`` (a passive protocol's JSON), every run is under that
 protocol instead of a contract probe."""
 import json
-import shutil
 import sys
 from pathlib import Path
 
@@ -44,36 +43,21 @@ groups = batches(p.runs, schedule, together=p.device.startswith("cuda"))
 extra = {} if passive is None else passive.run_kwargs()
 
 
-def simulate_and_write():
-    with BackgroundWriter(workers=max((len(g) for g in groups), default=1)) as writer:
-        for group in groups:
-            simulate_group(writer, group)
+# a failed or interrupted job leaves no output (the writer removes it once its writes have
+# stopped), so a resumed run simulates it again instead of taking a partial folder
+output = folder if "folder" in snakemake.output.keys() else Path(snakemake.output.rollout)
+with BackgroundWriter(workers=max((len(g) for g in groups), default=1), output=output) as writer:
+    for group in groups:
+        tags = [f"[{i + 1}/{len(p.runs)}] theta ({run['theta'][0]:.6f}, {run['theta'][1]:.6f}) probe {run['probe']}"
+                for i, run in group]
 
+        def progress(k, frame, n_frames, stats, tags=tags):
+            if frame % 5 == 0 or frame == n_frames - 1:
+                print(f"{tags[k]}: frame {frame}/{n_frames - 1} cfl {stats['cfl']:.3g}", file=log, flush=True)
 
-def simulate_group(writer, group):
-    tags = [f"[{i + 1}/{len(p.runs)}] theta ({run['theta'][0]:.6f}, {run['theta'][1]:.6f}) probe {run['probe']}"
-            for i, run in group]
-
-    def progress(k, frame, n_frames, stats, tags=tags):
-        if frame % 5 == 0 or frame == n_frames - 1:
-            print(f"{tags[k]}: frame {frame}/{n_frames - 1} cfl {stats['cfl']:.3g}", file=log, flush=True)
-
-    rollouts = run_rollouts(contract, [(run["theta"], run["probe"]) for _, run in group], particles=particles,
-                            device=p.device, export_F=group[0][1]["F"] is not None, progress=progress, **extra)
-    for tag, (_, run), ro in zip(tags, group, rollouts):
-        writer.submit(run["rollout"], ro, run["F"])
-        print(f"{tag}: done, {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s"
-              f"{' (the batch of %d)' % len(group) if len(group) > 1 else ''}", file=log, flush=True)
-
-
-# A failed or interrupted job leaves no output: the writes under way finish when the writer
-# closes, after the workflow manager may already have removed the folder, so the job removes
-# its own output then, and a resumed run simulates it again instead of taking a partial folder.
-try:
-    simulate_and_write()
-except BaseException:
-    if "folder" in snakemake.output.keys():
-        shutil.rmtree(folder, ignore_errors=True)
-    else:
-        Path(snakemake.output.rollout).unlink(missing_ok=True)
-    raise
+        rollouts = run_rollouts(contract, [(run["theta"], run["probe"]) for _, run in group], particles=particles,
+                                device=p.device, export_F=group[0][1]["F"] is not None, progress=progress, **extra)
+        for tag, (_, run), ro in zip(tags, group, rollouts):
+            writer.submit(run["rollout"], ro, run["F"])
+            print(f"{tag}: done, {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s"
+                  f"{' (the batch of %d)' % len(group) if len(group) > 1 else ''}", file=log, flush=True)
