@@ -6,7 +6,12 @@ substeps (kernels loaded, the probe applied, the active box settled), then times
 and prints each kernel's share. A variant ``cells+graph`` replays each substep as a captured
 CUDA graph (``MPMSolver(graph=True)``): its kernels are not timed one by one, only the wall.
 
+The particles are held in a GPU rollout's order (``--order cell``: sorted by stencil base
+cell within the Gaussian-associated rows and within the fill, ``knockgs_core.rollout.cell_order``)
+or in the asset's (``--order asset``).
+
     python3 benchmarks/kernel_profile.py --object pillow --profile paper --device cuda:0 --p2g cells cells+graph scatter
+    python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells cells+graph --resort 1 10 --slots 0 16384
 """
 
 from __future__ import annotations
@@ -25,6 +30,11 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--p2g", nargs="+", default=["scatter", "cells", "cells+graph"],
                     help="P2G variants of MPMSolver to profile (+graph: substeps replayed as CUDA graphs)")
+    ap.add_argument("--order", choices=["cell", "asset"], default="cell")
+    ap.add_argument("--slots", type=int, nargs="+", default=[0],
+                    help="caps on the chunk-sum threads (MPMSolver.max_chunk_slots; 0: none), each profiled")
+    ap.add_argument("--resort", type=int, nargs="+", default=[1],
+                    help="intervals of the P2G by cells' sort in substeps (MPMSolver.resort_every), each profiled")
     args = ap.parse_args()
 
     import warp as wp
@@ -35,14 +45,20 @@ def main() -> None:
 
     contract = load_contract(args.object, args.profile)
     ps = build_asset(contract).particles
+    if args.order == "cell":
+        from knockgs_core.rollout import _permuted, cell_order
+
+        ps = _permuted(ps, cell_order(ps, n_grid=contract.sim.n_grid, grid_lim=contract.sim.grid_lim))
     probe = contract.resolve_probes(ps)[contract.roles["calibration"]]
     E, nu, rho = contract.particle_materials(ps, (1.0, 1.0))
     ref = getattr(contract, "probe_reference_particles", None)
     model = build_model(ps.positions, E=E, nu=nu, rho=rho, params=contract.sim, volumes=ps.volumes, probe=probe,
                         probe_force_scale=float(ref) / len(ps.positions) if ref else 1.0, device=args.device)
-    for variant in args.p2g:
+    for variant, slots, resort in ((v, n, r) for v in args.p2g for n in args.slots for r in args.resort):
         state = make_state(model, ps.positions)
         solver = MPMSolver(model, p2g=variant.split("+")[0], graph=variant.endswith("+graph"))
+        solver.max_chunk_slots = slots or None
+        solver.resort_every = resort
         solver.check(state)
         for _ in range(args.warm):
             solver.step(state)
@@ -62,7 +78,8 @@ def main() -> None:
             total[r.name] += r.elapsed
             count[r.name] += 1
         all_ms = sum(total.values())
-        print(f"{args.object} {args.profile}, P2G {variant}: {len(ps.positions)} particles, n_grid {contract.sim.n_grid}, "
+        print(f"{args.object} {args.profile}, P2G {variant} ({args.order} order, chunk slots {slots or 'all'}, sort every "
+              f"{resort} substeps): {len(ps.positions)} particles, n_grid {contract.sim.n_grid}, "
               f"active box {[h - lo for lo, h in zip(solver._lo, solver._hi)]}, {args.steps} substeps, "
               f"wall {1e3 * wall / args.steps:.4f} ms per substep")
         print("| kernel | launches | ms per substep | share |")

@@ -5,12 +5,14 @@ Body: a block of jelly (E = 1e4 Pa, nu = 0.3, rho = 2000 kg/m^3) with 8 particle
 centred in the [0, 2]^3 domain, knocked by a one-step global probe (as the Pillow contract),
 dt = 1e-4 s, with the contracts' affine-FLIP transfer (``--transfer apic`` for the paper's,
 ``both`` for the two in one run; ``--p2g`` the P2G variants, ``auto`` the solver's choice by
-its cell crowding). Each case runs ``--steps`` substeps after a warm-up and reports the median of
+its cell crowding; ``--order cell`` holds the particles sorted by stencil base cell, as a GPU
+rollout does, instead of the lattice's order). Each case runs ``--steps`` substeps after a warm-up and reports the median of
 ``--repeats`` timings. ``--cold`` measures the cold kernel compile in an empty cache.
 
     python3 benchmarks/sim_bench.py --device cpu
     python3 benchmarks/sim_bench.py --device cuda:0 --cases 100000:100 700000:100
     python3 benchmarks/sim_bench.py --device cuda:0 --cases 681472:100 --ppc 8 27 64 --p2g scatter cells auto
+    python3 benchmarks/sim_bench.py --device cuda:0 --cases 681472:100 --order lattice cell --p2g scatter cells
 """
 
 from __future__ import annotations
@@ -41,12 +43,15 @@ def block(n_particles: int, n_grid: int, grid_lim: float = 2.0, ppc: int = 8) ->
 
 
 def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: str, *, transfer: str = "affine_flip",
-             graph: bool | str = "auto", p2g: str = "auto", ppc: int = 8) -> dict:
+             graph: bool | str = "auto", p2g: str = "auto", ppc: int = 8, order: str = "lattice") -> dict:
     import warp as wp
 
     from knockgs_core.sim import MPMSolver, Probe, SimParams, build_model, make_state
 
     X = block(n_particles, n_grid, ppc=ppc)
+    if order == "cell":  # by stencil base cell, x-major (knockgs_core.rollout.cell_order)
+        base = np.floor(X.astype(np.float64) / (2.0 / n_grid) - 0.5).astype(np.int64)
+        X = X[np.lexsort((base[:, 2], base[:, 1], base[:, 0]))]
     params = SimParams(n_grid=n_grid, dt=1e-4, transfer=transfer)
     model = build_model(X, E=1e4, nu=0.3, rho=2000.0, params=params, probe=Probe("standard_x", (-0.18, 0.0, 0.0)), device=device)
     state = make_state(model, X)
@@ -75,6 +80,7 @@ def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: st
         "p2g": solver.p2g,
         "p2g_asked": p2g,
         "crowding": solver.crowding,
+        "order": order,
         "steps": steps,
         "median_s": med,
         "particle_substeps_per_s": rate,
@@ -110,6 +116,8 @@ def main() -> None:
     ap.add_argument("--graph", choices=["auto", "off", "both"], default="auto",
                     help="substeps as CUDA graphs (auto: on a CUDA device); both: each case with and without")
     ap.add_argument("--p2g", nargs="+", choices=["auto", "scatter", "cells"], default=["auto"])
+    ap.add_argument("--order", nargs="+", choices=["lattice", "cell"], default=["lattice"],
+                    help="the particles' order: the lattice's, or sorted by stencil base cell")
     ap.add_argument("--ppc", nargs="+", type=int, default=[8], help="particles per cell of the block (cubes: 8, 27, 64)")
     ap.add_argument("--cold", action="store_true", help="also measure a cold compile")
     ap.add_argument("--json", help="write results here")
@@ -118,20 +126,20 @@ def main() -> None:
     print(f"# device {args.device}, {platform.processor() or platform.machine()}, python {platform.python_version()}")
     transfers = ["affine_flip", "apic"] if args.transfer == "both" else [args.transfer]
     graphs = {"auto": ["auto"], "off": [False], "both": [False, "auto"]}[args.graph]
-    print("| particles | per cell | n_grid | transfer | graph | P2G | particle-substeps/s | ms/substep "
+    print("| particles | per cell | order | n_grid | transfer | graph | P2G | particle-substeps/s | ms/substep "
           "| s per 6000-substep rollout |")
-    print("|---:|---:|---:|---|---|---|---:|---:|---:|")
+    print("|---:|---:|---|---:|---|---|---|---:|---:|---:|")
     for case in args.cases:
         n, g = (int(v) for v in case.split(":"))
         for ppc in args.ppc:
             for transfer in transfers:
                 for graph in graphs:
-                    for p2g in args.p2g:
+                    for order, p2g in ((o, v) for o in args.order for v in args.p2g):
                         r = run_case(n, g, args.steps, args.repeats, args.device, transfer=transfer, graph=graph, p2g=p2g,
-                                     ppc=ppc)
+                                     ppc=ppc, order=order)
                         rows.append(r)
                         crowd = "" if r["crowding"] is None else f" (crowding {r['crowding']:.1f})"
-                        print(f"| {r['particles']:,} | {ppc} | {g} | {transfer} | {'on' if r['graph'] else 'off'} | "
+                        print(f"| {r['particles']:,} | {ppc} | {order} | {g} | {transfer} | {'on' if r['graph'] else 'off'} | "
                               f"{p2g}: {r['p2g']}{crowd} | {r['particle_substeps_per_s']:.3g} | {r['ms_per_substep']:.3f} | "
                               f"{r['s_per_6000_substeps']:.2f} |", flush=True)
     out = {"device": args.device, "rows": rows}

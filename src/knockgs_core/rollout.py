@@ -204,12 +204,13 @@ def run_rollouts(
 
 
 def cell_order(particles, *, n_grid: int, grid_lim: float) -> np.ndarray:
-    """A permutation [N] of ``particles`` sorting them by grid cell (cells ``grid_lim / n_grid``
-    [m], x-major) within the Gaussian-associated rows and within the fill rows, each stably:
-    the Gaussian-associated particles stay first."""
+    """A permutation [N] of ``particles`` sorting them by stencil base cell (``floor(x / dx -
+    0.5)`` with ``dx = grid_lim / n_grid`` [m], x-major, as the solver's P2G groups them)
+    within the Gaussian-associated rows and within the fill rows, each stably: the
+    Gaussian-associated particles stay first."""
     X = np.asarray(particles.positions, dtype=np.float64)
     g = int(particles.n_gs)
-    cell = np.clip(np.floor(X / (grid_lim / n_grid)).astype(np.int64), 0, n_grid - 1)
+    cell = np.clip(np.floor(X / (grid_lim / n_grid) - 0.5).astype(np.int64), 0, n_grid - 1)
     key = (cell[:, 0] * n_grid + cell[:, 1]) * n_grid + cell[:, 2]
     return np.concatenate([np.argsort(key[:g], kind="stable"), g + np.argsort(key[g:], kind="stable")])
 

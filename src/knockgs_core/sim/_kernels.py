@@ -65,6 +65,17 @@ def bspline_weights(fx: wp.vec3) -> wp.mat33:
 
 
 @wp.func
+def bspline_weight(f: float, i: int) -> float:
+    """Quadratic B-spline weight of stencil node ``i`` (0, 1 or 2) along one axis, for a
+    particle ``f`` cells from its base node: entry ``[i, axis]`` of :func:`bspline_weights`,
+    chosen by selects (a runtime index into a matrix would put it in local memory)."""
+    a = 1.5 - f
+    b = f - 1.0
+    c = f - 0.5
+    return wp.where(i == 0, 0.5 * (a * a), wp.where(i == 1, 0.75 - b * b, 0.5 * (c * c)))
+
+
+@wp.func
 def stencil_base(gx: wp.vec3) -> wp.vec3i:
     """First node of the 3x3x3 stencil of a particle at ``gx`` (position in cells)."""
     return wp.vec3i(int(gx[0] - 0.5), int(gx[1] - 0.5), int(gx[2] - 0.5))
@@ -387,12 +398,25 @@ def p2g(
 # The scatter P2G above adds 27 contributions per particle to the grid with float atomics;
 # where many particles share a cell (the paper-scale assets' shells: up to ~200 per cell) the
 # GPU serializes those atomics on the shared nodes. By cells: each particle's contribution
-# terms are computed once (``p2g_prepare``), the particles sorted by stencil base cell, their
-# terms copied to sorted order and the chunks listed (``p2g_chunks``, a prefix sum,
-# ``p2g_chunk_list``: a chunk is a run of at most 32 sorted particles of one cell), and one
-# thread per chunk and stencil node sums the chunk's contributions (``p2g_cells``): 27 atomics
-# per chunk instead of 27 per particle. The same sums, in another order (float rounding
-# differs from the scatter's).
+# terms and the key of its stencil base cell are computed once, in the particles' own order
+# (``p2g_prepare``); the particles are sorted by key (``p2g_sort_keys`` and a radix sort, every
+# few substeps: between sorts a particle that changed cells only cuts its run short); the
+# chunks are listed in that order (``p2g_chunk_starts``, a prefix sum, ``p2g_chunk_list``: a
+# chunk is a run of at most 32 sorted particles whose current base cells agree), and one thread
+# per chunk and stencil node sums the chunk's contributions, reading the terms through the
+# order (``p2g_cells``): 27 atomics per chunk instead of 27 per particle. The same sums, in
+# another order (float rounding differs from the scatter's).
+
+
+@wp.func
+def cell_key(xp: wp.vec3, inv_dx: float, lo: wp.vec3i, hi: wp.vec3i, n_grid: int, none_key: int) -> int:
+    """Sort key of a particle at ``xp`` [m]: the index of its stencil base cell, or
+    ``none_key`` (above every cell's) outside the active box ``[lo, hi)``."""
+    base = stencil_base(xp * inv_dx)
+    if not stencil_inside(base, lo, hi):
+        return none_key
+    return (base[0] * n_grid + base[1]) * n_grid + base[2]
+
 
 @wp.kernel
 def p2g_prepare(
@@ -415,33 +439,46 @@ def p2g_prepare(
     hi: wp.vec3i,
     n_grid: int,
     none_key: int,
+    affine_flip: int,
     v: wp.array(dtype=wp.vec3),
     rot: wp.array(dtype=wp.quat),
-    fx_out: wp.array(dtype=wp.vec3),
-    affine_out: wp.array(dtype=wp.mat33),
-    mC_out: wp.array(dtype=wp.mat33),
+    fx: wp.array(dtype=wp.vec3),
+    mv: wp.array(dtype=wp.vec4),
+    affine: wp.array(dtype=wp.mat33),
+    mC: wp.array(dtype=wp.mat33),
     keys: wp.array(dtype=wp.int32),
-    order: wp.array(dtype=wp.int32),
     overrun: wp.array(dtype=wp.int32),
 ):
-    """The per-particle half of :func:`p2g` (:func:`p2g_particle`): the affine matrices
-    (``affine``: stress and APIC terms; ``mC``: APIC term alone) and the position in the base
-    cell ``fx``; the sort key (base cell index; ``none_key``, above every cell's, for a particle
-    outside the active box) and the identity order for the sort."""
+    """The per-particle half of :func:`p2g` (:func:`p2g_particle`), in the particles' order:
+    the position in the base cell ``fx`` [cells], the momentum and mass ``mv`` ([xyz], [w]),
+    the affine matrices (``affine``: stress and APIC terms; ``mC``: APIC term alone, affine
+    FLIP only) and the base cell's key (:func:`cell_key`)."""
     p = wp.tid()
-    vp, affine, mC = p2g_particle(p, C, F, mass, vol, mu, lam, probe_mask, probe_force, probe_on, inv_dx, dt, polar_iters,
-                                  retardation, v, rot)
-    affine_out[p] = affine
-    mC_out[p] = mC
-    gx = (x0[p] + u[p]) * inv_dx
-    base = stencil_base(gx)
-    order[p] = p
-    if not stencil_inside(base, lo, hi):
+    vp, aff, mCp = p2g_particle(p, C, F, mass, vol, mu, lam, probe_mask, probe_force, probe_on, inv_dx, dt, polar_iters,
+                                retardation, v, rot)
+    xp = x0[p] + u[p]
+    key = cell_key(xp, inv_dx, lo, hi, n_grid, none_key)
+    keys[p] = key
+    if key == none_key:
         wp.atomic_add(overrun, 0, 1)
-        keys[p] = none_key
         return
-    fx_out[p] = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    keys[p] = (base[0] * n_grid + base[1]) * n_grid + base[2]
+    gx = xp * inv_dx
+    base = stencil_base(gx)
+    fx[p] = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    m = mass[p]
+    mvp = m * vp
+    mv[p] = wp.vec4(mvp[0], mvp[1], mvp[2], m)
+    affine[p] = aff
+    if affine_flip == 1:
+        mC[p] = mCp
+
+
+@wp.kernel
+def p2g_sort_keys(keys: wp.array(dtype=wp.int32), sort_keys: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32)):
+    """The radix sort's input: a copy of the keys and the identity order."""
+    p = wp.tid()
+    sort_keys[p] = keys[p]
+    order[p] = p
 
 
 #: most particles one thread of :func:`p2g_cells` sums (a cell with more is split in chunks)
@@ -449,42 +486,19 @@ CELL_CHUNK = wp.constant(32)
 
 
 @wp.kernel
-def p2g_chunks(
-    keys: wp.array(dtype=wp.int32),
-    order: wp.array(dtype=wp.int32),
-    none_key: int,
-    mass: wp.array(dtype=float),
-    v: wp.array(dtype=wp.vec3),
-    fx: wp.array(dtype=wp.vec3),
-    affine: wp.array(dtype=wp.mat33),
-    mC: wp.array(dtype=wp.mat33),
-    affine_flip: int,
-    fx_s: wp.array(dtype=wp.vec3),
-    mv_s: wp.array(dtype=wp.vec4),
-    affine_s: wp.array(dtype=wp.mat33),
-    mC_s: wp.array(dtype=wp.mat33),
-    start: wp.array(dtype=wp.int32),
-):
-    """Launched over sorted positions ``s``: the terms of particle ``order[s]`` copied to
-    position ``s`` (``mv_s``: momentum [xyz] and mass [w]), so a chunk's particles lie
-    contiguous, and ``start[s]`` = 1 where a chunk begins (a run of at most ``CELL_CHUNK``
-    sorted particles with one base cell; 0 elsewhere and outside the active box)."""
+def p2g_chunk_starts(keys: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32), none_key: int,
+                     start: wp.array(dtype=wp.int32)):
+    """Launched over sorted positions ``s``: ``start[s]`` = 1 where a chunk begins (a run of at
+    most ``CELL_CHUNK`` sorted particles whose current keys agree; 0 elsewhere and outside the
+    active box)."""
     s = wp.tid()
-    key = keys[s]
+    key = keys[order[s]]
     start[s] = 0
     if key == none_key:
         return
-    p = order[s]
-    m = mass[p]
-    mv = m * v[p]
-    fx_s[s] = fx[p]
-    mv_s[s] = wp.vec4(mv[0], mv[1], mv[2], m)
-    affine_s[s] = affine[p]
-    if affine_flip == 1:
-        mC_s[s] = mC[p]
-    if s == 0 or s % CELL_CHUNK == 0:
+    if s % CELL_CHUNK == 0:
         start[s] = 1
-    elif keys[s - 1] != key:
+    elif keys[order[s - 1]] != key:
         start[s] = 1
 
 
@@ -506,21 +520,24 @@ def p2g_cells(
     n_chunks: wp.array(dtype=wp.int32),
     stride: int,
     keys: wp.array(dtype=wp.int32),
+    order: wp.array(dtype=wp.int32),
     count: int,
     n_grid: int,
     inv_dx: float,
     affine_flip: int,
-    fx_s: wp.array(dtype=wp.vec3),
-    mv_s: wp.array(dtype=wp.vec4),
-    affine_s: wp.array(dtype=wp.mat33),
-    mC_s: wp.array(dtype=wp.mat33),
+    fx: wp.array(dtype=wp.vec3),
+    mv: wp.array(dtype=wp.vec4),
+    affine: wp.array(dtype=wp.mat33),
+    mC: wp.array(dtype=wp.mat33),
     grid_mv: wp.array3d(dtype=wp.vec3),
     grid_m: wp.array3d(dtype=float),
     grid_mv_old: wp.array3d(dtype=wp.vec3),
 ):
     """Launched over (chunk slot, stencil node): the thread sums the contributions of the
     chunks ``slot``, ``slot + stride``, ... (the chunk list is as long as the data make it) to
-    its node and adds each chunk's sum to the grid with one atomic."""
+    its node, reading particle ``order[s]``'s terms at sorted position ``s``, and adds each
+    chunk's sum to the grid with one atomic. The weights come by selects
+    (:func:`bspline_weight`): the node is the thread's, not a constant."""
     c, n = wp.tid()
     total = n_chunks[0]
     i = n // 9
@@ -530,26 +547,28 @@ def p2g_cells(
     dx = 1.0 / inv_dx
     while c < total:
         s = chunks[c]
-        key = keys[s]
+        key = keys[order[s]]
         e = s + 1
         while e < count:
-            if keys[e] != key or e % CELL_CHUNK == 0:
+            if e % CELL_CHUNK == 0:
+                break
+            if keys[order[e]] != key:
                 break
             e += 1
         sum_mv = wp.vec3(0.0)
         sum_m = float(0.0)
         sum_old = wp.vec3(0.0)
         for t in range(s, e):
-            f = fx_s[t]
-            w = bspline_weights(f)
-            weight = w[i, 0] * w[j, 1] * w[k, 2]
+            p = order[t]
+            f = fx[p]
+            weight = bspline_weight(f[0], i) * bspline_weight(f[1], j) * bspline_weight(f[2], k)
             dpos = (node - f) * dx
-            q = mv_s[t]
-            mv = wp.vec3(q[0], q[1], q[2])
-            sum_mv += weight * (mv + affine_s[t] * dpos)
+            q = mv[p]
+            mvp = wp.vec3(q[0], q[1], q[2])
+            sum_mv += weight * (mvp + affine[p] * dpos)
             sum_m += weight * q[3]
             if affine_flip == 1:
-                sum_old += weight * (mv + mC_s[t] * dpos)
+                sum_old += weight * (mvp + mC[p] * dpos)
         gi = key // (n_grid * n_grid) + i
         gj = (key // n_grid) % n_grid + j
         gk = key % n_grid + k

@@ -287,25 +287,24 @@ def make_state(model: Model, positions: np.ndarray, velocities: np.ndarray | Non
 
 @dataclass
 class _CellScratch:
-    """Scratch of the P2G by cells (``MPMSolver(p2g="cells")``): per particle the position in
-    its base cell ``fx`` [cells], the affine matrices ``affine`` and ``mC``; the sort ``keys``
-    and ``order`` (twice the particle count, as the radix sort needs); ``none_key`` (a key above
-    every cell's) and ``end_bit`` (the bits the sort looks at); in sorted order, the terms
-    ``fx_s``, ``mv_s`` (momentum, mass), ``affine_s``, ``mC_s`` (affine FLIP only), the chunk
-    starts ``start`` and their prefix sum ``index``; the list of chunk starts ``chunks`` and
-    its length ``n_chunks`` [1]."""
+    """Scratch of the P2G by cells (``MPMSolver(p2g="cells")``): per particle, in the
+    particles' order, the position in its base cell ``fx`` [cells], momentum and mass ``mv``,
+    the affine matrices ``affine`` and ``mC`` (affine FLIP only) and the base cell's ``keys``;
+    the radix sort's ``sort_keys`` and ``order`` (twice the particle count, as the sort needs;
+    ``order[:n]`` is a permutation at all times: the identity until the first sort), ``none_key``
+    (a key above every cell's) and ``end_bit`` (the bits the sort looks at); over sorted
+    positions the chunk starts ``start`` and their prefix sum ``index``; the list of chunk starts
+    ``chunks`` and its length ``n_chunks`` [1]."""
 
     fx: wp.array
+    mv: wp.array
     affine: wp.array
     mC: wp.array
     keys: wp.array
+    sort_keys: wp.array
     order: wp.array
     none_key: int
     end_bit: int
-    fx_s: wp.array
-    mv_s: wp.array
-    affine_s: wp.array
-    mC_s: wp.array
     start: wp.array
     index: wp.array
     chunks: wp.array
@@ -320,10 +319,11 @@ class _CellScratch:
         def zeros(dtype, size=n):
             return wp.zeros(size, dtype=dtype, device=dev)
 
-        return cls(fx=zeros(wp.vec3), affine=zeros(wp.mat33), mC=zeros(wp.mat33), keys=zeros(wp.int32, 2 * n),
-                   order=zeros(wp.int32, 2 * n), none_key=none_key, end_bit=max(1, int(none_key).bit_length()),
-                   fx_s=zeros(wp.vec3), mv_s=zeros(wp.vec4), affine_s=zeros(wp.mat33), mC_s=zeros(wp.mat33, n_old),
-                   start=zeros(wp.int32), index=zeros(wp.int32), chunks=zeros(wp.int32), n_chunks=zeros(wp.int32, 1))
+        order = wp.array(np.arange(2 * n, dtype=np.int32), dtype=wp.int32, device=dev)
+        return cls(fx=zeros(wp.vec3), mv=zeros(wp.vec4), affine=zeros(wp.mat33), mC=zeros(wp.mat33, n_old), keys=zeros(wp.int32),
+                   sort_keys=zeros(wp.int32, 2 * n), order=order, none_key=none_key,
+                   end_bit=max(1, int(none_key).bit_length()), start=zeros(wp.int32), index=zeros(wp.int32),
+                   chunks=zeros(wp.int32), n_chunks=zeros(wp.int32, 1))
 
 
 class MPMSolver:
@@ -336,8 +336,8 @@ class MPMSolver:
     object of each of ``params.effects`` (same order), made by its ``setup`` here.
 
     ``p2g``: ``"scatter"`` (one float atomic per particle and stencil node; the CPU's),
-    ``"cells"`` (particles sorted by base cell every substep, chunk sums with one atomic per
-    chunk and node) or ``"auto"``: by cells on a CUDA device where the particles crowd their
+    ``"cells"`` (particles sorted by base cell every :attr:`resort_every` substeps, chunk sums
+    with one atomic per chunk and node) or ``"auto"``: by cells on a CUDA device where the particles crowd their
     cells (:func:`cell_crowding` at least :attr:`CELLS_CROWDING`, recorded in ``crowding``),
     else the scatter.
 
@@ -356,8 +356,19 @@ class MPMSolver:
     #: 6.5 % per halving (docs/assets.md). tests/test_sim_physics.py checks that it never binds.
     polar_iters = 32
     #: ``p2g="auto"`` on a CUDA device sums by cells from this :func:`cell_crowding` on (particles
-    #: sharing a particle's base cell, on average), and scatters below it
-    CELLS_CROWDING = 16.0
+    #: sharing a particle's base cell, on average), and scatters below it. Measured on an H100
+    #: (benchmarks/README.md): a 681k-particle block at 1 per cell scatters faster (0.92 against
+    #: 1.39 ms a substep), at 8 per cell sums faster by cells (0.59 against 0.88 ms)
+    CELLS_CROWDING = 4.0
+    #: the P2G by cells sorts the particles by base cell every this many substeps; between sorts
+    #: the chunks follow the last order, cut where a particle has changed cells since (the sums
+    #: are right in any order: the interval sets speed only). On the paper-scale Pillow (H100,
+    #: substeps as graphs): 0.555 ms a substep sorting every substep, 0.501 every 10th, 0.511
+    #: every 50th
+    resort_every: int = 10
+    #: cap on the threads of the chunk sums (in chunks; None: one per possible chunk, see
+    #: :meth:`_record`); each thread strides over the chunks beyond, so it sets speed only
+    max_chunk_slots: int | None = None
 
     @classmethod
     def auto_p2g(cls, cuda: bool, crowding: float | None) -> str:
@@ -388,6 +399,7 @@ class MPMSolver:
             raise InputError("MPMSolver", "p2g", f"must be 'auto', 'scatter' or 'cells', got {p2g!r}")
         self.p2g = p2g
         self._cells = _CellScratch.make(model) if p2g == "cells" else None
+        self._sorted_at: int | None = None  # the step of the last sort by cells
         self._inv_dx = 1.0 / p.dx
         self._lo = (0, 0, 0)
         self._hi = (p.n_grid, p.n_grid, p.n_grid)
@@ -485,24 +497,26 @@ class MPMSolver:
             cmds["p2g"] = wp.launch(
                 K.p2g_prepare,
                 dim=m.particle_count,
-                inputs=[*particle_args, p.n_grid, c.none_key],
-                outputs=[state.particle_v, state.particle_rot, c.fx, c.affine, c.mC, c.keys, c.order, self._overrun],
+                inputs=[*particle_args, p.n_grid, c.none_key, flip],
+                outputs=[state.particle_v, state.particle_rot, c.fx, c.mv, c.affine, c.mC, c.keys, self._overrun],
                 **rec,
             )
-            cmds["p2g_chunks"] = wp.launch(
-                K.p2g_chunks, dim=m.particle_count,
-                inputs=[c.keys, c.order, c.none_key, m.particle_mass, state.particle_v, c.fx, c.affine, c.mC, flip],
-                outputs=[c.fx_s, c.mv_s, c.affine_s, c.mC_s, c.start], **rec)
+            cmds["p2g_sort_keys"] = wp.launch(K.p2g_sort_keys, dim=m.particle_count, inputs=[c.keys],
+                                              outputs=[c.sort_keys, c.order], **rec)
+            cmds["p2g_chunk_starts"] = wp.launch(K.p2g_chunk_starts, dim=m.particle_count, inputs=[c.keys, c.order, c.none_key],
+                                                 outputs=[c.start], **rec)
             cmds["p2g_chunk_list"] = wp.launch(K.p2g_chunk_list, dim=m.particle_count,
                                                inputs=[c.start, c.index, m.particle_count], outputs=[c.chunks, c.n_chunks], **rec)
             # chunk slots: at most one chunk per cell of the active box plus one per 32 particles
             # (the kernel strides over any beyond, so the bound is for speed, not correctness)
             slots = max(1, min(m.particle_count, math.prod(dims) + m.particle_count // 32 + 1))
+            if self.max_chunk_slots:
+                slots = min(slots, self.max_chunk_slots)
             cmds["p2g_cells"] = wp.launch(
                 K.p2g_cells,
                 dim=(slots, 27),
-                inputs=[c.chunks, c.n_chunks, slots, c.keys, m.particle_count, p.n_grid, self._inv_dx, flip,
-                        c.fx_s, c.mv_s, c.affine_s, c.mC_s],
+                inputs=[c.chunks, c.n_chunks, slots, c.keys, c.order, m.particle_count, p.n_grid, self._inv_dx, flip,
+                        c.fx, c.mv, c.affine, c.mC],
                 outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
                 **rec,
             )
@@ -555,22 +569,26 @@ class MPMSolver:
         t = state.step * p.dt
         probe_on = int(m.probe_steps > 0 and m.probe_first <= state.step < m.probe_first + m.probe_steps)
         active = tuple(isinstance(bc, DomainWalls) or bc.start_time <= t < bc.end_time for bc, _ in self._cmds["bcs"])
+        sort = self._cells is not None and (self._sorted_at is None or not 0 <= state.step - self._sorted_at < self.resort_every)
+        if sort:
+            self._sorted_at = state.step
         if self.graph:
-            key = (probe_on, active)
+            key = (probe_on, active, sort)
             graph = self._graphs.get(key)
             if graph is None:
                 with wp.ScopedCapture(device=m.device) as capture:
-                    self._launch(state, t, probe_on, active)
+                    self._launch(state, t, probe_on, active, sort)
                 graph = self._graphs[key] = capture.graph
             wp.capture_launch(graph)
         else:
-            self._launch(state, t, probe_on, active)
+            self._launch(state, t, probe_on, active, sort)
         for effect, scratch in zip(p.effects, self.effect_scratch):
             effect.apply_particles(m, state, scratch, t)
         state.step += 1
 
-    def _launch(self, state: State, t: float, probe_on: int, active: tuple[bool, ...]) -> None:
-        """The substep's launches at time ``t`` [s] up to G2P: P2G with the probe ``probe_on``,
+    def _launch(self, state: State, t: float, probe_on: int, active: tuple[bool, ...], sort: bool = False) -> None:
+        """The substep's launches at time ``t`` [s] up to G2P: P2G with the probe ``probe_on``
+        (by cells: sorted by base cell first where ``sort``),
         the grid update, the supports flagged ``active``, the effects on the grid, G2P with the
         particle translation active at ``t`` (:meth:`step` adds the effects on the particles)."""
         m, p = self.model, self.model.params
@@ -578,10 +596,12 @@ class MPMSolver:
         cmds["zero"].launch()
         cmds["p2g"].set_param_by_name("probe_on", probe_on)
         cmds["p2g"].launch()
-        if self._cells is not None:  # sort by base cell, copy the terms to sorted order, list the chunks, sum
+        if self._cells is not None:  # (sort by base cell,) list the chunks in sorted order, sum
             c = self._cells
-            wp.utils.radix_sort_pairs(c.keys, c.order, m.particle_count, end_bit=c.end_bit)
-            cmds["p2g_chunks"].launch()
+            if sort:
+                cmds["p2g_sort_keys"].launch()
+                wp.utils.radix_sort_pairs(c.sort_keys, c.order, m.particle_count, end_bit=c.end_bit)
+            cmds["p2g_chunk_starts"].launch()
             wp.utils.array_scan(c.start, c.index, inclusive=False)
             cmds["p2g_chunk_list"].launch()
             cmds["p2g_cells"].launch()
