@@ -33,7 +33,9 @@ def main() -> None:
     ap.add_argument("--order", choices=["cell", "asset"], default="cell")
     ap.add_argument("--slots", type=int, nargs="+", default=[0],
                     help="caps on the chunk-sum threads (MPMSolver.max_chunk_slots; 0: none), each profiled")
-    ap.add_argument("--resort", type=int, nargs="+", default=[1],
+    ap.add_argument("--chunk", type=int, nargs="+", default=[32],
+                    help="most particles a chunk of the P2G by cells (MPMSolver.cell_chunk), each profiled")
+    ap.add_argument("--resort", type=int, nargs="+", default=[10],
                     help="intervals of the P2G by cells' sort in substeps (MPMSolver.resort_every), each profiled")
     args = ap.parse_args()
 
@@ -54,11 +56,13 @@ def main() -> None:
     ref = getattr(contract, "probe_reference_particles", None)
     model = build_model(ps.positions, E=E, nu=nu, rho=rho, params=contract.sim, volumes=ps.volumes, probe=probe,
                         probe_force_scale=float(ref) / len(ps.positions) if ref else 1.0, device=args.device)
-    for variant, slots, resort in ((v, n, r) for v in args.p2g for n in args.slots for r in args.resort):
+    runs = [(v, n, r, k) for v in args.p2g for n in args.slots for r in args.resort for k in args.chunk]
+    for variant, slots, resort, chunk in runs:
         state = make_state(model, ps.positions)
         solver = MPMSolver(model, p2g=variant.split("+")[0], graph=variant.endswith("+graph"))
         solver.max_chunk_slots = slots or None
         solver.resort_every = resort
+        solver.cell_chunk = chunk
         solver.check(state)
         for _ in range(args.warm):
             solver.step(state)
@@ -79,7 +83,7 @@ def main() -> None:
             count[r.name] += 1
         all_ms = sum(total.values())
         print(f"{args.object} {args.profile}, P2G {variant} ({args.order} order, chunk slots {slots or 'all'}, sort every "
-              f"{resort} substeps): {len(ps.positions)} particles, n_grid {contract.sim.n_grid}, "
+              f"{resort} substeps, chunks of {chunk}): {len(ps.positions)} particles, n_grid {contract.sim.n_grid}, "
               f"active box {[h - lo for lo, h in zip(solver._lo, solver._hi)]}, {args.steps} substeps, "
               f"wall {1e3 * wall / args.steps:.4f} ms per substep")
         print("| kernel | launches | ms per substep | share |")

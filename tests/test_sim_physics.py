@@ -370,14 +370,16 @@ def test_p2g_by_cells_is_the_scatter_up_to_rounding(rng, transfer):
     X = np.concatenate([core, shell])
     probe = Probe("p", (0.0, 2e-2, 0.0), box=Box(center=(1.15, 1.0, 0.85), half_size=(0.06, 0.25, 0.2)), n_steps=5,
                   dt_ref=5e-4)
-    # by cells also with the sort every 7th substep only: between sorts the chunks follow an
-    # order that particles changing cells have left (chunks cut short, the same sums)
+    # by cells also with the sort every 7th substep only (between sorts the chunks follow an
+    # order that particles changing cells have left: chunks cut short, the same sums) and with
+    # chunks of at most 5 particles
     runs = {}
-    for variant, resort in (("scatter", 1), ("cells", 1), ("cells", 7)):
+    for variant, resort, chunk in (("scatter", 1, 32), ("cells", 1, 32), ("cells", 7, 5)):
         model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, probe=probe)
         state = make_state(model, X)
         solver = MPMSolver(model, p2g=variant)
         solver.resort_every = resort
+        solver.cell_chunk = chunk
         assert solver.p2g == variant
         solver.check(state)
         m0 = solver.momentum(state)

@@ -402,7 +402,8 @@ def p2g(
 # (``p2g_prepare``); the particles are sorted by key (``p2g_sort_keys`` and a radix sort, every
 # few substeps: between sorts a particle that changed cells only cuts its run short); the
 # chunks are listed in that order (``p2g_chunk_starts``, a prefix sum, ``p2g_chunk_list``: a
-# chunk is a run of at most 32 sorted particles whose current base cells agree), and one thread
+# chunk is a run of at most ``MPMSolver.cell_chunk`` sorted particles whose current base cells
+# agree), and one thread
 # per chunk and stencil node sums the chunk's contributions, reading the terms through the
 # order (``p2g_cells``): 27 atomics per chunk instead of 27 per particle. The same sums, in
 # another order (float rounding differs from the scatter's).
@@ -481,24 +482,18 @@ def p2g_sort_keys(keys: wp.array(dtype=wp.int32), sort_keys: wp.array(dtype=wp.i
     order[p] = p
 
 
-#: most particles one thread of :func:`p2g_cells` sums (a cell with more is split in chunks)
-CELL_CHUNK = wp.constant(32)
-
-
 @wp.kernel
-def p2g_chunk_starts(keys: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32), none_key: int,
+def p2g_chunk_starts(keys: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32), chunk: int,
                      start: wp.array(dtype=wp.int32)):
     """Launched over sorted positions ``s``: ``start[s]`` = 1 where a chunk begins (a run of at
-    most ``CELL_CHUNK`` sorted particles whose current keys agree; 0 elsewhere and outside the
-    active box)."""
+    most ``chunk`` sorted particles whose current keys agree, cut at every ``chunk``-th
+    position; a particle outside the active box is a chunk of its own, which the sums skip),
+    0 elsewhere. A chunk ends where the next begins."""
     s = wp.tid()
-    key = keys[order[s]]
     start[s] = 0
-    if key == none_key:
-        return
-    if s % CELL_CHUNK == 0:
+    if s % chunk == 0:
         start[s] = 1
-    elif keys[order[s - 1]] != key:
+    elif keys[order[s - 1]] != keys[order[s]]:
         start[s] = 1
 
 
@@ -521,6 +516,7 @@ def p2g_cells(
     stride: int,
     keys: wp.array(dtype=wp.int32),
     order: wp.array(dtype=wp.int32),
+    none_key: int,
     count: int,
     n_grid: int,
     inv_dx: float,
@@ -534,10 +530,11 @@ def p2g_cells(
     grid_mv_old: wp.array3d(dtype=wp.vec3),
 ):
     """Launched over (chunk slot, stencil node): the thread sums the contributions of the
-    chunks ``slot``, ``slot + stride``, ... (the chunk list is as long as the data make it) to
-    its node, reading particle ``order[s]``'s terms at sorted position ``s``, and adds each
-    chunk's sum to the grid with one atomic. The weights come by selects
-    (:func:`bspline_weight`): the node is the thread's, not a constant."""
+    chunks ``slot``, ``slot + stride``, ... (the chunk list is as long as the data make it;
+    chunks outside the active box, key ``none_key``, are skipped) to its node, reading particle
+    ``order[s]``'s terms at sorted position ``s``, and adds each chunk's sum to the grid with
+    one atomic. The weights come by selects (:func:`bspline_weight`): the node is the
+    thread's, not a constant."""
     c, n = wp.tid()
     total = n_chunks[0]
     i = n // 9
@@ -548,13 +545,12 @@ def p2g_cells(
     while c < total:
         s = chunks[c]
         key = keys[order[s]]
-        e = s + 1
-        while e < count:
-            if e % CELL_CHUNK == 0:
-                break
-            if keys[order[e]] != key:
-                break
-            e += 1
+        e = count
+        if c + 1 < total:
+            e = chunks[c + 1]
+        if key == none_key:
+            c += stride
+            continue
         sum_mv = wp.vec3(0.0)
         sum_m = float(0.0)
         sum_old = wp.vec3(0.0)

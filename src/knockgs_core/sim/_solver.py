@@ -366,6 +366,9 @@ class MPMSolver:
     #: substeps as graphs): 0.555 ms a substep sorting every substep, 0.501 every 10th, 0.511
     #: every 50th
     resort_every: int = 10
+    #: most particles in one chunk of the P2G by cells (a thread sums a chunk's contributions
+    #: to one node; a cell with more is split)
+    cell_chunk: int = 32
     #: cap on the threads of the chunk sums (in chunks; None: one per possible chunk, see
     #: :meth:`_record`); each thread strides over the chunks beyond, so it sets speed only
     max_chunk_slots: int | None = None
@@ -503,19 +506,19 @@ class MPMSolver:
             )
             cmds["p2g_sort_keys"] = wp.launch(K.p2g_sort_keys, dim=m.particle_count, inputs=[c.keys],
                                               outputs=[c.sort_keys, c.order], **rec)
-            cmds["p2g_chunk_starts"] = wp.launch(K.p2g_chunk_starts, dim=m.particle_count, inputs=[c.keys, c.order, c.none_key],
-                                                 outputs=[c.start], **rec)
+            cmds["p2g_chunk_starts"] = wp.launch(K.p2g_chunk_starts, dim=m.particle_count,
+                                                 inputs=[c.keys, c.order, self.cell_chunk], outputs=[c.start], **rec)
             cmds["p2g_chunk_list"] = wp.launch(K.p2g_chunk_list, dim=m.particle_count,
                                                inputs=[c.start, c.index, m.particle_count], outputs=[c.chunks, c.n_chunks], **rec)
-            # chunk slots: at most one chunk per cell of the active box plus one per 32 particles
-            # (the kernel strides over any beyond, so the bound is for speed, not correctness)
-            slots = max(1, min(m.particle_count, math.prod(dims) + m.particle_count // 32 + 1))
+            # chunk slots: at most one chunk per cell of the active box plus one per cell_chunk
+            # particles (the kernel strides over any beyond, so the bound is for speed, not correctness)
+            slots = max(1, min(m.particle_count, math.prod(dims) + m.particle_count // self.cell_chunk + 1))
             if self.max_chunk_slots:
                 slots = min(slots, self.max_chunk_slots)
             cmds["p2g_cells"] = wp.launch(
                 K.p2g_cells,
                 dim=(slots, 27),
-                inputs=[c.chunks, c.n_chunks, slots, c.keys, c.order, m.particle_count, p.n_grid, self._inv_dx, flip,
+                inputs=[c.chunks, c.n_chunks, slots, c.keys, c.order, c.none_key, m.particle_count, p.n_grid, self._inv_dx, flip,
                         c.fx, c.mv, c.affine, c.mC],
                 outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
                 **rec,
