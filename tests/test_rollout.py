@@ -200,6 +200,14 @@ def test_a_failed_job_leaves_no_output_once_its_writes_have_stopped(tmp_path):
                 w.submit(target, a)
                 raise KeyboardInterrupt
         assert not output.exists()
+    # a job with two output folders (positions, and deformation gradients apart) loses both
+    (tmp_path / "pos").mkdir()
+    (tmp_path / "F").mkdir()
+    with pytest.raises(KeyboardInterrupt):
+        with BackgroundWriter(output=[tmp_path / "pos", tmp_path / "F"]) as w:
+            w.submit(tmp_path / "pos" / "r.parquet", a, tmp_path / "F" / "r.F.parquet")
+            raise KeyboardInterrupt
+    assert not (tmp_path / "pos").exists() and not (tmp_path / "F").exists()
     # a block that succeeds keeps its output
     with BackgroundWriter(output=tmp_path / "job") as w:
         w.submit(tmp_path / "job" / "r.parquet", a)

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 import yaml
@@ -361,6 +363,37 @@ def test_a_library_without_deformation_gradients_moves_them_to_the_evaluation_jo
     pd.testing.assert_frame_equal(a, b)
     ladder = snakemake(work, "-n", f"{CI}/ladder/observations/pillow/lib/chunk0.csv", *flag)
     assert ladder.returncode != 0 and "library_deformation_gradients" in ladder.stdout + ladder.stderr
+
+
+def test_temporary_deformation_gradients_are_removed_once_rendered(tmp_path):
+    # render.keep_deformation_gradients: false (the paper profile's setting): the evaluation job
+    # writes its F to a folder of its own, which the render reads and the workflow then removes;
+    # the positions stay, and the frames equal those rendered from F kept on disk
+    work = scratch_copy(tmp_path)
+    cfg = yaml.safe_load((ROOT / "config/ci.yaml").read_text())
+    cfg["render"]["keep_deformation_gradients"] = False
+    (work / "config/ci_temp_F.yaml").write_text(yaml.safe_dump(cfg))
+    tag = "sE0.910000_sR1.230000"  # not a candidate: every evaluation probe is simulated here
+    probes = ["standard_x", "standard_y", "strong_x"]
+    frames = {}
+    for name, flag in (("kept", ["--configfile=config/ci.yaml"]), ("temporary", ["--configfile=config/ci_temp_F.yaml"])):
+        run = snakemake(work, f"{CI}/frames/pillow/{tag}", "--cores", "2", *flag, "--config", "objects=[pillow]")
+        assert run.returncode == 0, run.stderr[-3000:]
+        ev = sorted(p.name for p in (work / f"{CI}/rollouts/pillow/eval/{tag}").glob("*.parquet"))
+        if name == "kept":
+            assert ev == sorted([f"{p}.parquet" for p in probes] + [f"{p}.F.parquet" for p in probes]), ev
+            assert not (work / f"{CI}/rollouts/pillow/evalF").exists()
+        else:
+            assert ev == [f"{p}.parquet" for p in probes], ev
+            assert not (work / f"{CI}/rollouts/pillow/evalF/{tag}").exists()  # removed once rendered
+            assert "evalF" in run.stderr and "Removing temporary output" in run.stderr
+        frames[name] = {p: dict(np.load(work / f"{CI}/frames/pillow/{tag}/{p}.npz")) for p in probes}
+        shutil.rmtree(work / f"{CI}/rollouts/pillow/eval/{tag}")
+        shutil.rmtree(work / f"{CI}/frames/pillow/{tag}")
+    for p in probes:
+        assert frames["kept"][p].keys() == frames["temporary"][p].keys()
+        for k in frames["kept"][p]:
+            np.testing.assert_array_equal(frames["kept"][p][k], frames["temporary"][p][k])
 
 
 def test_evaluation_jobs_write_deformation_gradients_only_for_renders(tmp_path):

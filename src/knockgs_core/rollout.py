@@ -292,7 +292,7 @@ class BackgroundWriter:
     write is raised by a later ``submit`` or by ``close`` (the context manager's exit), never
     lost. Files are written exactly as :func:`write_rollout` and :func:`write_deformation`
     write them, each atomically; with one worker in submission order. ``output`` (a job's
-    output folder or file): removed when the block fails or is interrupted, once the writes
+    output folder or file, or a list of them): removed when the block fails or is interrupted, once the writes
     under way have finished, so no partial output outlives the job (a workflow manager may
     remove it earlier, while a write is still under way). Several workers suit a
     batch of rollouts that finish together (a GPU's library job): their writes overlap.
@@ -305,7 +305,8 @@ class BackgroundWriter:
         if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
             raise InputError("BackgroundWriter", "workers", f"must be an integer >= 1, got {workers!r}")
         self.workers = workers
-        self.output = None if output is None else Path(output)
+        outputs = [] if output is None else output if isinstance(output, (list, tuple)) else [output]
+        self.outputs = [Path(o) for o in outputs]
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="rollout-writer")
         self._pending = deque()
 
@@ -342,11 +343,11 @@ class BackgroundWriter:
                 self.close()
             except Exception:
                 pass
-            if self.output is not None:  # no write can follow now: the job's output goes
-                if self.output.is_dir():
-                    shutil.rmtree(self.output, ignore_errors=True)
+            for out in self.outputs:  # no write can follow now: the job's output goes
+                if out.is_dir():
+                    shutil.rmtree(out, ignore_errors=True)
                 else:
-                    self.output.unlink(missing_ok=True)
+                    out.unlink(missing_ok=True)
         return False
 
 

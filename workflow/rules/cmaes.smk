@@ -27,6 +27,7 @@ checkpoint cmaes_estimate:
         particles=f"{P}/assets/{{object}}.particles.npz",
         candidates="config/candidates.csv",
         rollouts=lambda wc: folders(r["rollout"] for r in cmaes_target_rollouts(wc.object, wc.split).values()),
+        F=lambda wc: temp_F_folders(cmaes_target_rollouts(wc.object, wc.split).values()),
     output:
         json=f"{P}/cmaes/estimates/{{object}}/{{split}}/seed{{seed}}.json",
     log:

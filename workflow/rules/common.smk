@@ -40,6 +40,9 @@ RENDER = config["render"]
 # scale 0.5 GB a rollout), and the library only where render.library_deformation_gradients
 EVAL_F = RENDER["enabled"]
 LIBRARY_F = RENDER["library_deformation_gradients"]
+# render.keep_deformation_gradients false: the evaluation jobs' F go to a temporary folder of
+# their own (evalF), removed once its readers are done
+EVAL_F_TEMP = EVAL_F and not RENDER["keep_deformation_gradients"]
 DISCREPANCY = config["discrepancy"]
 SHIFTS = config["probe_shifts"]
 
@@ -176,7 +179,16 @@ def eval_rollout(obj, probe, theta, suffix=".parquet", *, with_F=False):
     with_F = with_F or suffix == ".F.parquet"
     if probe == calibration_probe(obj) and tag in _CANDIDATE_OF_TAG and (LIBRARY_F or not with_F):
         return library_rollout(library_root(obj), _CANDIDATE_OF_TAG[tag], suffix)
+    if suffix == ".F.parquet" and EVAL_F_TEMP:
+        return f"{P}/rollouts/{obj}/evalF/{tag}/{probe}{suffix}"
     return f"{P}/rollouts/{obj}/eval/{tag}/{probe}{suffix}"
+
+
+def temp_F_folders(runs):
+    """The temporary deformation-gradient folders (EVAL_F_TEMP) that the runs' "F" paths lie
+    in: a reader's input, so they are removed only once it is done (none where F stays with
+    the positions)."""
+    return folders(r["F"] for r in runs) if EVAL_F_TEMP else []
 
 
 def need_eval_F(consumer):

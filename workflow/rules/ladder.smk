@@ -58,6 +58,7 @@ rule ladder_observe_targets:
         ply=f"{P}/assets/{{object}}.ply",
         scene=f"{P}/assets/{{object}}.scene.npz",
         rollouts=lambda wc: folders(run["rollout"] for run in ladder_target_runs(wc)),
+        F=lambda wc: temp_F_folders(ladder_target_runs(wc)),
     output:
         table=f"{P}/ladder/observations/{{object}}/targets_{{split}}.csv",
     log:

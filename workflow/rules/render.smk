@@ -17,6 +17,7 @@ rule render:
         ply=f"{P}/assets/{{object}}.ply",
         scene=f"{P}/assets/{{object}}.scene.npz",
         rollouts=lambda wc: folders(job["rollout"] for job in render_jobs(wc)),
+        F=lambda wc: temp_F_folders(render_jobs(wc)),
     output:
         folder=directory(f"{P}/frames/{{object}}/{{theta}}"),
     log:
@@ -33,6 +34,9 @@ rule render:
         mem_mb=4000,
         runtime=30,
         gpu=1 if ON_GPU else 0,
+    # with temporary F (render.keep_deformation_gradients false) a theta's render runs as soon as
+    # its rollouts are done, so few thetas' F are on disk at once
+    priority: 1 if EVAL_F_TEMP else 0
     script:
         "../scripts/render.py"
 

@@ -48,6 +48,8 @@ rule rollout_eval:
         particles=f"{P}/assets/{{object}}.particles.npz",
     output:
         folder=directory(f"{P}/rollouts/{{object}}/eval/{{theta}}"),
+        # render.keep_deformation_gradients false: F in a temporary folder of its own
+        **({"F_folder": temp(directory(f"{P}/rollouts/{{object}}/evalF/{{theta}}"))} if EVAL_F_TEMP else {}),
     log:
         f"logs/{PROFILE}/rollouts/{{object}}/eval/{{theta}}.log",
     benchmark:

@@ -16,11 +16,14 @@ sys.stderr = log
 p = snakemake.params
 # a job writes a folder of rollouts, or a single rollout (output "rollout")
 folder = Path(snakemake.output.folder) if "folder" in snakemake.output.keys() else Path(snakemake.output.rollout).parent
+# the deformation gradients: in the same folder, or in a folder of their own (output "F_folder")
+F_folder = Path(snakemake.output.F_folder) if "F_folder" in snakemake.output.keys() else folder
 for run in p.runs:
-    for key in ("rollout", "F"):
-        if run[key] is not None and Path(run[key]).parent != folder:
-            raise SystemExit(f"rollout job: {run[key]} lies outside the job's output folder {folder}")
+    for key, where in (("rollout", folder), ("F", F_folder)):
+        if run[key] is not None and Path(run[key]).parent != where:
+            raise SystemExit(f"rollout job: {run[key]} lies outside the job's output folder {where}")
 folder.mkdir(parents=True, exist_ok=True)
+F_folder.mkdir(parents=True, exist_ok=True)
 contract = load_contract(p.object, p.profile)
 particles = load_particles(snakemake.input.particles)
 passive = None
@@ -45,7 +48,7 @@ extra = {} if passive is None else passive.run_kwargs()
 
 # a failed or interrupted job leaves no output (the writer removes it once its writes have
 # stopped), so a resumed run simulates it again instead of taking a partial folder
-output = folder if "folder" in snakemake.output.keys() else Path(snakemake.output.rollout)
+output = [folder, F_folder] if "folder" in snakemake.output.keys() else [Path(snakemake.output.rollout)]
 with BackgroundWriter(workers=max((len(g) for g in groups), default=1), output=output) as writer:
     for group in groups:
         tags = [f"[{i + 1}/{len(p.runs)}] theta ({run['theta'][0]:.6f}, {run['theta'][1]:.6f}) probe {run['probe']}"
