@@ -56,6 +56,28 @@ def test_ply_missing_field(tmp_path):
     check(e, path, "opacity")
 
 
+def test_ply_read_mapped_equals_the_file_and_a_truncated_one_is_named(tmp_path):
+    # read_ply maps the file (plyfile reads an unmapped binary file row by row): the values are
+    # the file's, read row by row as a check, and the file stays writable after the read
+    from plyfile import PlyData
+
+    path = tmp_path / "g.ply"
+    gs = gaussians(n=300, sh_rest=np.random.default_rng(1).normal(size=(300, 3, 3)))
+    write_ply(gs, path)
+    got = read_ply(path)
+    v = PlyData.read(str(path), mmap=False)["vertex"].data
+    np.testing.assert_array_equal(got.means, np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float64))
+    np.testing.assert_array_equal(got.sh_dc, np.stack([v[f"f_dc_{i}"] for i in range(3)], 1).astype(np.float64))
+    np.testing.assert_array_equal(got.sh_rest[:, :, 0], np.stack([v[f"f_rest_{i}"] for i in range(3)], 1).astype(np.float64))
+    write_ply(gaussians(n=10), path)  # replaced while a read's arrays are alive
+    assert len(read_ply(path)) == 10 and len(got) == 300
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) - 20])
+    with pytest.raises(InputError) as e:
+        read_ply(path)
+    check(e, path, "file")
+
+
 def test_ply_nan_positions(tmp_path):
     from plyfile import PlyData
 
