@@ -239,6 +239,11 @@ def test_rollouts_simulated_in_cell_order_come_back_in_the_asset_order(pillow_ci
     ps = built.particles
     perm = cell_order(ps, n_grid=contract.sim.n_grid, grid_lim=contract.sim.grid_lim)
     assert sorted(perm[: ps.n_gs]) == list(range(ps.n_gs)) and not np.array_equal(perm, np.arange(len(perm)))
+    # sorted by stencil base cell (the key the GPU's P2G groups by), x-major, in each group
+    n = contract.sim.n_grid
+    base = np.floor(ps.positions[perm].astype(np.float64) / contract.sim.dx - 0.5).astype(np.int64)
+    key = (base[:, 0] * n + base[:, 1]) * n + base[:, 2]
+    assert np.all(np.diff(key[: ps.n_gs]) >= 0) and np.all(np.diff(key[ps.n_gs:]) >= 0)
     runs = [((0.95, 1.35), "standard_x")]
     (asset,) = run_rollouts(contract, runs, particles=ps, export_F=True)
     (cell,) = run_rollouts(contract, runs, particles=ps, export_F=True, particle_order="cell")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from knockgs_core.errors import SimulationError
+from knockgs_core.errors import InputError, SimulationError
 from knockgs_core.sim import Box, DomainWalls, FixedCuboid, MPMSolver, Probe, SimParams, build_model, make_state, simulate
 
 
@@ -398,6 +398,12 @@ def test_p2g_by_cells_is_the_scatter_up_to_rounding(rng, transfer):
         assert np.sqrt(((xc - xs) ** 2).sum(-1).mean()) < 1e-5 * disp
         np.testing.assert_allclose(dpc, dps, rtol=1e-4, atol=1e-6 * np.linalg.norm(dps))
     assert not np.array_equal(runs["cells", 1][0], runs["cells", 7][0])  # summed in another order
+    for name, bad in (("resort_every", 0), ("cell_chunk", 0), ("cell_chunk", 2.5)):
+        model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, probe=probe)
+        solver = MPMSolver(model, p2g="cells")
+        setattr(solver, name, bad)
+        with pytest.raises(InputError, match=name):
+            solver.step(make_state(model, X))
 
 
 def test_p2g_variant_is_checked_and_the_cpu_keeps_the_scatter():

@@ -292,9 +292,9 @@ class BackgroundWriter:
     write is raised by a later ``submit`` or by ``close`` (the context manager's exit), never
     lost. Files are written exactly as :func:`write_rollout` and :func:`write_deformation`
     write them, each atomically; with one worker in submission order. ``output`` (a job's
-    output folder or file, or a list of them): removed when the block fails or is interrupted, once the writes
-    under way have finished, so no partial output outlives the job (a workflow manager may
-    remove it earlier, while a write is still under way). Several workers suit a
+    output folder or file, or a list of them): removed when the block fails or is
+    interrupted, once the writes under way have finished, so no partial output outlives the
+    job (a workflow manager may remove it earlier, while a write is still under way). Several workers suit a
     batch of rollouts that finish together (a GPU's library job): their writes overlap.
     """
 

@@ -48,7 +48,7 @@ extra = {} if passive is None else passive.run_kwargs()
 
 # a failed or interrupted job leaves no output (the writer removes it once its writes have
 # stopped), so a resumed run simulates it again instead of taking a partial folder
-output = [folder, F_folder] if "folder" in snakemake.output.keys() else [Path(snakemake.output.rollout)]
+output = sorted({folder, F_folder}) if "folder" in snakemake.output.keys() else [Path(snakemake.output.rollout)]
 with BackgroundWriter(workers=max((len(g) for g in groups), default=1), output=output) as writer:
     for group in groups:
         tags = [f"[{i + 1}/{len(p.runs)}] theta ({run['theta'][0]:.6f}, {run['theta'][1]:.6f}) probe {run['probe']}"

@@ -409,16 +409,6 @@ def p2g(
 # another order (float rounding differs from the scatter's).
 
 
-@wp.func
-def cell_key(xp: wp.vec3, inv_dx: float, lo: wp.vec3i, hi: wp.vec3i, n_grid: int, none_key: int) -> int:
-    """Sort key of a particle at ``xp`` [m]: the index of its stencil base cell, or
-    ``none_key`` (above every cell's) outside the active box ``[lo, hi)``."""
-    base = stencil_base(xp * inv_dx)
-    if not stencil_inside(base, lo, hi):
-        return none_key
-    return (base[0] * n_grid + base[1]) * n_grid + base[2]
-
-
 @wp.kernel
 def p2g_prepare(
     x0: wp.array(dtype=wp.vec3),
@@ -453,18 +443,18 @@ def p2g_prepare(
     """The per-particle half of :func:`p2g` (:func:`p2g_particle`), in the particles' order:
     the position in the base cell ``fx`` [cells], the momentum and mass ``mv`` ([xyz], [w]),
     the affine matrices (``affine``: stress and APIC terms; ``mC``: APIC term alone, affine
-    FLIP only) and the base cell's key (:func:`cell_key`)."""
+    FLIP only) and the sort key ``keys``: the base cell's index, or ``none_key`` (above every
+    cell's) outside the active box."""
     p = wp.tid()
     vp, aff, mCp = p2g_particle(p, C, F, mass, vol, mu, lam, probe_mask, probe_force, probe_on, inv_dx, dt, polar_iters,
                                 retardation, v, rot)
-    xp = x0[p] + u[p]
-    key = cell_key(xp, inv_dx, lo, hi, n_grid, none_key)
-    keys[p] = key
-    if key == none_key:
-        wp.atomic_add(overrun, 0, 1)
-        return
-    gx = xp * inv_dx
+    gx = (x0[p] + u[p]) * inv_dx
     base = stencil_base(gx)
+    if not stencil_inside(base, lo, hi):
+        wp.atomic_add(overrun, 0, 1)
+        keys[p] = none_key
+        return
+    keys[p] = (base[0] * n_grid + base[1]) * n_grid + base[2]
     fx[p] = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     m = mass[p]
     mvp = m * vp

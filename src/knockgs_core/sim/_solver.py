@@ -497,6 +497,10 @@ class MPMSolver:
                          self.retardation, lo, hi]
         if self._cells is not None:
             c = self._cells
+            for name in ("resort_every", "cell_chunk"):
+                value = getattr(self, name)
+                if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                    raise InputError("MPMSolver", name, f"must be an integer >= 1, got {value!r}")
             cmds["p2g"] = wp.launch(
                 K.p2g_prepare,
                 dim=m.particle_count,
