@@ -12,6 +12,7 @@ or in the asset's (``--order asset``).
 
     python3 benchmarks/kernel_profile.py --object pillow --profile paper --device cuda:0 --p2g cells cells+graph scatter
     python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells cells+graph --resort 1 10 --slots 0 16384
+    python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells+graph --fuse off on
 """
 
 from __future__ import annotations
@@ -35,6 +36,9 @@ def main() -> None:
                     help="caps on the chunk-sum threads (MPMSolver.max_chunk_slots; 0: none), each profiled")
     ap.add_argument("--chunk", type=int, nargs="+", default=[32],
                     help="most particles a chunk of the P2G by cells (MPMSolver.cell_chunk), each profiled")
+    ap.add_argument("--fuse", nargs="+", choices=["auto", "on", "off"], default=["auto"],
+                    help="G2P fused with the next substep's per-particle P2G half (MPMSolver(fuse=...); on: graphs and "
+                         "the P2G by cells only), each profiled")
     ap.add_argument("--resort", type=int, nargs="+", default=[10],
                     help="intervals of the P2G by cells' sort in substeps (MPMSolver.resort_every), each profiled")
     args = ap.parse_args()
@@ -56,13 +60,16 @@ def main() -> None:
     ref = getattr(contract, "probe_reference_particles", None)
     model = build_model(ps.positions, E=E, nu=nu, rho=rho, params=contract.sim, volumes=ps.volumes, probe=probe,
                         probe_force_scale=float(ref) / len(ps.positions) if ref else 1.0, device=args.device)
-    runs = [(v, n, r, k) for v in args.p2g for n in args.slots for r in args.resort for k in args.chunk]
-    for variant, slots, resort, chunk in runs:
+    runs = [(v, n, r, k, f) for v in args.p2g for n in args.slots for r in args.resort for k in args.chunk
+            for f in args.fuse]
+    for variant, slots, resort, chunk, fuse in runs:
         state = make_state(model, ps.positions)
-        solver = MPMSolver(model, p2g=variant.split("+")[0], graph=variant.endswith("+graph"))
-        solver.max_chunk_slots = slots or None
-        solver.resort_every = resort
-        solver.cell_chunk = chunk
+        p2g, graph = variant.split("+")[0], variant.endswith("+graph")
+        fuse = {"auto": "auto", "on": True, "off": False}[fuse]
+        if fuse is True and not (graph and p2g == "cells"):
+            continue
+        solver = MPMSolver(model, p2g=p2g, graph=graph, fuse=fuse, max_chunk_slots=slots or None, resort_every=resort,
+                           cell_chunk=chunk)
         solver.check(state)
         for _ in range(args.warm):
             solver.step(state)
@@ -83,7 +90,8 @@ def main() -> None:
             count[r.name] += 1
         all_ms = sum(total.values())
         print(f"{args.object} {args.profile}, P2G {variant} ({args.order} order, chunk slots {slots or 'all'}, sort every "
-              f"{resort} substeps, chunks of {chunk}): {len(ps.positions)} particles, n_grid {contract.sim.n_grid}, "
+              f"{resort} substeps, chunks of {chunk}, G2P fused with the next P2G half: {solver.fuse}): "
+              f"{len(ps.positions)} particles, n_grid {contract.sim.n_grid}, "
               f"active box {[h - lo for lo, h in zip(solver._lo, solver._hi)]}, {args.steps} substeps, "
               f"wall {1e3 * wall / args.steps:.4f} ms per substep")
         print("| kernel | launches | ms per substep | share |")

@@ -214,6 +214,42 @@ def test_rollout_duplicate_row_and_missing_column(tmp_path, rng):
     assert err.value.field == "file"
 
 
+def test_rows_in_the_writers_order_read_as_shuffled_rows(tmp_path, rng):
+    # ids 0..N-1, frame-major: the layout the writers use, read without a sort; the same
+    # array, bit for bit, as the same rows shuffled (the sorting path), in float64 too
+    x = random_rollout(rng)
+    n_t, n_p, _ = x.shape
+    frame = np.repeat(np.arange(n_t, dtype=np.int32), n_p)
+    particle = np.tile(np.arange(n_p, dtype=np.int32), n_t)
+    xyz = x.reshape(-1, 3).astype(np.float64) * (1 + 1e-9)  # float64 values round to float32 on read
+    perm = rng.permutation(frame.size)
+    for name, order in (("canonical", np.arange(frame.size)), ("shuffled", perm)):
+        pq.write_table(pa.table({"frame": frame[order], "particle": particle[order], "x": xyz[order, 0],
+                                 "y": xyz[order, 1], "z": xyz[order, 2]}), tmp_path / f"{name}.parquet")
+    a, b = read_positions(tmp_path / "canonical.parquet"), read_positions(tmp_path / "shuffled.parquet")
+    assert a.dtype == np.float32 and a.shape == x.shape
+    assert np.array_equal(a.view(np.uint32), b.view(np.uint32))
+    assert np.array_equal(a, xyz.reshape(n_t, n_p, 3).astype(np.float32))
+    ids = [0, 5, n_p - 1]
+    assert np.array_equal(read_positions(tmp_path / "canonical.parquet", particles=ids), a[:, ids])
+    with pytest.raises(InputError) as err:
+        read_positions(tmp_path / "canonical.parquet", particles=[n_p])
+    assert err.value.field == "particle"
+    # a non-finite value is named by its column; frames 1..T are not 0..T-1
+    bad = xyz.copy()
+    bad[7, 1] = np.nan
+    pq.write_table(pa.table({"frame": frame, "particle": particle, "x": bad[:, 0], "y": bad[:, 1], "z": bad[:, 2]}),
+                   tmp_path / "nan.parquet")
+    with pytest.raises(InputError) as err:
+        read_positions(tmp_path / "nan.parquet")
+    assert err.value.field == "y"
+    pq.write_table(pa.table({"frame": frame + 1, "particle": particle, "x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}),
+                   tmp_path / "late.parquet")
+    with pytest.raises(InputError) as err:
+        read_positions(tmp_path / "late.parquet")
+    assert err.value.field == "frame"
+
+
 def test_descriptor_table(tmp_path, rng):
     a, b = random_rollout(rng), translating_pair()
     path = write_rollout(tmp_path / "a.parquet", a)

@@ -164,22 +164,26 @@ def read_long_values(
     if table.num_rows == 0:
         raise InputError(source, "frame", "no rows")
 
-    frame = cols["frame"].astype(np.int64)
-    particle = cols["particle"].astype(np.int64)
+    frame, particle = cols["frame"], cols["particle"]
     n_rows = frame.size
-    # the canonical order (frame-major, particles 0..N-1) needs no sort
-    n_guess = int(particle.max()) + 1
-    canonical = (
-        n_rows % n_guess == 0
-        and np.array_equal(particle, np.tile(np.arange(n_guess), n_rows // n_guess))
-        and np.array_equal(frame, np.repeat(np.arange(n_rows // n_guess), n_guess))
-    )
-    order = slice(None) if canonical else np.lexsort((particle, frame))
+    # the canonical order (frame-major, particles 0..N-1 in every frame), as the writers lay
+    # rows out, needs no sort and no further checks; compared in place, without index copies
+    n_guess = int(particle.max()) + 1 if int(particle.min()) >= 0 else 0
+    if n_guess and n_rows % n_guess == 0:
+        n_t = n_rows // n_guess
+        if (np.array_equal(particle.reshape(n_t, n_guess), np.broadcast_to(np.arange(n_guess), (n_t, n_guess)))
+                and np.array_equal(frame.reshape(n_t, n_guess), np.broadcast_to(np.arange(n_t)[:, None], (n_t, n_guess)))):
+            out = np.empty((n_t, n_guess, len(columns)), dtype=np.float32)
+            for k, c in enumerate(columns):
+                out[:, :, k] = cols[c].reshape(n_t, n_guess)
+            _check_finite(source, out, columns)
+            return _subset(source, out, np.arange(n_guess), particles)
+    frame = frame.astype(np.int64)
+    particle = particle.astype(np.int64)
+    order = np.lexsort((particle, frame))
     frame, particle = frame[order], particle[order]
     values = np.stack([cols[c][order] for c in columns], axis=1).astype(np.float32)
-    if not np.all(np.isfinite(values)):
-        bad = columns[int(np.argmax(~np.all(np.isfinite(values), axis=0)))]
-        raise InputError(source, bad, "non-finite values")
+    _check_finite(source, values, columns)
 
     frames, counts = np.unique(frame, return_counts=True)
     if frames[0] != 0 or not np.array_equal(frames, np.arange(frames.size)):
@@ -204,18 +208,31 @@ def read_long_values(
     if differ.any():
         t = int(np.argmax(differ))
         raise InputError(source, "particle", f"frame {t} holds a different particle set than frame 0")
-    out = values.reshape(n_t, n_p, len(columns))
-    if particles is not None:
-        wanted = np.unique(np.asarray(list(particles), dtype=np.int64))
-        if wanted.size == 0:
-            raise InputError(source, "particle", "empty particle subset")
-        idx = np.searchsorted(ids[0], wanted)
-        idx_c = np.clip(idx, 0, n_p - 1)
-        absent = ids[0][idx_c] != wanted
-        if absent.any():
-            raise InputError(source, "particle", f"particle ids not in the file: {wanted[absent][:5].tolist()}")
-        out = out[:, idx, :]
-    return out
+    return _subset(source, values.reshape(n_t, n_p, len(columns)), ids[0], particles)
+
+
+def _check_finite(source, values: np.ndarray, columns: Sequence[str]) -> None:
+    """Raise naming the first of ``columns`` (the last axis of ``values``) with a non-finite value."""
+    if np.isfinite(np.sum(values, dtype=np.float64)):  # exact: finite float32 values cannot overflow it
+        return
+    finite = np.isfinite(values).reshape(-1, len(columns)).all(axis=0)
+    if not finite.all():
+        raise InputError(source, columns[int(np.argmin(finite))], "non-finite values")
+
+
+def _subset(source, out: np.ndarray, ids: np.ndarray, particles: Iterable[int] | None) -> np.ndarray:
+    """``out`` [T, N, C] (particle ids ``ids`` [N], ascending) restricted to ``particles``."""
+    if particles is None:
+        return out
+    wanted = np.unique(np.asarray(list(particles), dtype=np.int64))
+    if wanted.size == 0:
+        raise InputError(source, "particle", "empty particle subset")
+    idx = np.searchsorted(ids, wanted)
+    idx_c = np.clip(idx, 0, ids.size - 1)
+    absent = ids[idx_c] != wanted
+    if absent.any():
+        raise InputError(source, "particle", f"particle ids not in the file: {wanted[absent][:5].tolist()}")
+    return out[:, idx, :]
 
 
 def read_positions(path: PathLike, *, particles: Iterable[int] | None = None) -> np.ndarray:

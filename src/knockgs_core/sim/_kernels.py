@@ -298,6 +298,24 @@ def grid_bc_cuboid(
 # particle kernels
 # --------------------------------------------------------------------------------------
 @wp.func
+def p2g_terms(vp: wp.vec3, Cp: wp.mat33, Fd: wp.mat33d, q0: wp.quat, m: float, volp: float, mup: float, lamp: float,
+              inv_dx: float, dt: float, polar_iters: int, retardation: float):
+    """A particle's stress and transfer terms from its velocity ``vp`` [m/s], affine matrix
+    ``Cp`` [1/s], deformation gradient ``Fd`` (float64) and last rotation ``q0``: the
+    warm-started rotation, the affine matrix of the transfer (stress and APIC terms) and its
+    APIC term alone (fixed-corotated stress, plus the Kelvin-Voigt viscous stress when
+    ``retardation`` [s] > 0)."""
+    Fp = mat33_to_f32(Fd)
+    q = polar_rotation(Fp, q0, polar_iters)
+    tau = fixed_corotated_kirchhoff(Fp, wp.quat_to_matrix(q), mup, lamp)
+    if retardation > 0.0:
+        tau = tau + kelvin_voigt_kirchhoff(Cp, wp.determinant(Fp), mup, lamp, retardation)
+    mC = m * Cp
+    affine = (-dt * volp * 4.0 * inv_dx * inv_dx) * tau + mC
+    return q, affine, mC
+
+
+@wp.func
 def p2g_particle(
     p: int,
     C: wp.array(dtype=wp.mat33),
@@ -317,22 +335,15 @@ def p2g_particle(
     rot: wp.array(dtype=wp.quat),
 ):
     """Particle ``p``'s part of P2G: the probe impulse (``v += f / m dt``, written back), the
-    warm-started rotation (written back) and fixed-corotated stress, plus the Kelvin-Voigt
-    viscous stress when ``retardation`` [s] > 0; returns the velocity,
+    warm-started rotation (written back) and :func:`p2g_terms`; returns the velocity,
     the affine matrix of the transfer (stress and APIC terms) and its APIC term alone."""
     m = mass[p]
     vp = v[p]
     if probe_on == 1 and probe_mask[p] != 0:
         vp = vp + probe_force * (dt / m)
         v[p] = vp
-    Fp = mat33_to_f32(F[p])
-    q = polar_rotation(Fp, rot[p], polar_iters)
+    q, affine, mC = p2g_terms(vp, C[p], F[p], rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters, retardation)
     rot[p] = q
-    tau = fixed_corotated_kirchhoff(Fp, wp.quat_to_matrix(q), mu[p], lam[p])
-    if retardation > 0.0:
-        tau = tau + kelvin_voigt_kirchhoff(C[p], wp.determinant(Fp), mu[p], lam[p], retardation)
-    mC = m * C[p]
-    affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + mC
     return vp, affine, mC
 
 
@@ -409,6 +420,26 @@ def p2g(
 # another order (float rounding differs from the scatter's).
 
 
+@wp.func
+def p2g_store(p: int, gx: wp.vec3, vp: wp.vec3, aff: wp.mat33, mCp: wp.mat33, m: float, lo: wp.vec3i, hi: wp.vec3i,
+              n_grid: int, none_key: int, affine_flip: int, fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4),
+              affine: wp.array(dtype=wp.mat33), mC: wp.array(dtype=wp.mat33), keys: wp.array(dtype=wp.int32),
+              overrun: wp.array(dtype=wp.int32)):
+    """Store particle ``p``'s P2G terms at grid position ``gx`` [cells] (see :func:`p2g_prepare`)."""
+    base = stencil_base(gx)
+    if stencil_inside(base, lo, hi):
+        keys[p] = (base[0] * n_grid + base[1]) * n_grid + base[2]
+        fx[p] = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+        mvp = m * vp
+        mv[p] = wp.vec4(mvp[0], mvp[1], mvp[2], m)
+        affine[p] = aff
+        if affine_flip == 1:
+            mC[p] = mCp
+    else:
+        wp.atomic_add(overrun, 0, 1)
+        keys[p] = none_key
+
+
 @wp.kernel
 def p2g_prepare(
     x0: wp.array(dtype=wp.vec3),
@@ -448,20 +479,8 @@ def p2g_prepare(
     p = wp.tid()
     vp, aff, mCp = p2g_particle(p, C, F, mass, vol, mu, lam, probe_mask, probe_force, probe_on, inv_dx, dt, polar_iters,
                                 retardation, v, rot)
-    gx = (x0[p] + u[p]) * inv_dx
-    base = stencil_base(gx)
-    if not stencil_inside(base, lo, hi):
-        wp.atomic_add(overrun, 0, 1)
-        keys[p] = none_key
-        return
-    keys[p] = (base[0] * n_grid + base[1]) * n_grid + base[2]
-    fx[p] = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    m = mass[p]
-    mvp = m * vp
-    mv[p] = wp.vec4(mvp[0], mvp[1], mvp[2], m)
-    affine[p] = aff
-    if affine_flip == 1:
-        mC[p] = mCp
+    p2g_store(p, (x0[p] + u[p]) * inv_dx, vp, aff, mCp, mass[p], lo, hi, n_grid, none_key, affine_flip,
+              fx, mv, affine, mC, keys, overrun)
 
 
 @wp.kernel
@@ -565,6 +584,71 @@ def p2g_cells(
         c += stride
 
 
+@wp.func
+def g2p_particle(
+    p: int,
+    grid_v: wp.array3d(dtype=wp.vec3),
+    inv_dx: float,
+    dt: float,
+    trans_mask: wp.array(dtype=wp.int32),
+    trans_velocity: wp.vec3,
+    trans_on: int,
+    lo: wp.vec3i,
+    hi: wp.vec3i,
+    x0: wp.array(dtype=wp.vec3),
+    affine_flip: int,
+    flip_weight: float,
+    grid_v_old: wp.array3d(dtype=wp.vec3),
+    u: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33d),
+    overrun: wp.array(dtype=wp.int32),
+):
+    """Particle ``p``'s G2P (see :func:`g2p`), written back; returns whether its stencil lay
+    inside the active box and the new displacement, velocity, affine matrix and F."""
+    up = u[p]
+    gx = (x0[p] + up) * inv_dx
+    base = stencil_base(gx)
+    if not stencil_inside(base, lo, hi):
+        wp.atomic_add(overrun, 0, 1)
+        return False, up, v[p], C[p], F[p]
+    fx = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    w = bspline_weights(fx)
+    new_v = wp.vec3(0.0)
+    new_C = wp.mat33(0.0)
+    dv = wp.vec3(0.0)
+    dC = wp.mat33(0.0)
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                weight = w[i, 0] * w[j, 1] * w[k, 2]
+                dpos = wp.vec3(float(i), float(j), float(k)) - fx
+                gv = grid_v[base[0] + i, base[1] + j, base[2] + k]
+                new_v = new_v + weight * gv
+                new_C = new_C + (4.0 * inv_dx * weight) * wp.outer(gv, dpos)
+                if affine_flip == 1:
+                    du = gv - grid_v_old[base[0] + i, base[1] + j, base[2] + k]
+                    dv = dv + weight * du
+                    dC = dC + (4.0 * inv_dx * weight) * wp.outer(du, dpos)
+    held = trans_on == 1 and trans_mask[p] != 0
+    if held:  # a prescribed motion: v and C take it exactly, under either transfer
+        new_v = trans_velocity
+        new_C = wp.mat33(0.0)
+    Fp = (wp.identity(n=3, dtype=wp.float64) + wp.float64(dt) * mat33_to_f64(new_C)) * F[p]
+    F[p] = Fp
+    up = up + dt * new_v
+    u[p] = up
+    vp = new_v
+    Cp = new_C
+    if affine_flip == 1 and not held:
+        vp = flip_weight * (v[p] + dv) + (1.0 - flip_weight) * new_v
+        Cp = flip_weight * (C[p] + dC) + (1.0 - flip_weight) * new_C
+    v[p] = vp
+    C[p] = Cp
+    return True, up, vp, Cp, Fp
+
+
 @wp.kernel
 def g2p(
     grid_v: wp.array3d(dtype=wp.vec3),
@@ -594,41 +678,65 @@ def g2p(
     displacement keeps sub-ulp motion that ``x += dt v`` in float32 near x = 1 would round
     away (a creep or a freeze of one ulp per substep)."""
     p = wp.tid()
-    gx = (x0[p] + u[p]) * inv_dx
-    base = stencil_base(gx)
-    if not stencil_inside(base, lo, hi):
-        wp.atomic_add(overrun, 0, 1)
-        return
-    fx = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    w = bspline_weights(fx)
-    new_v = wp.vec3(0.0)
-    new_C = wp.mat33(0.0)
-    dv = wp.vec3(0.0)
-    dC = wp.mat33(0.0)
-    for i in range(3):
-        for j in range(3):
-            for k in range(3):
-                weight = w[i, 0] * w[j, 1] * w[k, 2]
-                dpos = wp.vec3(float(i), float(j), float(k)) - fx
-                gv = grid_v[base[0] + i, base[1] + j, base[2] + k]
-                new_v = new_v + weight * gv
-                new_C = new_C + (4.0 * inv_dx * weight) * wp.outer(gv, dpos)
-                if affine_flip == 1:
-                    du = gv - grid_v_old[base[0] + i, base[1] + j, base[2] + k]
-                    dv = dv + weight * du
-                    dC = dC + (4.0 * inv_dx * weight) * wp.outer(du, dpos)
-    held = trans_on == 1 and trans_mask[p] != 0
-    if held:  # a prescribed motion: v and C take it exactly, under either transfer
-        new_v = trans_velocity
-        new_C = wp.mat33(0.0)
-    F[p] = (wp.identity(n=3, dtype=wp.float64) + wp.float64(dt) * mat33_to_f64(new_C)) * F[p]
-    u[p] = u[p] + dt * new_v
-    if affine_flip == 1 and not held:
-        v[p] = flip_weight * (v[p] + dv) + (1.0 - flip_weight) * new_v
-        C[p] = flip_weight * (C[p] + dC) + (1.0 - flip_weight) * new_C
+    g2p_particle(p, grid_v, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo, hi, x0, affine_flip, flip_weight,
+                 grid_v_old, u, v, C, F, overrun)
+
+
+@wp.kernel
+def g2p_prepare(
+    grid_v: wp.array3d(dtype=wp.vec3),
+    inv_dx: float,
+    dt: float,
+    trans_mask: wp.array(dtype=wp.int32),
+    trans_velocity: wp.vec3,
+    trans_on: int,
+    lo: wp.vec3i,
+    hi: wp.vec3i,
+    x0: wp.array(dtype=wp.vec3),
+    affine_flip: int,
+    flip_weight: float,
+    grid_v_old: wp.array3d(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    vol: wp.array(dtype=float),
+    mu: wp.array(dtype=float),
+    lam: wp.array(dtype=float),
+    probe_mask: wp.array(dtype=wp.int32),
+    probe_force: wp.vec3,
+    probe_on: int,
+    polar_iters: int,
+    retardation: float,
+    n_grid: int,
+    none_key: int,
+    u: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33d),
+    rot: wp.array(dtype=wp.quat),
+    fx: wp.array(dtype=wp.vec3),
+    mv: wp.array(dtype=wp.vec4),
+    affine: wp.array(dtype=wp.mat33),
+    mC: wp.array(dtype=wp.mat33),
+    keys: wp.array(dtype=wp.int32),
+    overrun: wp.array(dtype=wp.int32),
+):
+    """:func:`g2p` fused with the next substep's :func:`p2g_prepare` (its probe state
+    ``probe_on``): the new velocity, affine matrix, F and position go from registers into the
+    next P2G terms instead of being read back. The same arithmetic as the two kernels in
+    turn, so the same bits."""
+    p = wp.tid()
+    ok, up, vp, Cp, Fp = g2p_particle(p, grid_v, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo, hi, x0,
+                                      affine_flip, flip_weight, grid_v_old, u, v, C, F, overrun)
+    if ok:
+        m = mass[p]
+        if probe_on == 1 and probe_mask[p] != 0:
+            vp = vp + probe_force * (dt / m)
+            v[p] = vp
+        q, aff, mCp = p2g_terms(vp, Cp, Fp, rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters, retardation)
+        rot[p] = q
+        p2g_store(p, (x0[p] + up) * inv_dx, vp, aff, mCp, m, lo, hi, n_grid, none_key, affine_flip,
+                  fx, mv, affine, mC, keys, overrun)
     else:
-        v[p] = new_v
-        C[p] = new_C
+        keys[p] = none_key
 
 
 @wp.kernel

@@ -347,6 +347,16 @@ class MPMSolver:
     recorded launches, bit for bit the same substeps. ``"auto"``: on a CUDA device, for models
     without effects and particle translations (whose host-side hooks run every substep). The
     same kernels, in the same order, with the same arguments.
+
+    ``fuse``: with the P2G by cells, end each substep with G2P fused with the next substep's
+    per-particle P2G half (:func:`~knockgs_core.sim._kernels.g2p_prepare`): one pass over the
+    particles instead of two, the same bits. The next substep's probe impulse and rotation are
+    then already in the state between substeps, so the solver must step that one state on
+    (another state, or a state whose step count was changed, is refused), and nothing else may
+    change it between substeps. ``"auto"``: where substeps are graphs and P2G is by cells.
+
+    ``resort_every``, ``cell_chunk``, ``max_chunk_slots``: the P2G by cells' settings (the class
+    attributes of the same names document them); they set speed only.
     """
 
     #: cap on the warm-started polar iterations per particle and substep (they stop when the
@@ -380,8 +390,15 @@ class MPMSolver:
         the CPU."""
         return "cells" if cuda and crowding is not None and crowding >= cls.CELLS_CROWDING else "scatter"
 
-    def __init__(self, model: Model, *, p2g: str = "auto", graph: bool | str = "auto"):
+    def __init__(self, model: Model, *, p2g: str = "auto", graph: bool | str = "auto", fuse: bool | str = "auto",
+                 resort_every: int | None = None, cell_chunk: int | None = None, max_chunk_slots: int | None = None):
         self.model = model
+        if resort_every is not None:
+            self.resort_every = resort_every
+        if cell_chunk is not None:
+            self.cell_chunk = cell_chunk
+        if max_chunk_slots is not None:
+            self.max_chunk_slots = max_chunk_slots
         p = model.params
         cuda = wp.get_device(model.device).is_cuda
         if graph == "auto":
@@ -401,6 +418,15 @@ class MPMSolver:
         if p2g not in ("scatter", "cells"):
             raise InputError("MPMSolver", "p2g", f"must be 'auto', 'scatter' or 'cells', got {p2g!r}")
         self.p2g = p2g
+        if fuse == "auto":
+            fuse = self.graph and p2g == "cells"
+        if fuse not in (True, False):
+            raise InputError("MPMSolver", "fuse", f"must be 'auto', True or False, got {fuse!r}")
+        if fuse and (p2g != "cells" or p.effects or model.translations):
+            raise InputError("MPMSolver", "fuse", "fused substeps take the P2G by cells and models without effects "
+                             "and particle translations")
+        self.fuse = bool(fuse)
+        self._prepared: tuple[int, int] | None = None  # (state, step) whose P2G terms the last G2P computed
         self._cells = _CellScratch.make(model) if p2g == "cells" else None
         self._sorted_at: int | None = None  # the step of the last sort by cells
         self._inv_dx = 1.0 / p.dx
@@ -561,6 +587,19 @@ class MPMSolver:
             outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, self._overrun],
             **rec,
         )
+        if self.fuse:
+            c = self._cells
+            cmds["g2p_prepare"] = wp.launch(
+                K.g2p_prepare,
+                dim=m.particle_count,
+                inputs=[state.grid_mv, self._inv_dx, dt, self._zero_mask, wp.vec3(0.0), 0, lo, hi, state.particle_x0,
+                        flip, p.flip_weight, state.grid_mv_old, m.particle_mass, m.particle_vol, m.particle_mu,
+                        m.particle_lam, m.probe_mask, wp.vec3(*m.probe_force), 0, self.polar_iters, self.retardation,
+                        p.n_grid, c.none_key],
+                outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, state.particle_rot,
+                         c.fx, c.mv, c.affine, c.mC, c.keys, self._overrun],
+                **rec,
+            )
         self._cmds = cmds
         self._cmds_key = (id(state), self._lo, self._hi)
         self._graphs = {}  # graphs of the launches recorded before
@@ -571,38 +610,56 @@ class MPMSolver:
         conditions, effects on the grid, G2P (particle translation included), effects on the
         particles."""
         m, p = self.model, self.model.params
+        prepared = self._prepared is not None
+        if prepared and self._prepared != (id(state), state.step):
+            raise InputError("MPMSolver", "fuse", "a solver with fused substeps steps one state on, substep by substep "
+                             "(its next P2G terms are computed); use a solver per state, or fuse=False")
         if getattr(self, "_cmds_key", None) != (id(state), self._lo, self._hi):
             self._record(state)
         t = state.step * p.dt
-        probe_on = int(m.probe_steps > 0 and m.probe_first <= state.step < m.probe_first + m.probe_steps)
+        probe_on = self._probe_on(state.step)
         active = tuple(isinstance(bc, DomainWalls) or bc.start_time <= t < bc.end_time for bc, _ in self._cmds["bcs"])
         sort = self._cells is not None and (self._sorted_at is None or not 0 <= state.step - self._sorted_at < self.resort_every)
         if sort:
             self._sorted_at = state.step
+        # fused: this substep's P2G terms came with the last G2P; this G2P computes the next's
+        probe_next = self._probe_on(state.step + 1) if self.fuse else None
         if self.graph:
-            key = (probe_on, active, sort)
+            key = (None if prepared else probe_on, probe_next, active, sort)
             graph = self._graphs.get(key)
             if graph is None:
                 with wp.ScopedCapture(device=m.device) as capture:
-                    self._launch(state, t, probe_on, active, sort)
+                    self._launch(state, t, probe_on, active, sort, prepared=prepared, probe_next=probe_next)
                 graph = self._graphs[key] = capture.graph
             wp.capture_launch(graph)
         else:
-            self._launch(state, t, probe_on, active, sort)
+            self._launch(state, t, probe_on, active, sort, prepared=prepared, probe_next=probe_next)
         for effect, scratch in zip(p.effects, self.effect_scratch):
             effect.apply_particles(m, state, scratch, t)
         state.step += 1
+        if self.fuse:
+            self._prepared = (id(state), state.step)
 
-    def _launch(self, state: State, t: float, probe_on: int, active: tuple[bool, ...], sort: bool = False) -> None:
+    def _probe_on(self, step: int) -> int:
+        """1 where the probe pushes during substep ``step``, else 0."""
+        m = self.model
+        return int(m.probe_steps > 0 and m.probe_first <= step < m.probe_first + m.probe_steps)
+
+    def _launch(self, state: State, t: float, probe_on: int, active: tuple[bool, ...], sort: bool = False, *,
+                prepared: bool = False, probe_next: int | None = None) -> None:
         """The substep's launches at time ``t`` [s] up to G2P: P2G with the probe ``probe_on``
-        (by cells: sorted by base cell first where ``sort``),
+        (by cells: sorted by base cell first where ``sort``; its per-particle half skipped where
+        ``prepared`` by the last G2P),
         the grid update, the supports flagged ``active``, the effects on the grid, G2P with the
-        particle translation active at ``t`` (:meth:`step` adds the effects on the particles)."""
+        particle translation active at ``t`` (:meth:`step` adds the effects on the particles),
+        fused with the next substep's per-particle P2G half (its probe ``probe_next``) unless
+        that is None."""
         m, p = self.model, self.model.params
         cmds = self._cmds
         cmds["zero"].launch()
-        cmds["p2g"].set_param_by_name("probe_on", probe_on)
-        cmds["p2g"].launch()
+        if not prepared:
+            cmds["p2g"].set_param_by_name("probe_on", probe_on)
+            cmds["p2g"].launch()
         if self._cells is not None:  # (sort by base cell,) list the chunks in sorted order, sum
             c = self._cells
             if sort:
@@ -618,6 +675,10 @@ class MPMSolver:
                 cmd.launch()
         for effect, scratch in zip(p.effects, self.effect_scratch):
             effect.apply_grid(m, state, scratch, *self._box, t)
+        if probe_next is not None:
+            cmds["g2p_prepare"].set_param_by_name("probe_on", probe_next)
+            cmds["g2p_prepare"].launch()
+            return
         if m.translations:
             self._set_translation(cmds["g2p"], t)
         cmds["g2p"].launch()
