@@ -163,3 +163,25 @@ def test_ply_and_particle_writers_are_atomic(tmp_path, monkeypatch):
                                    region=np.zeros(n)), tmp_path / "p.npz")
     assert (tmp_path / "g.ply").read_bytes() == ply_before and (tmp_path / "p.npz").read_bytes() == npz_before
     assert _temp_files(tmp_path) == []
+
+
+@pytest.mark.parametrize("error", [RuntimeError("render failed"), KeyboardInterrupt()])
+def test_outputs_of_a_failed_or_interrupted_job_are_removed(tmp_path, error):
+    import io
+
+    from knockgs_core._io import removed_on_failure
+
+    folder, single, never = tmp_path / "frames", tmp_path / "table.csv", tmp_path / "absent"
+    log = io.StringIO()
+    with pytest.raises(type(error)):
+        with removed_on_failure(folder, single, never, log=log):
+            folder.mkdir()
+            (folder / "standard_x.npz").write_bytes(b"written")  # the first probe's file, then the failure
+            single.write_text("a,b\n")
+            raise error
+    assert not folder.exists() and not single.exists()
+    assert log.getvalue().splitlines() == [f"removed the partial output {folder}", f"removed the partial output {single}"]
+    with removed_on_failure(folder, log=log):  # success: kept
+        folder.mkdir()
+        (folder / "standard_x.npz").write_bytes(b"written")
+    assert (folder / "standard_x.npz").read_bytes() == b"written"

@@ -388,8 +388,17 @@ def test_temporary_deformation_gradients_are_removed_once_rendered(tmp_path):
             assert not (work / f"{CI}/rollouts/pillow/evalF/{tag}").exists()  # removed once rendered
             assert "evalF" in run.stderr and "Removing temporary output" in run.stderr
         frames[name] = {p: dict(np.load(work / f"{CI}/frames/pillow/{tag}/{p}.npz")) for p in probes}
+        if name == "kept":  # a render failing on its last probe removes the frames it had written
+            last_F = work / f"{CI}/rollouts/pillow/eval/{tag}/{probes[-1]}.F.parquet"
+            last_F.write_bytes(last_F.read_bytes()[:1000])
+            bad = snakemake(work, f"{CI}/frames/pillow/{tag}", "--forcerun", "render", "--cores", "2", *flag,
+                            "--config", "objects=[pillow]")
+            assert bad.returncode != 0
+            assert not (work / f"{CI}/frames/pillow/{tag}").exists()
+            job_log = (work / f"logs/ci/frames/pillow/{tag}.log").read_text()
+            assert f"{probes[0]}.npz: 31 frames" in job_log and "removed the partial output" in job_log, job_log
         shutil.rmtree(work / f"{CI}/rollouts/pillow/eval/{tag}")
-        shutil.rmtree(work / f"{CI}/frames/pillow/{tag}")
+        shutil.rmtree(work / f"{CI}/frames/pillow/{tag}", ignore_errors=True)
     for p in probes:
         assert frames["kept"][p].keys() == frames["temporary"][p].keys()
         for k in frames["kept"][p]:

@@ -34,6 +34,7 @@ __all__ = [
     "check_output",
     "check_outputs",
     "json_safe",
+    "removed_on_failure",
     "write_bytes",
     "write_json",
     "write_npz",
@@ -199,6 +200,30 @@ def atomic_write(path, *, mode: str = "wb", suffix: str | None = None) -> Iterat
             tmp.unlink()
         if isinstance(exc, OSError) and exc.filename is None and exc.errno is not None:
             exc.filename = str(path)  # a failed write (e.g. a full disk) names the file it was for
+        raise
+
+
+@contextlib.contextmanager
+def removed_on_failure(*paths, log: IO | None = None) -> Iterator[None]:
+    """Remove ``paths`` (a job's output files or folders) when the block raises or is
+    interrupted (``KeyboardInterrupt`` included), then re-raise: a job that writes several
+    files into its output leaves none of them behind, so a resumed run redoes it instead of
+    taking a partial output for a finished one. Each removal is reported to ``log``."""
+    try:
+        yield
+    except BaseException:
+        import shutil
+
+        for path in map(Path, paths):
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            elif path.exists() or path.is_symlink():
+                with contextlib.suppress(OSError):
+                    path.unlink()
+            else:
+                continue
+            if log is not None:
+                print(f"removed the partial output {path}", file=log, flush=True)
         raise
 
 

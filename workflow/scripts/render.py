@@ -5,7 +5,7 @@ import time
 
 import numpy as np
 
-from knockgs_core._io import write_npz
+from knockgs_core._io import removed_on_failure, write_npz
 from knockgs_core.assets import load_scene, read_ply
 from knockgs_core.experiments import camera_from_contract, render_rollout
 from knockgs_core.rollout import read_deformation, read_rollout
@@ -16,10 +16,14 @@ p = snakemake.params
 gaussians = read_ply(snakemake.input.ply)
 static_mask, gaussian_index = load_scene(snakemake.input.scene, n_gaussians=len(gaussians))
 cam = camera_from_contract(p.camera, width=p.width, height=p.height)
-for job in p.jobs:
-    t0 = time.perf_counter()
-    ro = read_rollout(job["rollout"])
-    F = read_deformation(job["F"])
-    rgb, alpha = render_rollout(gaussians, static_mask, gaussian_index, ro.positions, F, cam, device=p.device)
-    write_npz(job["frames"], rgb=rgb.astype(np.float16), alpha=alpha.astype(np.float16))
-    print(f"{job['frames']}: {len(rgb)} frames, {time.perf_counter() - t0:.2f} s", file=log, flush=True)
+
+# one file per probe: a failed or interrupted job removes the ones it wrote, so a resumed run
+# renders the theta again instead of taking a partial folder
+with removed_on_failure(snakemake.output.folder, log=log):
+    for job in p.jobs:
+        t0 = time.perf_counter()
+        ro = read_rollout(job["rollout"])
+        F = read_deformation(job["F"])
+        rgb, alpha = render_rollout(gaussians, static_mask, gaussian_index, ro.positions, F, cam, device=p.device)
+        write_npz(job["frames"], rgb=rgb.astype(np.float16), alpha=alpha.astype(np.float16))
+        print(f"{job['frames']}: {len(rgb)} frames, {time.perf_counter() - t0:.2f} s", file=log, flush=True)
