@@ -2,6 +2,7 @@
 (float16 RGB + alpha, compressed)."""
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -17,13 +18,30 @@ gaussians = read_ply(snakemake.input.ply)
 static_mask, gaussian_index = load_scene(snakemake.input.scene, n_gaussians=len(gaussians))
 cam = camera_from_contract(p.camera, width=p.width, height=p.height)
 
-# one file per probe: a failed or interrupted job removes the ones it wrote, so a resumed run
-# renders the theta again instead of taking a partial folder
-with removed_on_failure(snakemake.output.folder, log=log):
-    for job in p.jobs:
+
+def load(job):
+    return read_rollout(job["rollout"]), read_deformation(job["F"])
+
+
+def write(job, rgb, alpha, t0):
+    write_npz(job["frames"], rgb=rgb.astype(np.float16), alpha=alpha.astype(np.float16))
+    print(f"{job['frames']}: {len(rgb)} frames, {time.perf_counter() - t0:.2f} s", file=log, flush=True)
+
+
+# one file per probe: a failed or interrupted job removes the ones it wrote (once the writes
+# under way have finished), so a resumed run renders the theta again instead of taking a
+# partial folder. While a probe renders, the next probe's rollout is read and the last one's
+# frames are compressed and written, on two threads (the same files as in turn)
+jobs = list(p.jobs)
+with removed_on_failure(snakemake.output.folder, log=log), ThreadPoolExecutor(max_workers=2) as pool:
+    reading = pool.submit(load, jobs[0]) if jobs else None
+    writes = []
+    for i, job in enumerate(jobs):
         t0 = time.perf_counter()
-        ro = read_rollout(job["rollout"])
-        F = read_deformation(job["F"])
+        ro, F = reading.result()
+        reading = pool.submit(load, jobs[i + 1]) if i + 1 < len(jobs) else None
         rgb, alpha = render_rollout(gaussians, static_mask, gaussian_index, ro.positions, F, cam, device=p.device)
-        write_npz(job["frames"], rgb=rgb.astype(np.float16), alpha=alpha.astype(np.float16))
-        print(f"{job['frames']}: {len(rgb)} frames, {time.perf_counter() - t0:.2f} s", file=log, flush=True)
+        del ro, F
+        writes.append(pool.submit(write, job, rgb, alpha, t0))
+    for w in writes:
+        w.result()
