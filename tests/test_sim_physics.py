@@ -357,17 +357,23 @@ def test_pic_relaxation_time_damps_towards_apic():
 # -------------------------------------------------------------------------------------
 # P2G by cells (the GPU path) against the scatter P2G, on the CPU
 # -------------------------------------------------------------------------------------
+def shell_scene(rng, transfer, *, shell: int, guard_every: int = 50):
+    """A lattice block under a dense spherical shell of ``shell`` particles (many to a cell, as
+    on a paper-scale asset) on a support, at n_grid 32: (params, positions)."""
+    params = SimParams(n_grid=32, dt=5e-4, transfer=transfer, guard_every=guard_every,
+                       boundaries=(DomainWalls(padding=3),
+                                   FixedCuboid(box=Box(center=(1.0, 1.0, 0.55), half_size=(0.4, 0.4, 0.1)))))
+    core = block((0.8, 0.8, 0.7), (1.2, 1.2, 1.0), 1 / 64, jitter=0.3, rng=rng)
+    u = rng.normal(size=(shell, 3))
+    points = (np.array([1.0, 1.0, 0.85]) + 0.2 * u / np.linalg.norm(u, axis=1, keepdims=True)).astype(np.float32)
+    return params, np.concatenate([core, points])
+
+
 @pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
 def test_p2g_by_cells_is_the_scatter_up_to_rounding(rng, transfer):
     # a dense shell of particles (many to a cell, as on a paper-scale asset) around a lattice
     # block, a probe on one end, a support below: the two P2G variants sum the same terms
-    params = SimParams(n_grid=32, dt=5e-4, transfer=transfer,
-                       boundaries=(DomainWalls(padding=3),
-                                   FixedCuboid(box=Box(center=(1.0, 1.0, 0.55), half_size=(0.4, 0.4, 0.1)))))
-    core = block((0.8, 0.8, 0.7), (1.2, 1.2, 1.0), 1 / 64, jitter=0.3, rng=rng)
-    u = rng.normal(size=(6000, 3))
-    shell = (np.array([1.0, 1.0, 0.85]) + 0.2 * u / np.linalg.norm(u, axis=1, keepdims=True)).astype(np.float32)
-    X = np.concatenate([core, shell])
+    params, X = shell_scene(rng, transfer, shell=6000)
     probe = Probe("p", (0.0, 2e-2, 0.0), box=Box(center=(1.15, 1.0, 0.85), half_size=(0.06, 0.25, 0.2)), n_steps=5,
                   dt_ref=5e-4)
     # by cells also with the sort every 7th substep only (between sorts the chunks follow an
@@ -411,13 +417,7 @@ def test_fused_substeps_are_the_unfused_bit_for_bit(rng, transfer):
     # G2P fused with the next substep's per-particle P2G half (the GPU's graph path), replayed
     # on the CPU: the same positions, F, velocities and rotations, bit for bit, through the
     # probe's push, sorts every 3rd substep and guard checks that move the active box
-    params = SimParams(n_grid=32, dt=5e-4, transfer=transfer, guard_every=10,
-                       boundaries=(DomainWalls(padding=3),
-                                   FixedCuboid(box=Box(center=(1.0, 1.0, 0.55), half_size=(0.4, 0.4, 0.1)))))
-    core = block((0.8, 0.8, 0.7), (1.2, 1.2, 1.0), 1 / 64, jitter=0.3, rng=rng)
-    u = rng.normal(size=(3000, 3))
-    shell = (np.array([1.0, 1.0, 0.85]) + 0.2 * u / np.linalg.norm(u, axis=1, keepdims=True)).astype(np.float32)
-    X = np.concatenate([core, shell])
+    params, X = shell_scene(rng, transfer, shell=3000, guard_every=10)
     probe = Probe("p", (0.0, 2.0, 0.0), box=Box(center=(1.15, 1.0, 0.85), half_size=(0.06, 0.25, 0.2)), n_steps=4,
                   dt_ref=5e-4, start_time=1.5e-3)
     out = {}
