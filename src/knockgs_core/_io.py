@@ -34,6 +34,7 @@ __all__ = [
     "check_output",
     "check_outputs",
     "json_safe",
+    "remove_outputs",
     "removed_on_failure",
     "write_bytes",
     "write_json",
@@ -203,27 +204,33 @@ def atomic_write(path, *, mode: str = "wb", suffix: str | None = None) -> Iterat
         raise
 
 
+def remove_outputs(*paths, log: IO | None = None) -> None:
+    """Remove ``paths`` (a failed job's output files or folders) where they exist, each
+    removal reported to ``log``."""
+    import shutil
+
+    for path in map(Path, paths):
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        elif path.exists() or path.is_symlink():
+            with contextlib.suppress(OSError):
+                path.unlink()
+        else:
+            continue
+        if log is not None:
+            print(f"removed the partial output {path}", file=log, flush=True)
+
+
 @contextlib.contextmanager
 def removed_on_failure(*paths, log: IO | None = None) -> Iterator[None]:
-    """Remove ``paths`` (a job's output files or folders) when the block raises or is
-    interrupted (``KeyboardInterrupt`` included), then re-raise: a job that writes several
-    files into its output leaves none of them behind, so a resumed run redoes it instead of
-    taking a partial output for a finished one. Each removal is reported to ``log``."""
+    """Remove ``paths`` (a job's output files or folders, :func:`remove_outputs`) when the
+    block raises or is interrupted (``KeyboardInterrupt`` included), then re-raise: a job that
+    writes several files into its output leaves none of them behind, so a resumed run redoes
+    it instead of taking a partial output for a finished one."""
     try:
         yield
     except BaseException:
-        import shutil
-
-        for path in map(Path, paths):
-            if path.is_dir() and not path.is_symlink():
-                shutil.rmtree(path, ignore_errors=True)
-            elif path.exists() or path.is_symlink():
-                with contextlib.suppress(OSError):
-                    path.unlink()
-            else:
-                continue
-            if log is not None:
-                print(f"removed the partial output {path}", file=log, flush=True)
+        remove_outputs(*paths, log=log)
         raise
 
 

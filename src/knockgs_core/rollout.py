@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,7 +29,7 @@ import numpy as np
 import pyarrow as pa
 
 from . import __version__
-from ._io import json_safe, write_parquet
+from ._io import json_safe, remove_outputs, write_parquet
 from ._long_format import (POSITION_COLUMNS, _has_field, _meta_field, check_rollout_meta, read_long_values, read_metadata,
                            theta_tag)
 from .errors import InputError
@@ -343,11 +342,7 @@ class BackgroundWriter:
                 self.close()
             except Exception:
                 pass
-            for out in self.outputs:  # no write can follow now: the job's output goes
-                if out.is_dir():
-                    shutil.rmtree(out, ignore_errors=True)
-                else:
-                    out.unlink(missing_ok=True)
+            remove_outputs(*self.outputs)  # no write can follow now: the job's output goes
         return False
 
 
