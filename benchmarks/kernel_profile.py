@@ -18,6 +18,7 @@ or in the asset's (``--order asset``).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import time
 from collections import defaultdict
 
@@ -41,6 +42,9 @@ def main() -> None:
                          "the P2G by cells only), each profiled")
     ap.add_argument("--resort", type=int, nargs="+", default=[10],
                     help="intervals of the P2G by cells' sort in substeps (MPMSolver.resort_every), each profiled")
+    ap.add_argument("--deterministic", nargs="+", choices=["on", "off"], default=["off"],
+                    help="the bitwise-reproducible P2G (MPMSolver(deterministic=...); on: by cells, sorted every "
+                         "substep), each profiled; list one twice to compare the runs' bits (MD5 of u)")
     args = ap.parse_args()
 
     import warp as wp
@@ -60,16 +64,18 @@ def main() -> None:
     ref = getattr(contract, "probe_reference_particles", None)
     model = build_model(ps.positions, E=E, nu=nu, rho=rho, params=contract.sim, volumes=ps.volumes, probe=probe,
                         probe_force_scale=float(ref) / len(ps.positions) if ref else 1.0, device=args.device)
-    runs = [(v, n, r, k, f) for v in args.p2g for n in args.slots for r in args.resort for k in args.chunk
-            for f in args.fuse]
-    for variant, slots, resort, chunk, fuse in runs:
+    runs = [(v, n, r, k, f, d) for v in args.p2g for n in args.slots for r in args.resort for k in args.chunk
+            for f in args.fuse for d in args.deterministic]
+    for variant, slots, resort, chunk, fuse, det in runs:
         state = make_state(model, ps.positions)
         p2g, graph = variant.split("+")[0], variant.endswith("+graph")
         fuse = {"auto": "auto", "on": True, "off": False}[fuse]
         if fuse is True and not (graph and p2g == "cells"):
             continue
+        if det == "on" and p2g != "cells":
+            continue
         solver = MPMSolver(model, p2g=p2g, graph=graph, fuse=fuse, max_chunk_slots=slots or None, resort_every=resort,
-                           cell_chunk=chunk)
+                           cell_chunk=chunk, deterministic=det == "on")
         solver.check(state)
         for _ in range(args.warm):
             solver.step(state)
@@ -90,7 +96,8 @@ def main() -> None:
             count[r.name] += 1
         all_ms = sum(total.values())
         print(f"{args.object} {args.profile}, P2G {variant} ({args.order} order, chunk slots {slots or 'all'}, sort every "
-              f"{resort} substeps, chunks of {chunk}, G2P fused with the next P2G half: {solver.fuse}): "
+              f"{resort} substeps, chunks of {chunk}, G2P fused with the next P2G half: {solver.fuse}, "
+              f"reproducible: {solver.deterministic}): "
               f"{len(ps.positions)} particles, n_grid {contract.sim.n_grid}, "
               f"active box {[h - lo for lo, h in zip(solver._lo, solver._hi)]}, {args.steps} substeps, "
               f"wall {1e3 * wall / args.steps:.4f} ms per substep")
@@ -99,9 +106,11 @@ def main() -> None:
         for name, ms in sorted(total.items(), key=lambda kv: -kv[1]):
             print(f"| {name} | {count[name]} | {ms / args.steps:.4f} | {100 * ms / max(all_ms, 1e-12):.1f} % |")
         print(f"| all | {sum(count.values())} | {all_ms / args.steps:.4f} | 100 % |")
-        u = state.particle_u.numpy().astype("float64")
+        u32 = state.particle_u.numpy()
+        u = u32.astype("float64")
         print(f"RMS displacement after {state.step} substeps: {float((u ** 2).sum(axis=1).mean() ** 0.5):.9e} m "
-              "(the same response under every variant, to float rounding)")
+              "(the same response under every variant, to float rounding); MD5 of u "
+              f"{hashlib.md5(u32.tobytes()).hexdigest()}")
 
 
 

@@ -447,6 +447,55 @@ def test_fused_substeps_are_the_unfused_bit_for_bit(rng, transfer):
         MPMSolver(model, p2g="scatter", fuse=True)
 
 
+@pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
+def test_reproducible_p2g_gives_the_same_bits_in_any_thread_order(rng, transfer):
+    # The P2G by cells adds each chunk's sums to the grid with float atomics, in the order the
+    # threads run: how the chunks are shared among the threads (max_chunk_slots) changes that
+    # order on the CPU, as the GPU's scheduling does from run to run, and with it the last bits.
+    # The reproducible P2G (deterministic=True) gathers the chunk sums per node in a fixed
+    # order: the same bits whatever the sharing, replayed as graphs and fused or not; both are
+    # the scatter up to rounding.
+    # (a strong push: particles change cells, and cells empty, whose chunk ranges go stale)
+    params, X = shell_scene(rng, transfer, shell=4000, guard_every=10)
+    probe = Probe("p", (0.0, 2.0, 0.0), box=Box(center=(1.15, 1.0, 0.85), half_size=(0.06, 0.25, 0.2)), n_steps=4,
+                  dt_ref=5e-4)
+    out = {}
+    variants = [("scatter", False, None, False), ("cells", False, None, False), ("cells", False, 1, False),
+                ("cells", False, 3, False), ("cells", True, None, False), ("cells", True, 1, False),
+                ("cells", True, 3, False), ("cells", True, None, True)]
+    for p2g, deterministic, slots, graph in variants:
+        model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, probe=probe, device="cpu")
+        state = make_state(model, X)
+        solver = MPMSolver(model, p2g=p2g, deterministic=deterministic, max_chunk_slots=slots, graph=graph,
+                           fuse=graph, resort_every=1)
+        solver.check(state)
+        for _ in range(60):
+            solver.step(state)
+            if state.step % params.guard_every == 0:
+                solver.check(state)
+        # the grid holds all the mass (the gather wrote every node of the active box)
+        assert state.grid_m.numpy().sum() == pytest.approx(model.mass_host.astype(np.float64).sum(), rel=1e-5)
+        out[p2g, deterministic, slots, graph] = [a.numpy().copy() for a in (state.particle_u, state.particle_F,
+                                                                            state.particle_v)]
+    xs = out["scatter", False, None, False][0]
+    assert np.sqrt((xs ** 2).sum(-1).mean()) > 1e-4  # the body moved
+    for key, arrays in out.items():
+        assert np.sqrt(((arrays[0] - xs) ** 2).sum(-1).mean()) < 1e-5 * np.sqrt((xs ** 2).sum(-1).mean()), key
+    reproducible = [out[k] for k in out if k[1]]
+    for arrays in reproducible[1:]:
+        for a, b in zip(reproducible[0], arrays):
+            assert np.array_equal(a, b)
+    # the atomics' order shows in the bits (else the test above could not fail)
+    atomic = [out[k][0] for k in out if k[0] == "cells" and not k[1]]
+    assert any(not np.array_equal(atomic[0], a) for a in atomic[1:])
+    model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, probe=probe, device="cpu")
+    assert MPMSolver(model, deterministic=True).p2g == "cells"  # chosen whatever the crowding
+    with pytest.raises(InputError, match="deterministic"):
+        MPMSolver(model, p2g="scatter", deterministic=True)
+    with pytest.raises(InputError, match="deterministic"):
+        MPMSolver(model, deterministic="yes")
+
+
 def test_p2g_variant_is_checked_and_the_cpu_keeps_the_scatter():
     params = SimParams(n_grid=16, dt=1e-3, boundaries=())
     X = block((0.9, 0.9, 0.9), (1.1, 1.1, 1.1), 1 / 16)

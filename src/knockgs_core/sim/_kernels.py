@@ -518,6 +518,42 @@ def p2g_chunk_list(start: wp.array(dtype=wp.int32), index: wp.array(dtype=wp.int
         n_chunks[0] = index[s] + start[s]
 
 
+@wp.func
+def chunk_sum(s: int, e: int, i: int, j: int, k: int, dx: float, affine_flip: int, order: wp.array(dtype=wp.int32),
+              fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: wp.array(dtype=wp.mat33),
+              mC: wp.array(dtype=wp.mat33)):
+    """The contributions of the particles at sorted positions ``s .. e-1`` (one chunk, one
+    base cell) to the stencil node ``(i, j, k)`` of that cell, summed in sorted order:
+    momentum [kg m/s], mass [kg], and the stress-free momentum (affine FLIP only, else 0).
+    The weights come by selects (:func:`bspline_weight`): the node is the caller's, not a
+    constant."""
+    node = wp.vec3(float(i), float(j), float(k))
+    sum_mv = wp.vec3(0.0)
+    sum_m = float(0.0)
+    sum_old = wp.vec3(0.0)
+    for t in range(s, e):
+        p = order[t]
+        f = fx[p]
+        weight = bspline_weight(f[0], i) * bspline_weight(f[1], j) * bspline_weight(f[2], k)
+        dpos = (node - f) * dx
+        q = mv[p]
+        mvp = wp.vec3(q[0], q[1], q[2])
+        sum_mv += weight * (mvp + affine[p] * dpos)
+        sum_m += weight * q[3]
+        if affine_flip == 1:
+            sum_old += weight * (mvp + mC[p] * dpos)
+    return sum_mv, sum_m, sum_old
+
+
+@wp.func
+def chunk_end(c: int, total: int, count: int, chunks: wp.array(dtype=wp.int32)) -> int:
+    """The sorted position after chunk ``c``'s last particle: the next chunk's start."""
+    e = count
+    if c + 1 < total:
+        e = chunks[c + 1]
+    return e
+
+
 @wp.kernel
 def p2g_cells(
     chunks: wp.array(dtype=wp.int32),
@@ -541,39 +577,22 @@ def p2g_cells(
     """Launched over (chunk slot, stencil node): the thread sums the contributions of the
     chunks ``slot``, ``slot + stride``, ... (the chunk list is as long as the data make it;
     chunks outside the active box, key ``none_key``, are skipped) to its node, reading particle
-    ``order[s]``'s terms at sorted position ``s``, and adds each chunk's sum to the grid with
-    one atomic. The weights come by selects (:func:`bspline_weight`): the node is the
-    thread's, not a constant."""
+    ``order[s]``'s terms at sorted position ``s`` (:func:`chunk_sum`), and adds each chunk's
+    sum to the grid with one atomic."""
     c, n = wp.tid()
     total = n_chunks[0]
     i = n // 9
     j = (n // 3) % 3
     k = n % 3
-    node = wp.vec3(float(i), float(j), float(k))
     dx = 1.0 / inv_dx
     while c < total:
         s = chunks[c]
         key = keys[order[s]]
-        e = count
-        if c + 1 < total:
-            e = chunks[c + 1]
         if key == none_key:
             c += stride
             continue
-        sum_mv = wp.vec3(0.0)
-        sum_m = float(0.0)
-        sum_old = wp.vec3(0.0)
-        for t in range(s, e):
-            p = order[t]
-            f = fx[p]
-            weight = bspline_weight(f[0], i) * bspline_weight(f[1], j) * bspline_weight(f[2], k)
-            dpos = (node - f) * dx
-            q = mv[p]
-            mvp = wp.vec3(q[0], q[1], q[2])
-            sum_mv += weight * (mvp + affine[p] * dpos)
-            sum_m += weight * q[3]
-            if affine_flip == 1:
-                sum_old += weight * (mvp + mC[p] * dpos)
+        sum_mv, sum_m, sum_old = chunk_sum(s, chunk_end(c, total, count, chunks), i, j, k, dx, affine_flip, order,
+                                           fx, mv, affine, mC)
         gi = key // (n_grid * n_grid) + i
         gj = (key // n_grid) % n_grid + j
         gk = key % n_grid + k
@@ -582,6 +601,149 @@ def p2g_cells(
         if affine_flip == 1:
             wp.atomic_add(grid_mv_old, gi, gj, gk, sum_old)
         c += stride
+
+
+# Bitwise-reproducible P2G (``MPMSolver(deterministic=True)``). The chunk sums above are
+# summed in a fixed order, but their float atomics on a node arrive in the order the GPU
+# schedules the threads, so a GPU rollout's last bits vary from run to run. Here each chunk's
+# sums to its 27 nodes are stored (``p2g_chunk_sums``), each base cell's chunk range is
+# recorded (``p2g_cell_ranges``: with a sort every substep, a cell's chunks are consecutive),
+# and each node gathers its stencil cells' chunk sums in a fixed order (``p2g_gather``): no
+# float atomics, the same bits on every run and every device schedule.
+@wp.kernel
+def p2g_chunk_sums(
+    chunks: wp.array(dtype=wp.int32),
+    n_chunks: wp.array(dtype=wp.int32),
+    stride: int,
+    keys: wp.array(dtype=wp.int32),
+    order: wp.array(dtype=wp.int32),
+    none_key: int,
+    count: int,
+    capacity: int,
+    inv_dx: float,
+    affine_flip: int,
+    fx: wp.array(dtype=wp.vec3),
+    mv: wp.array(dtype=wp.vec4),
+    affine: wp.array(dtype=wp.mat33),
+    mC: wp.array(dtype=wp.mat33),
+    sums_mv: wp.array(dtype=wp.vec3),
+    sums_m: wp.array(dtype=float),
+    sums_old: wp.array(dtype=wp.vec3),
+    overflow: wp.array(dtype=wp.int32),
+):
+    """Launched as :func:`p2g_cells`: chunk ``c``'s sum to its stencil node ``n`` (0..26,
+    ``n = 9 i + 3 j + k``) stored at ``27 c + n`` instead of added to the grid (``capacity``:
+    the buffers' chunks, ``overflow[0]`` set to 1 if the list is longer; chunks outside the
+    active box are skipped)."""
+    c, n = wp.tid()
+    total = n_chunks[0]
+    if c == 0 and n == 0 and total > capacity:
+        overflow[0] = 1
+    i = n // 9
+    j = (n // 3) % 3
+    k = n % 3
+    dx = 1.0 / inv_dx
+    while c < total and c < capacity:
+        s = chunks[c]
+        if keys[order[s]] != none_key:
+            sum_mv, sum_m, sum_old = chunk_sum(s, chunk_end(c, total, count, chunks), i, j, k, dx, affine_flip, order,
+                                               fx, mv, affine, mC)
+            sums_mv[27 * c + n] = sum_mv
+            sums_m[27 * c + n] = sum_m
+            if affine_flip == 1:
+                sums_old[27 * c + n] = sum_old
+        c += stride
+
+
+@wp.func
+def chunk_key(c: int, chunks: wp.array(dtype=wp.int32), keys: wp.array(dtype=wp.int32),
+              order: wp.array(dtype=wp.int32)) -> int:
+    """The base cell key of chunk ``c``."""
+    return keys[order[chunks[c]]]
+
+
+@wp.kernel
+def p2g_cell_ranges(
+    chunks: wp.array(dtype=wp.int32),
+    n_chunks: wp.array(dtype=wp.int32),
+    stride: int,
+    keys: wp.array(dtype=wp.int32),
+    order: wp.array(dtype=wp.int32),
+    none_key: int,
+    first: wp.array(dtype=wp.int32),
+    last: wp.array(dtype=wp.int32),
+):
+    """Each occupied base cell's chunks ``[first[key], last[key])`` in the chunk list (sorted by
+    key). Entries of cells not occupied now keep older values: :func:`p2g_gather` takes a range
+    only where its first chunk has that key."""
+    c = wp.tid()
+    total = n_chunks[0]
+    while c < total:
+        key = chunk_key(c, chunks, keys, order)
+        if key != none_key:
+            if c == 0:
+                first[key] = c
+            elif chunk_key(c - 1, chunks, keys, order) != key:
+                first[key] = c
+            if c + 1 == total:
+                last[key] = c + 1
+            elif chunk_key(c + 1, chunks, keys, order) != key:
+                last[key] = c + 1
+        c += stride
+
+
+@wp.kernel
+def p2g_gather(
+    lo: wp.vec3i,
+    n_grid: int,
+    capacity: int,
+    affine_flip: int,
+    chunks: wp.array(dtype=wp.int32),
+    n_chunks: wp.array(dtype=wp.int32),
+    keys: wp.array(dtype=wp.int32),
+    order: wp.array(dtype=wp.int32),
+    first: wp.array(dtype=wp.int32),
+    last: wp.array(dtype=wp.int32),
+    sums_mv: wp.array(dtype=wp.vec3),
+    sums_m: wp.array(dtype=float),
+    sums_old: wp.array(dtype=wp.vec3),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_m: wp.array3d(dtype=float),
+    grid_mv_old: wp.array3d(dtype=wp.vec3),
+):
+    """One thread per node of the active box: the node's momentum, mass (and stress-free
+    momentum) as the sum of the stored chunk sums of the 27 base cells whose stencil holds it,
+    cell by cell in a fixed order, each cell's chunks in list order; written, not added."""
+    i, j, k = wp.tid()
+    gi = i + lo[0]
+    gj = j + lo[1]
+    gk = k + lo[2]
+    total = wp.min(n_chunks[0], capacity)
+    acc_mv = wp.vec3(0.0)
+    acc_m = float(0.0)
+    acc_old = wp.vec3(0.0)
+    for a in range(3):
+        for b in range(3):
+            for d in range(3):
+                bi = gi - a
+                bj = gj - b
+                bk = gk - d
+                if bi >= 0 and bj >= 0 and bk >= 0:
+                    key = (bi * n_grid + bj) * n_grid + bk
+                    f = first[key]
+                    e = wp.min(last[key], total)
+                    if f < e:
+                        if chunk_key(f, chunks, keys, order) == key:
+                            n = 9 * a + 3 * b + d
+                            for c in range(f, e):
+                                acc_mv += sums_mv[27 * c + n]
+                                acc_m += sums_m[27 * c + n]
+                                if affine_flip == 1:
+                                    acc_old += sums_old[27 * c + n]
+    grid_mv[gi, gj, gk] = acc_mv
+    grid_m[gi, gj, gk] = acc_m
+    if affine_flip == 1:
+        grid_mv_old[gi, gj, gk] = acc_old
 
 
 @wp.func

@@ -326,6 +326,33 @@ class _CellScratch:
                    chunks=zeros(wp.int32), n_chunks=zeros(wp.int32, 1))
 
 
+class _GatherScratch:
+    """Scratch of the bitwise-reproducible P2G (``MPMSolver(deterministic=True)``): each base
+    cell's chunk range ``first``/``last`` [n_grid^3] int32, and each chunk's sums to its 27
+    stencil nodes (``sums_mv``, ``sums_m``, ``sums_old`` [27 x capacity], grown as the active
+    box asks; ``sums_old`` holds one entry unless the transfer is affine FLIP), and
+    ``overflow`` [1], set by the kernels if the chunk list outgrew the buffers."""
+
+    def __init__(self, model: Model):
+        g, dev = model.params.n_grid, model.device
+        self.device = dev
+        self.flip = model.params.transfer == "affine_flip"
+        self.first = wp.zeros(g * g * g, dtype=wp.int32, device=dev)
+        self.last = wp.zeros(g * g * g, dtype=wp.int32, device=dev)
+        self.overflow = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.capacity = 0
+        self.reserve(1)
+
+    def reserve(self, capacity: int) -> None:
+        """Buffers for at least ``capacity`` chunks (reallocated only to grow)."""
+        if capacity <= self.capacity:
+            return
+        self.capacity = capacity
+        self.sums_mv = wp.zeros(27 * capacity, dtype=wp.vec3, device=self.device)
+        self.sums_m = wp.zeros(27 * capacity, dtype=float, device=self.device)
+        self.sums_old = wp.zeros(27 * capacity if self.flip else 1, dtype=wp.vec3, device=self.device)
+
+
 class MPMSolver:
     """Advances a :class:`State` of a :class:`Model` by substeps of ``params.dt``.
 
@@ -357,6 +384,14 @@ class MPMSolver:
 
     ``resort_every``, ``cell_chunk``, ``max_chunk_slots``: the P2G by cells' settings (the class
     attributes of the same names document them); they set speed only.
+
+    ``deterministic``: a GPU rollout the same bit for bit on every run. Float atomics add a
+    node's contributions in the order the GPU schedules its threads, so the last bits of a GPU
+    rollout vary between runs. Deterministic, the P2G by cells (chosen whatever the crowding)
+    sorts every substep, stores each chunk's sums to its 27 nodes and has each node gather
+    them in a fixed order (:func:`~knockgs_core.sim._kernels.p2g_gather`): no float atomics on
+    the grid. The same sums as the other variants, in another order (the CPU's scatter stays
+    the default there); the cost on a GPU is in benchmarks/README.md.
     """
 
     #: cap on the warm-started polar iterations per particle and substep (they stop when the
@@ -391,8 +426,12 @@ class MPMSolver:
         return "cells" if cuda and crowding is not None and crowding >= cls.CELLS_CROWDING else "scatter"
 
     def __init__(self, model: Model, *, p2g: str = "auto", graph: bool | str = "auto", fuse: bool | str = "auto",
-                 resort_every: int | None = None, cell_chunk: int | None = None, max_chunk_slots: int | None = None):
+                 resort_every: int | None = None, cell_chunk: int | None = None, max_chunk_slots: int | None = None,
+                 deterministic: bool = False):
         self.model = model
+        if deterministic not in (True, False):
+            raise InputError("MPMSolver", "deterministic", f"must be True or False, got {deterministic!r}")
+        self.deterministic = bool(deterministic)
         if resort_every is not None:
             self.resort_every = resort_every
         if cell_chunk is not None:
@@ -410,6 +449,8 @@ class MPMSolver:
         self.graph = bool(graph)
         self._graphs: dict = {}
         self.crowding = None
+        if p2g == "auto" and self.deterministic:
+            p2g = "cells"
         if p2g == "auto":
             if cuda:
                 x0 = model.particle_x0_host
@@ -418,6 +459,8 @@ class MPMSolver:
         if p2g not in ("scatter", "cells"):
             raise InputError("MPMSolver", "p2g", f"must be 'auto', 'scatter' or 'cells', got {p2g!r}")
         self.p2g = p2g
+        if self.deterministic and p2g != "cells":
+            raise InputError("MPMSolver", "deterministic", "the bitwise-reproducible P2G sums by cells (p2g='cells' or 'auto')")
         if fuse == "auto":
             fuse = self.graph and p2g == "cells"
         if fuse not in (True, False):
@@ -428,6 +471,7 @@ class MPMSolver:
         self.fuse = bool(fuse)
         self._prepared: tuple[int, int] | None = None  # (state, step) whose P2G terms the last G2P computed
         self._cells = _CellScratch.make(model) if p2g == "cells" else None
+        self._gather = _GatherScratch(model) if self.deterministic else None
         self._sorted_at: int | None = None  # the step of the last sort by cells
         self._inv_dx = 1.0 / p.dx
         self._lo = (0, 0, 0)
@@ -456,6 +500,9 @@ class MPMSolver:
         sf = self._stats_f.numpy()
         si = self._stats_i.numpy()
         overrun = int(self._overrun.numpy()[0])
+        if self._gather is not None and int(self._gather.overflow.numpy()[0]):
+            raise SimulationError(f"the reproducible P2G's chunk buffers ({self._gather.capacity} chunks) overflowed by "
+                                  f"step {state.step}: an internal bound failed; rerun with deterministic=False")
         t = state.step * p.dt
         where = f"at step {state.step} (t = {t:.6g} s)"
         elastic = m.max_wave_speed * p.dt / p.dx
@@ -545,14 +592,17 @@ class MPMSolver:
             slots = max(1, min(m.particle_count, math.prod(dims) + m.particle_count // self.cell_chunk + 1))
             if self.max_chunk_slots:
                 slots = min(slots, self.max_chunk_slots)
-            cmds["p2g_cells"] = wp.launch(
-                K.p2g_cells,
-                dim=(slots, 27),
-                inputs=[c.chunks, c.n_chunks, slots, c.keys, c.order, c.none_key, m.particle_count, p.n_grid, self._inv_dx, flip,
-                        c.fx, c.mv, c.affine, c.mC],
-                outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
-                **rec,
-            )
+            if self._gather is not None:
+                self._record_gather(state, slots, dims, lo, flip, rec, cmds)
+            else:
+                cmds["p2g_cells"] = wp.launch(
+                    K.p2g_cells,
+                    dim=(slots, 27),
+                    inputs=[c.chunks, c.n_chunks, slots, c.keys, c.order, c.none_key, m.particle_count, p.n_grid,
+                            self._inv_dx, flip, c.fx, c.mv, c.affine, c.mC],
+                    outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
+                    **rec,
+                )
         else:  # one float atomic per particle and stencil node
             cmds["p2g"] = wp.launch(
                 K.p2g,
@@ -605,6 +655,34 @@ class MPMSolver:
         self._graphs = {}  # graphs of the launches recorded before
         self._box = (lo, dims)  # the active box as the effects' grid hooks take it
 
+    def _record_gather(self, state: State, slots: int, dims: tuple[int, int, int], lo, flip: int, rec: dict,
+                       cmds: dict) -> None:
+        """Record the bitwise-reproducible P2G's launches (chunk sums, cell ranges, gather)."""
+        m, c, s = self.model, self._cells, self._gather
+        # sorted every substep, the chunks are runs of one key cut every cell_chunk-th sorted
+        # position: at most one per occupied cell (inside the box) and the outside key, plus
+        # one per cell_chunk positions
+        s.reserve(min(m.particle_count, math.prod(dims) + m.particle_count // self.cell_chunk + 2))
+        cmds["p2g_chunk_sums"] = wp.launch(
+            K.p2g_chunk_sums,
+            dim=(slots, 27),
+            inputs=[c.chunks, c.n_chunks, slots, c.keys, c.order, c.none_key, m.particle_count, s.capacity,
+                    self._inv_dx, flip, c.fx, c.mv, c.affine, c.mC],
+            outputs=[s.sums_mv, s.sums_m, s.sums_old, s.overflow],
+            **rec,
+        )
+        cmds["p2g_cell_ranges"] = wp.launch(K.p2g_cell_ranges, dim=slots,
+                                            inputs=[c.chunks, c.n_chunks, slots, c.keys, c.order, c.none_key],
+                                            outputs=[s.first, s.last], **rec)
+        cmds["p2g_gather"] = wp.launch(
+            K.p2g_gather,
+            dim=dims,
+            inputs=[lo, self.model.params.n_grid, s.capacity, flip, c.chunks, c.n_chunks, c.keys, c.order, s.first,
+                    s.last, s.sums_mv, s.sums_m, s.sums_old],
+            outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
+            **rec,
+        )
+
     def step(self, state: State) -> None:
         """Advance ``state`` by one substep: P2G (probe force included), grid update, boundary
         conditions, effects on the grid, G2P (particle translation included), effects on the
@@ -619,7 +697,8 @@ class MPMSolver:
         t = state.step * p.dt
         probe_on = self._probe_on(state.step)
         active = tuple(isinstance(bc, DomainWalls) or bc.start_time <= t < bc.end_time for bc, _ in self._cmds["bcs"])
-        sort = self._cells is not None and (self._sorted_at is None or not 0 <= state.step - self._sorted_at < self.resort_every)
+        sort = self._cells is not None and (self.deterministic or self._sorted_at is None
+                                            or not 0 <= state.step - self._sorted_at < self.resort_every)
         if sort:
             self._sorted_at = state.step
         # fused: this substep's P2G terms came with the last G2P; this G2P computes the next's
@@ -668,7 +747,12 @@ class MPMSolver:
             cmds["p2g_chunk_starts"].launch()
             wp.utils.array_scan(c.start, c.index, inclusive=False)
             cmds["p2g_chunk_list"].launch()
-            cmds["p2g_cells"].launch()
+            if self._gather is not None:
+                cmds["p2g_chunk_sums"].launch()
+                cmds["p2g_cell_ranges"].launch()
+                cmds["p2g_gather"].launch()
+            else:
+                cmds["p2g_cells"].launch()
         cmds["update"].launch()
         for (_, cmd), on in zip(cmds["bcs"], active):
             if on:
