@@ -55,7 +55,8 @@ def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: st
     params = SimParams(n_grid=n_grid, dt=1e-4, transfer=transfer)
     model = build_model(X, E=1e4, nu=0.3, rho=2000.0, params=params, probe=Probe("standard_x", (-0.18, 0.0, 0.0)), device=device)
     state = make_state(model, X)
-    solver = MPMSolver(model, graph=graph, p2g=p2g)
+    reproducible = p2g == "cells-reproducible"  # MPMSolver(deterministic=True): no float atomics on the grid
+    solver = MPMSolver(model, graph=graph, p2g="cells" if reproducible else p2g, deterministic=reproducible)
     solver.check(state)
     for _ in range(20):  # warm-up (kernel load, caches)
         solver.step(state)
@@ -115,7 +116,8 @@ def main() -> None:
     ap.add_argument("--transfer", choices=["affine_flip", "apic", "both"], default="affine_flip")
     ap.add_argument("--graph", choices=["auto", "off", "both"], default="auto",
                     help="substeps as CUDA graphs (auto: on a CUDA device); both: each case with and without")
-    ap.add_argument("--p2g", nargs="+", choices=["auto", "scatter", "cells"], default=["auto"])
+    ap.add_argument("--p2g", nargs="+", choices=["auto", "scatter", "cells", "cells-reproducible"],
+                    default=["auto"], help="P2G variants (cells-reproducible: MPMSolver(deterministic=True))")
     ap.add_argument("--order", nargs="+", choices=["lattice", "cell"], default=["lattice"],
                     help="the particles' order: the lattice's, or sorted by stencil base cell")
     ap.add_argument("--ppc", nargs="+", type=int, default=[8], help="particles per cell of the block (cubes: 8, 27, 64)")
