@@ -606,10 +606,11 @@ def p2g_cells(
 # Bitwise-reproducible P2G (``MPMSolver(deterministic=True)``). The chunk sums above are
 # summed in a fixed order, but their float atomics on a node arrive in the order the GPU
 # schedules the threads, so a GPU rollout's last bits vary from run to run. Here each chunk's
-# sums to its 27 nodes are stored (``p2g_chunk_sums``), each base cell's chunk range is
-# recorded (``p2g_cell_ranges``: with a sort every substep, a cell's chunks are consecutive),
-# and each node gathers its stencil cells' chunk sums in a fixed order (``p2g_gather``): no
-# float atomics, the same bits on every run and every device schedule.
+# sums to its 27 nodes are stored (``p2g_chunk_sums``); sorted every substep, a cell's chunks
+# are consecutive in the list, and the thread of its first chunk sums them, in list order, for
+# one stencil node (``p2g_cell_sums``: one row of node arrays per stencil offset, so no two
+# cells write one entry); each node then sums its 27 rows in row order (``p2g_gather``). No
+# float atomics: the same bits on every run, whatever the threads' schedule.
 @wp.kernel
 def p2g_chunk_sums(
     chunks: wp.array(dtype=wp.int32),
@@ -663,83 +664,94 @@ def chunk_key(c: int, chunks: wp.array(dtype=wp.int32), keys: wp.array(dtype=wp.
 
 
 @wp.kernel
-def p2g_cell_ranges(
+def p2g_cell_sums(
     chunks: wp.array(dtype=wp.int32),
     n_chunks: wp.array(dtype=wp.int32),
     stride: int,
     keys: wp.array(dtype=wp.int32),
     order: wp.array(dtype=wp.int32),
     none_key: int,
-    first: wp.array(dtype=wp.int32),
-    last: wp.array(dtype=wp.int32),
+    capacity: int,
+    n_grid: int,
+    lo: wp.vec3i,
+    dims: wp.vec3i,
+    affine_flip: int,
+    sums_mv: wp.array(dtype=wp.vec3),
+    sums_m: wp.array(dtype=float),
+    sums_old: wp.array(dtype=wp.vec3),
+    node_mv: wp.array2d(dtype=wp.vec3),
+    node_m: wp.array2d(dtype=float),
+    node_old: wp.array2d(dtype=wp.vec3),
 ):
-    """Each occupied base cell's chunks ``[first[key], last[key])`` in the chunk list (sorted by
-    key). Entries of cells not occupied now keep older values: :func:`p2g_gather` takes a range
-    only where its first chunk has that key."""
-    c = wp.tid()
-    total = n_chunks[0]
+    """Launched as :func:`p2g_chunk_sums`; the thread of a cell's first chunk (the chunks of a
+    cell are consecutive: the list is sorted by key) sums the cell's chunk sums to its stencil
+    node ``n`` in list order and writes the sum to row ``n`` of the node arrays [27, box nodes]
+    at the node's index in the active box (each (row, node) has at most one source cell: the
+    node minus the row's offset). Entries of cells without particles stay zero."""
+    c, n = wp.tid()
+    total = wp.min(n_chunks[0], capacity)
+    i = n // 9
+    j = (n // 3) % 3
+    k = n % 3
     while c < total:
         key = chunk_key(c, chunks, keys, order)
-        if key != none_key:
-            if c == 0:
-                first[key] = c
-            elif chunk_key(c - 1, chunks, keys, order) != key:
-                first[key] = c
-            if c + 1 == total:
-                last[key] = c + 1
-            elif chunk_key(c + 1, chunks, keys, order) != key:
-                last[key] = c + 1
+        first = key != none_key
+        if first and c > 0:
+            first = chunk_key(c - 1, chunks, keys, order) != key
+        if first:
+            acc_mv = sums_mv[27 * c + n]
+            acc_m = sums_m[27 * c + n]
+            acc_old = wp.vec3(0.0)
+            if affine_flip == 1:
+                acc_old = sums_old[27 * c + n]
+            d = c + 1
+            while d < total:
+                if chunk_key(d, chunks, keys, order) != key:
+                    break
+                acc_mv += sums_mv[27 * d + n]
+                acc_m += sums_m[27 * d + n]
+                if affine_flip == 1:
+                    acc_old += sums_old[27 * d + n]
+                d += 1
+            gi = key // (n_grid * n_grid) + i - lo[0]
+            gj = (key // n_grid) % n_grid + j - lo[1]
+            gk = key % n_grid + k - lo[2]
+            local = (gi * dims[1] + gj) * dims[2] + gk
+            node_mv[n, local] = acc_mv
+            node_m[n, local] = acc_m
+            if affine_flip == 1:
+                node_old[n, local] = acc_old
         c += stride
 
 
 @wp.kernel
 def p2g_gather(
     lo: wp.vec3i,
-    n_grid: int,
-    capacity: int,
+    dims: wp.vec3i,
     affine_flip: int,
-    chunks: wp.array(dtype=wp.int32),
-    n_chunks: wp.array(dtype=wp.int32),
-    keys: wp.array(dtype=wp.int32),
-    order: wp.array(dtype=wp.int32),
-    first: wp.array(dtype=wp.int32),
-    last: wp.array(dtype=wp.int32),
-    sums_mv: wp.array(dtype=wp.vec3),
-    sums_m: wp.array(dtype=float),
-    sums_old: wp.array(dtype=wp.vec3),
+    node_mv: wp.array2d(dtype=wp.vec3),
+    node_m: wp.array2d(dtype=float),
+    node_old: wp.array2d(dtype=wp.vec3),
     grid_mv: wp.array3d(dtype=wp.vec3),
     grid_m: wp.array3d(dtype=float),
     grid_mv_old: wp.array3d(dtype=wp.vec3),
 ):
     """One thread per node of the active box: the node's momentum, mass (and stress-free
-    momentum) as the sum of the stored chunk sums of the 27 base cells whose stencil holds it,
-    cell by cell in a fixed order, each cell's chunks in list order; written, not added."""
+    momentum) as the sum of its 27 rows (:func:`p2g_cell_sums`) in row order; written, not
+    added."""
     i, j, k = wp.tid()
-    gi = i + lo[0]
-    gj = j + lo[1]
-    gk = k + lo[2]
-    total = wp.min(n_chunks[0], capacity)
+    local = (i * dims[1] + j) * dims[2] + k
     acc_mv = wp.vec3(0.0)
     acc_m = float(0.0)
     acc_old = wp.vec3(0.0)
-    for a in range(3):
-        for b in range(3):
-            for d in range(3):
-                bi = gi - a
-                bj = gj - b
-                bk = gk - d
-                if bi >= 0 and bj >= 0 and bk >= 0:
-                    key = (bi * n_grid + bj) * n_grid + bk
-                    f = first[key]
-                    e = wp.min(last[key], total)
-                    if f < e:
-                        if chunk_key(f, chunks, keys, order) == key:
-                            n = 9 * a + 3 * b + d
-                            for c in range(f, e):
-                                acc_mv += sums_mv[27 * c + n]
-                                acc_m += sums_m[27 * c + n]
-                                if affine_flip == 1:
-                                    acc_old += sums_old[27 * c + n]
+    for n in range(27):
+        acc_mv += node_mv[n, local]
+        acc_m += node_m[n, local]
+        if affine_flip == 1:
+            acc_old += node_old[n, local]
+    gi = i + lo[0]
+    gj = j + lo[1]
+    gk = k + lo[2]
     grid_mv[gi, gj, gk] = acc_mv
     grid_m[gi, gj, gk] = acc_m
     if affine_flip == 1:

@@ -327,30 +327,41 @@ class _CellScratch:
 
 
 class _GatherScratch:
-    """Scratch of the bitwise-reproducible P2G (``MPMSolver(deterministic=True)``): each base
-    cell's chunk range ``first``/``last`` [n_grid^3] int32, and each chunk's sums to its 27
-    stencil nodes (``sums_mv``, ``sums_m``, ``sums_old`` [27 x capacity], grown as the active
-    box asks; ``sums_old`` holds one entry unless the transfer is affine FLIP), and
-    ``overflow`` [1], set by the kernels if the chunk list outgrew the buffers."""
+    """Scratch of the bitwise-reproducible P2G (``MPMSolver(deterministic=True)``): each
+    chunk's sums to its 27 stencil nodes (``sums_mv``, ``sums_m``, ``sums_old`` [27 x chunk
+    capacity]), each cell's sums by stencil offset at the active box's nodes (``node_mv``,
+    ``node_m``, ``node_old`` [27, box nodes]), grown as the active box asks (``*_old`` hold
+    one entry unless the transfer is affine FLIP), and ``overflow`` [1], set by the kernels if
+    the chunk list outgrew the buffers."""
 
     def __init__(self, model: Model):
-        g, dev = model.params.n_grid, model.device
-        self.device = dev
+        self.device = model.device
         self.flip = model.params.transfer == "affine_flip"
-        self.first = wp.zeros(g * g * g, dtype=wp.int32, device=dev)
-        self.last = wp.zeros(g * g * g, dtype=wp.int32, device=dev)
-        self.overflow = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.overflow = wp.zeros(1, dtype=wp.int32, device=self.device)
         self.capacity = 0
-        self.reserve(1)
+        self.nodes = 0
+        self.reserve(1, 1)
 
-    def reserve(self, capacity: int) -> None:
-        """Buffers for at least ``capacity`` chunks (reallocated only to grow)."""
-        if capacity <= self.capacity:
-            return
-        self.capacity = capacity
-        self.sums_mv = wp.zeros(27 * capacity, dtype=wp.vec3, device=self.device)
-        self.sums_m = wp.zeros(27 * capacity, dtype=float, device=self.device)
-        self.sums_old = wp.zeros(27 * capacity if self.flip else 1, dtype=wp.vec3, device=self.device)
+    def reserve(self, capacity: int, nodes: int) -> None:
+        """Buffers for at least ``capacity`` chunks and ``nodes`` box nodes (reallocated only to grow)."""
+        dev, old = self.device, (lambda size: size if self.flip else 1)
+        if capacity > self.capacity:
+            self.capacity = capacity
+            self.sums_mv = wp.zeros(27 * capacity, dtype=wp.vec3, device=dev)
+            self.sums_m = wp.zeros(27 * capacity, dtype=float, device=dev)
+            self.sums_old = wp.zeros(old(27 * capacity), dtype=wp.vec3, device=dev)
+        if nodes > self.nodes:
+            self.nodes = nodes
+            self.node_mv = wp.zeros((27, nodes), dtype=wp.vec3, device=dev)
+            self.node_m = wp.zeros((27, nodes), dtype=float, device=dev)
+            self.node_old = wp.zeros((27, old(nodes)), dtype=wp.vec3, device=dev)
+
+    def clear_nodes(self) -> None:
+        """Zero the node rows (entries of cells without particles must read zero)."""
+        self.node_mv.zero_()
+        self.node_m.zero_()
+        if self.flip:
+            self.node_old.zero_()
 
 
 class MPMSolver:
@@ -662,7 +673,7 @@ class MPMSolver:
         # sorted every substep, the chunks are runs of one key cut every cell_chunk-th sorted
         # position: at most one per occupied cell (inside the box) and the outside key, plus
         # one per cell_chunk positions
-        s.reserve(min(m.particle_count, math.prod(dims) + m.particle_count // self.cell_chunk + 2))
+        s.reserve(min(m.particle_count, math.prod(dims) + m.particle_count // self.cell_chunk + 2), math.prod(dims))
         cmds["p2g_chunk_sums"] = wp.launch(
             K.p2g_chunk_sums,
             dim=(slots, 27),
@@ -671,17 +682,17 @@ class MPMSolver:
             outputs=[s.sums_mv, s.sums_m, s.sums_old, s.overflow],
             **rec,
         )
-        cmds["p2g_cell_ranges"] = wp.launch(K.p2g_cell_ranges, dim=slots,
-                                            inputs=[c.chunks, c.n_chunks, slots, c.keys, c.order, c.none_key],
-                                            outputs=[s.first, s.last], **rec)
-        cmds["p2g_gather"] = wp.launch(
-            K.p2g_gather,
-            dim=dims,
-            inputs=[lo, self.model.params.n_grid, s.capacity, flip, c.chunks, c.n_chunks, c.keys, c.order, s.first,
-                    s.last, s.sums_mv, s.sums_m, s.sums_old],
-            outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
+        cmds["p2g_cell_sums"] = wp.launch(
+            K.p2g_cell_sums,
+            dim=(slots, 27),
+            inputs=[c.chunks, c.n_chunks, slots, c.keys, c.order, c.none_key, s.capacity, m.params.n_grid, lo,
+                    wp.vec3i(*dims), flip, s.sums_mv, s.sums_m, s.sums_old],
+            outputs=[s.node_mv, s.node_m, s.node_old],
             **rec,
         )
+        cmds["p2g_gather"] = wp.launch(K.p2g_gather, dim=dims,
+                                       inputs=[lo, wp.vec3i(*dims), flip, s.node_mv, s.node_m, s.node_old],
+                                       outputs=[state.grid_mv, state.grid_m, state.grid_mv_old], **rec)
 
     def step(self, state: State) -> None:
         """Advance ``state`` by one substep: P2G (probe force included), grid update, boundary
@@ -748,8 +759,9 @@ class MPMSolver:
             wp.utils.array_scan(c.start, c.index, inclusive=False)
             cmds["p2g_chunk_list"].launch()
             if self._gather is not None:
+                self._gather.clear_nodes()
                 cmds["p2g_chunk_sums"].launch()
-                cmds["p2g_cell_ranges"].launch()
+                cmds["p2g_cell_sums"].launch()
                 cmds["p2g_gather"].launch()
             else:
                 cmds["p2g_cells"].launch()
