@@ -540,3 +540,169 @@ def test_cuda_build_of_the_deformation_kernel_has_no_fma(tmp_path):
         pytest.skip(f"no CUDA compiler in this Warp build ({exc})")
     ptx = "".join(p.read_text() for p in pathlib.Path(tmp_path).rglob("*.ptx"))
     assert ptx.count("mul.rn.f64") >= 2 * 54 and "fma.rn.f64" not in ptx
+
+
+def resident_motion(rng):
+    """A motion for the device-resident frame path: 200 Gaussians at 40x30 px, ``(means, cov,
+    colors, opac, static, positions [5, M, 3], F [5, M, 3, 3], camera, tie_rows)``.
+
+    The 30 static Gaussians are never visible (opacity below 1/255, or at rest behind the
+    camera). Among the simulated ones, six overlapping ones (``tie_rows``) share one depth in
+    frames 0, 1, 3 and 4, so their index order shows in the pixels. Frame 1 puts 25 simulated
+    Gaussians behind the camera and 3 in front of the near plane; frame 2 puts all of them behind
+    the camera (nothing visible); frame 3 triples every simulated Gaussian's extent (more tile
+    pairs than the frames before)."""
+    n, T = 200, 5
+    means, cov, colors, opac = random_scene(rng, n=n, scale=(0.02, 0.15), opacity=(0.3, 1.0))
+    means = means + [0.0, 0.0, 3.0]
+    static = np.zeros(n, bool)
+    static[:30] = True
+    opac[:15] = rng.uniform(0.0, 0.9 / 255, 15)  # below the 1/255 alpha cut
+    means[15:30, 2] = -2.0  # behind the camera
+    dyn = np.flatnonzero(~static)
+    tie_rows = dyn[10:16]
+    means[tie_rows] = np.stack([np.linspace(-0.3, 0.3, 6), np.zeros(6), np.full(6, 2.5)], axis=1)
+    cov[tie_rows] = 0.12**2 * np.eye(3)
+    colors[tie_rows] = np.eye(3)[np.arange(6) % 3]
+    opac[tie_rows] = 0.8
+    m = dyn.size
+    pos = np.repeat(means[dyn][None], T, axis=0) + 0.02 * rng.normal(size=(T, m, 3))
+    F = np.eye(3) + 0.1 * rng.normal(size=(T, m, 3, 3))
+    pos[:, 10:16] = means[tie_rows]  # the tie group keeps its common depth
+    F[:, 10:16] = np.eye(3)
+    pos[1, 20:45, 2] = -1.0
+    pos[1, 45:48, 2] = 0.005
+    pos[2, :, 2] = -1.0
+    F[3] *= 3.0
+    camera = axis_camera(40, 30, 30.0, 20.0, 15.0)
+    return means, cov, colors, opac, static, pos.astype(np.float32), F.astype(np.float32), camera, tie_rows
+
+
+def test_device_resident_frames_equal_the_host_binned_frames(monkeypatch):
+    """The device-resident frame path (projection, visible compaction, depth and tile sorts and
+    the rasterizer's inputs kept in Warp arrays; the default on CUDA), forced on the CPU, gives
+    the frames of the host-binned path (the CPU default) bit for bit: Gaussians culled behind the
+    camera, in front of the near plane or by opacity, a frame with nothing visible, and a group
+    of equal-depth Gaussians whose index order shows in the pixels (a compaction that reordered
+    the visible Gaussians would change them)."""
+    from knockgs_core.render import _frame
+    from knockgs_core.render._deform import _render_frames
+
+    rng = np.random.default_rng(51)
+    means, cov, colors, opac, static, pos, F, camera, tie_rows = resident_motion(rng)
+    args = (means, cov, colors, opac, static, pos, F, camera)
+    bg = (0.2, 0.5, 0.9)
+    host = _render_frames(*args, background=bg, device="cpu", resident=False)
+    resident = _render_frames(*args, background=bg, device="cpu", resident=True)
+    monkeypatch.setattr(_frame, "DeviceFrames", None)  # not used on the CPU unless asked for
+    assert len(host) == len(resident) == 5
+    for t, (a, b) in enumerate(zip(host, resident)):
+        for name in ("rgb", "depth", "alpha"):
+            x, y = getattr(a, name), getattr(b, name)
+            assert x.dtype == y.dtype == np.float32 and x.shape == y.shape
+            assert np.array_equal(x, y), f"frame {t}: {name} differs"
+    default = render_frames(*args, background=bg)  # the CPU default: the host path, no DeviceFrames
+    assert all(np.array_equal(a.rgb, b.rgb) and np.array_equal(a.alpha, b.alpha) for a, b in zip(host, default))
+    dyn = np.flatnonzero(~static)
+    scenes = [deformed_scene(means, cov, colors, opac, pos[t], F[t], static) for t in range(5)]
+    visible = [int(project(s.means, s.covariances, s.opacities, camera).visible.sum()) for s in scenes]
+    assert visible[0] == dyn.size and visible[1] == dyn.size - 28 and visible[2] == 0 and visible[3] == dyn.size
+    assert not resident[2].alpha.any() and np.array_equal(resident[2].rgb, np.broadcast_to(np.float32(bg), (30, 40, 3)))
+    assert all(resident[t].alpha.max() > 0.9 for t in (0, 1, 3, 4))
+    # the tie group's index order shows: the same scene with its six rows reversed renders otherwise
+    perm = np.arange(means.shape[0])
+    perm[tie_rows] = tie_rows[::-1]
+    s = scenes[0]
+    swapped = render(s.means[perm], s.covariances[perm], s.colors[perm], s.opacities[perm], camera, background=bg)
+    assert not np.array_equal(swapped.rgb, resident[0].rgb)
+
+
+def test_device_frames_bins_and_reused_buffers():
+    """``DeviceFrames`` bins every frame as ``bin_tiles`` does (same per-tile lists and ranges, on
+    the host and on the device path), keeps one set of buffers for the motion and regrows the pair
+    buffer only when a frame has more pairs; bad scene arrays are an ``InputError``."""
+    import warp as wp
+
+    from knockgs_core._warp import warp_device
+    from knockgs_core.render._frame import DeviceFrames
+
+    rng = np.random.default_rng(52)
+    means, cov, colors, opac, static, pos, F, camera, _ = resident_motion(rng)
+    dev = warp_device("cpu")
+    frames = DeviceFrames(means.shape[0], camera, np.ones(3), dev)
+    first = (frames.means2d.ptr, frames.order.ptr, frames.tile_starts.ptr, frames.images[0].ptr)
+    capacity = []
+    for t in range(5):
+        s = deformed_scene(means, cov, colors, opac, pos[t], F[t], static)
+        sym = 0.5 * (s.covariances + np.swapaxes(s.covariances, 1, 2))
+        arrays = [wp.array(a.astype(np.float32), dtype=d, device=dev) for a, d in
+                  ((s.means, wp.vec3f), (sym, wp.mat33f), (s.colors, wp.vec3f), (s.opacities, wp.float32))]
+        out = frames.render(*arrays)
+        proj = project(s.means, s.covariances, s.opacities, camera)
+        got = frames.tile_bins()
+        for want in (bin_tiles(proj, camera.width, camera.height, tile_size=frames.tile_size),
+                     bin_tiles(proj, camera.width, camera.height, tile_size=frames.tile_size, device="cpu")):
+            np.testing.assert_array_equal(got.gaussian_ids, want.gaussian_ids)
+            np.testing.assert_array_equal(got.tile_ranges, want.tile_ranges)
+        np.testing.assert_array_equal(out.rgb, render(*s, camera).rgb)
+        capacity.append(frames.pair_keys.shape[0])
+        assert capacity[-1] >= 2 * frames.pairs
+    assert frames.pairs > 2 * means.shape[0]  # frame 4 still fits the buffer grown for frame 3
+    assert capacity[2] == capacity[1] and capacity[3] > capacity[2] and capacity[4] == capacity[3]
+    assert (frames.means2d.ptr, frames.order.ptr, frames.tile_starts.ptr, frames.images[0].ptr) == first
+    with pytest.raises(InputError, match="DeviceFrames.*opacities"):
+        frames.render(*arrays[:3], wp.zeros(3, dtype=wp.float32, device=dev))
+    with pytest.raises(InputError, match="DeviceFrames.*n"):
+        DeviceFrames(0, camera, np.ones(3), dev)
+
+
+def test_cuda_default_wiring_on_the_cpu(monkeypatch):
+    """With the device-resident default switched on for the CPU (as it is for CUDA), ``render``
+    and ``render_frames`` take ``DeviceFrames`` and give the same frames; an empty scene and a
+    motion without simulated Gaussians still render the background or the rest scene."""
+    from knockgs_core.render import _frame, _pipeline
+
+    rng = np.random.default_rng(53)
+    means, cov, colors, opac, static, pos, F, camera, _ = resident_motion(rng)
+    args = (means, cov, colors, opac, static, pos[:2], F[:2], camera)
+    host_frames = render_frames(*args)
+    host_one = render(means, cov, colors, opac, camera)
+    used = []
+    real = _frame.DeviceFrames
+
+    def counted(*a, **k):
+        used.append(a[0])
+        return real(*a, **k)
+
+    monkeypatch.setattr(_frame, "resident_default", lambda dev: True)
+    monkeypatch.setattr(_pipeline, "resident_default", lambda dev: True)
+    monkeypatch.setattr(_frame, "DeviceFrames", counted)
+    monkeypatch.setattr(_pipeline, "DeviceFrames", counted)
+    frames = render_frames(*args)
+    one = render(means, cov, colors, opac, camera)
+    assert used == [200, 200]  # one DeviceFrames for the motion, one for the single render
+    for a, b in [*zip(host_frames, frames), (host_one, one)]:
+        for name in ("rgb", "depth", "alpha"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    empty = render(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0), camera)
+    assert not empty.alpha.any()
+    rest = render_frames(means, cov, colors, opac, np.ones(200, bool), np.zeros((1, 0, 3)), np.zeros((1, 0, 3, 3)), camera)
+    np.testing.assert_array_equal(rest[0].rgb, host_one.rgb)
+
+
+def test_cuda_build_of_the_frame_kernels(tmp_path):
+    """The render kernels, the device-resident path's compaction among them, build for CUDA
+    (sm_90 PTX by NVRTC, no GPU needed)."""
+    import pathlib
+
+    import warp as wp
+
+    from knockgs_core.render import _kernels
+
+    try:
+        wp.compile_aot_module(_kernels.project_kernel.module, arch=90, use_ptx=True, module_dir=tmp_path)
+    except Exception as exc:  # a Warp build without NVRTC
+        pytest.skip(f"no CUDA compiler in this Warp build ({exc})")
+    ptx = "".join(p.read_text() for p in pathlib.Path(tmp_path).rglob("*.ptx"))
+    for name in ("visible_flags_kernel", "compact_visible_kernel", "pair_total_kernel", "tile_emit_kernel", "rasterize_kernel"):
+        assert name in ptx

@@ -140,10 +140,23 @@ def render_frames(gaussians_means0, cov0, colors, opacities, static_mask, positi
     colour and opacity) are uploaded once per motion; per frame, the simulated rows'
     positions and ``F`` go over in one copy (float32, or float64 when ``F`` is float64) and a
     kernel writes their centres and symmetrized ``F Sigma_0 F^T`` (float64, rounded as the
-    host path rounds: the same pixels as :func:`render` of :func:`deformed_scene`).
+    host path rounds: the same pixels as :func:`render` of :func:`deformed_scene`). On CUDA the
+    projection, tile bins and rasterizer inputs stay on the device too, in buffers allocated
+    once per motion (``_frame.DeviceFrames``), and only the image comes back; on the CPU each
+    frame is projected and binned through host arrays, as :func:`render` does there.
     """
+    return _render_frames(gaussians_means0, cov0, colors, opacities, static_mask, positions, F, camera,
+                          background=background, device=device, resident=None)
+
+
+def _render_frames(gaussians_means0, cov0, colors, opacities, static_mask, positions, F, camera, *,
+                   background, device: str, resident: bool | None) -> list:
+    """:func:`render_frames` (arguments as there), its frames rendered by ``_frame.DeviceFrames``
+    when ``resident`` is True, through ``_pipeline._render_arrays`` when False, and when None
+    by the device's default (``_frame.resident_default``: resident on CUDA)."""
     from ._camera import Camera
     from ._checks import check_background
+    from ._frame import DeviceFrames, resident_default
     from ._pipeline import _device, _render, _render_arrays
 
     src = "render.render_frames"
@@ -168,10 +181,14 @@ def render_frames(gaussians_means0, cov0, colors, opacities, static_mask, positi
             _frame_rows(G, t, rows, src, "F")
         return [_render(means0, cov0, colors, opacities, camera, bg, device) for _ in range(P.shape[0])]
     scene = _DeviceScene(means0, cov0, colors, opacities, dyn, wide=_frame_dtype(G) == np.float64, dev=dev)
+    if resident is None:
+        resident = resident_default(dev)
+    frames = DeviceFrames(n, camera, bg, dev) if resident else None  # buffers for the whole motion
     out = []
     for t in range(P.shape[0]):
         scene.set_frame(_frame_rows(P, t, rows, src, "positions"), _frame_rows(G, t, rows, src, "F"))
-        out.append(_render_arrays(scene.means, scene.covariances, scene.colors, scene.opacities, camera, bg, dev))
+        arrays = (scene.means, scene.covariances, scene.colors, scene.opacities)
+        out.append(frames.render(*arrays) if frames is not None else _render_arrays(*arrays, camera, bg, dev))
     return out
 
 

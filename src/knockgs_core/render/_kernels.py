@@ -216,6 +216,58 @@ def tile_ranges_kernel(
     ends[t] = lo
 
 
+# -- the visible Gaussians in index order, on the device (``_frame.DeviceFrames``) --------
+@wp.func
+def is_visible(r: wp.vec2f) -> wp.int32:
+    """1 where both radii [px] are positive (the Gaussian is not culled, as
+    ``Projection.visible``), else 0 (NaN radii included)."""
+    if r[0] > 0.0 and r[1] > 0.0:
+        return 1
+    return 0
+
+
+@wp.kernel
+def visible_flags_kernel(radii: wp.array(dtype=wp.vec2f), flags: wp.array(dtype=wp.int32)):
+    """``flags[i]``: 1 if Gaussian ``i`` is visible, else 0 (``radii [>= N]``, launched over N)."""
+    i = wp.tid()
+    flags[i] = is_visible(radii[i])
+
+
+@wp.kernel
+def compact_visible_kernel(
+    flags: wp.array(dtype=wp.int32),
+    slots: wp.array(dtype=wp.int32),
+    depths: wp.array(dtype=wp.float32),
+    sentinel: int,
+    depth_keys: wp.array(dtype=wp.float32),
+    order: wp.array(dtype=wp.int32),
+):
+    """The visible Gaussians first, in increasing index order, with their depths as sort keys.
+
+    ``flags [N]`` from :func:`visible_flags_kernel`; ``slots [N]`` their exclusive prefix sum
+    (the slot of each visible Gaussian). Writes ``order[slots[i]] = i`` and ``depth_keys[slots[i]]
+    = depths[i]`` for each visible ``i``; the slots from the visible count on get ``sentinel``
+    (a Gaussian index whose box misses the image) with key ``+inf``, so that a stable sort by
+    depth keeps them last. Launched over N; each slot is written by one thread.
+    """
+    i = wp.tid()
+    n = flags.shape[0]
+    n_visible = slots[n - 1] + flags[n - 1]
+    if flags[i] != 0:
+        depth_keys[slots[i]] = depths[i]
+        order[slots[i]] = i
+    if i >= n_visible:
+        depth_keys[i] = wp.inf
+        order[i] = sentinel
+
+
+@wp.kernel
+def pair_total_kernel(counts: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32), total: wp.array(dtype=wp.int32)):
+    """``total[0]``: the number of (tile, Gaussian) pairs, the last exclusive offset plus its count."""
+    n = counts.shape[0]
+    total[0] = offsets[n - 1] + counts[n - 1]
+
+
 # -- deformed covariances on the device (``render_frames``) ------------------------------
 @wp.func
 def deformed_covariance(F: wp.mat33d, cov0: wp.mat33d) -> wp.mat33d:

@@ -13,6 +13,7 @@ from knockgs_core.errors import InputError
 from . import _constants as C
 from ._camera import Camera, RenderOutput
 from ._checks import as_float_array, check_background, check_count, check_range, check_scene
+from ._frame import DeviceFrames, resident_default
 from ._kernels import project_kernel, rasterize_kernel, tile_count_kernel, tile_emit_kernel, tile_ranges_kernel
 
 
@@ -372,8 +373,16 @@ def render(
 def _render(means: np.ndarray, covariances: np.ndarray, colors: np.ndarray, opacities: np.ndarray, camera: Camera,
             bg: np.ndarray, device: str) -> RenderOutput:
     """:func:`render` of checked float arrays (``covariances`` symmetric, ``bg`` the background
-    [3]); :func:`render_frames` keeps its scene on the device instead (:func:`_render_arrays`)."""
+    [3]); :func:`render_frames` keeps its scene on the device instead (:func:`_render_arrays`).
+    On CUDA the frame takes the device-resident path (``_frame.DeviceFrames``: the same pixels)."""
     dev = _device(device)
+    if resident_default(dev) and means.shape[0] > 0:
+        f32 = np.float32
+        scene = (wp.array(means.astype(f32), dtype=wp.vec3f, device=dev),
+                 wp.array(covariances.astype(f32), dtype=wp.mat33f, device=dev),
+                 wp.array(colors.astype(f32), dtype=wp.vec3f, device=dev),
+                 wp.array(opacities.astype(f32), dtype=wp.float32, device=dev))
+        return DeviceFrames(means.shape[0], camera, bg, dev).render(*scene)
     proj = _project(means, covariances, opacities, camera, dev)
     return _bin_and_rasterize(proj, colors, opacities, camera, bg, dev)
 
@@ -381,7 +390,8 @@ def _render(means: np.ndarray, covariances: np.ndarray, colors: np.ndarray, opac
 def _render_arrays(means, covariances, colors, opacities, camera: Camera, bg: np.ndarray, dev) -> RenderOutput:
     """:func:`_render` of a scene already in float32 Warp arrays on ``dev`` (N > 0): ``means
     [N]`` vec3f, symmetric ``covariances [N]`` mat33f, ``colors [N]`` vec3f, ``opacities [N]``
-    float32. :func:`render_frames` keeps a motion's scene on the device and renders it here."""
+    float32, through the host-side projection and binning (:func:`_bin_and_rasterize`): the
+    path of :func:`render_frames` on the CPU; CUDA renders with ``_frame.DeviceFrames``."""
     proj = _project_arrays(means, covariances, opacities, camera, dev)
     return _bin_and_rasterize(proj, colors, opacities, camera, bg, dev)
 
