@@ -262,6 +262,7 @@ def test_disk_full_while_writing_a_rollout_leaves_the_previous_file(shared, refu
     out = tmp_path / "r.parquet"
     out.write_bytes(b"previous")
     monkeypatch.setattr(pq, "write_table", _disk_full)
+    monkeypatch.setattr(pq.ParquetWriter, "write_table", _disk_full)  # the frames written as the rollout runs
     refuse(*_sim(shared, "--particles", shared / "pillow.particles.npz", "-o", out), names=("r.parquet", "No space left"))
 
 
@@ -606,6 +607,7 @@ def test_ctrl_c_while_writing_leaves_the_previous_file(shared, refuse, tmp_path,
         raise KeyboardInterrupt
 
     monkeypatch.setattr(pq, "write_table", interrupted)
+    monkeypatch.setattr(pq.ParquetWriter, "write_table", interrupted)  # the frames written as the rollout runs
     refuse(*_sim(shared, "--particles", shared / "pillow.particles.npz", "-o", out), code=130)
 
 

@@ -185,3 +185,121 @@ def test_outputs_of_a_failed_or_interrupted_job_are_removed(tmp_path, error):
         folder.mkdir()
         (folder / "standard_x.npz").write_bytes(b"written")
     assert (folder / "standard_x.npz").read_bytes() == b"written"
+
+
+def _frames(t=6, n=700, c=3, seed=0):
+    return np.random.default_rng(seed).random((t, n, c), dtype=np.float32)
+
+
+def _streamed(path, values, columns, meta=b'{"a": 1}', **kw):
+    from knockgs_core._long_writer import LongFormatStream
+
+    stream = LongFormatStream(path, columns, **kw)
+    for t, frame in enumerate(values):
+        stream.put(t, frame)
+    stream.finish({b"knockgs": meta}, n_frames=len(values))
+    stream.wait()
+
+
+@pytest.mark.parametrize("group_rows", [1, 1500, 10**9])
+def test_a_long_file_written_frame_by_frame_decodes_as_the_whole_table(tmp_path, group_rows, monkeypatch):
+    # row groups of one frame, of three frames (the last group shorter) and a single one; and
+    # without pyarrow's add_key_value_metadata (older pyarrow): the file written whole at the end
+    import pyarrow.parquet as pq
+
+    from knockgs_core import _long_writer
+    from knockgs_core._long_format import read_long_values, read_metadata
+    from knockgs_core._long_writer import LONG_COMPRESSION, long_encoding, long_table
+
+    X = _frames(t=7)
+    whole = long_table(X, ["x", "y", "z"]).replace_schema_metadata({b"knockgs": b'{"a": 1}'})
+    write_parquet(tmp_path / "whole.parquet", whole, compression=LONG_COMPRESSION,
+                  column_encoding=long_encoding(whole.column_names))
+    for can_stream in (True, False):
+        monkeypatch.setattr(_long_writer, "CAN_STREAM", can_stream)
+        path = tmp_path / f"s{can_stream}.parquet"
+        _streamed(path, X, ["x", "y", "z"], group_rows=group_rows)
+        assert pq.read_table(path).equals(pq.read_table(tmp_path / "whole.parquet"))  # rows in the writers' order
+        assert pq.read_schema(path).equals(pq.read_schema(tmp_path / "whole.parquet"), check_metadata=True)
+        assert read_metadata(path, b"knockgs") == {"a": 1}
+        assert read_long_values(path, ["x", "y", "z"]).tobytes() == X.tobytes()
+        groups = pq.ParquetFile(path).metadata.num_row_groups
+        assert groups == ({1: 7, 1500: 3, 10**9: 1}[group_rows] if can_stream else 1)
+    assert _temp_files(tmp_path) == []
+
+
+def test_a_frame_by_frame_writer_refuses_a_dropped_or_repeated_frame_and_leaves_nothing(tmp_path):
+    from knockgs_core._long_writer import LongFormatStream
+
+    X = _frames()
+    for bad in ([0, 1, 1], [0, 2], [1]):
+        stream = LongFormatStream(tmp_path / "r.parquet", ["x", "y", "z"], group_rows=1)
+        with pytest.raises(InputError, match=r"r\.parquet.*frame .* was due"):
+            for t in bad:
+                stream.put(t, X[t])
+        stream.abort()
+        assert list(tmp_path.iterdir()) == []
+    # as many frames as the metadata lists, or the stream is aborted and raises
+    stream = LongFormatStream(tmp_path / "r.parquet", ["x", "y", "z"], group_rows=1)
+    for t in range(3):
+        stream.put(t, X[t])
+    with pytest.raises(InputError, match="3 frames handed over, expected 6"):
+        stream.finish({b"knockgs": b"{}"}, n_frames=6)
+    # another particle count, or another number of columns, is refused too
+    stream = LongFormatStream(tmp_path / "r.parquet", ["x", "y", "z"])
+    stream.put(0, X[0])
+    with pytest.raises(InputError, match="particle.*shape"):
+        stream.put(1, X[1, :-1])
+    with pytest.raises(InputError, match="particle.*shape"):
+        stream.put(1, X[1, :, :2])
+    stream.abort()
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(InputError, match="group_rows"):
+        LongFormatStream(tmp_path / "r.parquet", ["x"], group_rows=0)
+    (tmp_path / "dir.parquet").mkdir()
+    with pytest.raises(InputError, match="dir.parquet.*directory"):
+        LongFormatStream(tmp_path / "dir.parquet", ["x"])
+
+
+@pytest.mark.parametrize("failure", ["abort", "non-finite", "rename"])
+def test_a_frame_by_frame_writer_that_fails_midway_leaves_no_file_and_no_temporary(tmp_path, failure, monkeypatch):
+    import time
+
+    from knockgs_core._long_writer import LongFormatStream
+
+    X = _frames(t=8)
+    if failure == "non-finite":
+        X[5, 3, 1] = np.inf
+    if failure == "rename":
+        monkeypatch.setattr(_io.os, "replace", lambda src, dst: (_ for _ in ()).throw(OSError("read-only file system")))
+    target = tmp_path / "r.parquet"
+    stream = LongFormatStream(target, ["x", "y", "z"], group_rows=1, refuse_non_finite="positions")
+    for t in range(4):
+        stream.put(t, X[t])
+    deadline = time.monotonic() + 10
+    while not _temp_files(tmp_path) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert _temp_files(tmp_path) != [] and not target.exists()  # midway: row groups in the temporary file
+    if failure == "abort":
+        stream.abort()
+    else:  # the failure is raised by a later put, by finish or by wait, whichever comes after it
+        with pytest.raises((InputError, OSError), match="non-finite positions|read-only"):
+            for t in range(4, 8):
+                stream.put(t, X[t])
+            stream.finish({b"knockgs": b"{}"}, n_frames=8)
+            stream.wait()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_program_that_ends_before_finishing_a_stream_leaves_nothing_and_exits(tmp_path):
+    # the writer thread notices that the main thread has ended: no hang, no temporary file
+    import subprocess
+    import sys
+
+    code = ("import numpy as np; from knockgs_core._long_writer import LongFormatStream as S; "
+            f"s = S({str(tmp_path / 'r.parquet')!r}, ['x'], group_rows=1); s.put(0, np.zeros((5, 1), np.float32)); "
+            "raise KeyboardInterrupt")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, timeout=60)
+    assert done.returncode != 0 and b"KeyboardInterrupt" in done.stderr
+    assert list(tmp_path.iterdir()) == []

@@ -4,6 +4,7 @@ the Parquet rollout format, and the `knockgs simulate` command."""
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -295,3 +296,121 @@ def test_batches_group_consecutive_runs_of_one_schedule_only_when_together():
     assert [[i for i, _ in b] for b in batches(runs, key, together=True)] == [[0, 1], [2], [3]]
     assert [[i for i, _ in b] for b in batches(runs, key, together=False)] == [[0], [1], [2], [3]]
     assert batches([], key, together=True) == []
+
+
+def _decoded(path, F_path=None):
+    """What the readers give of a rollout's files: positions, metadata and F, and the raw tables."""
+    from knockgs_core.rollout import read_deformation
+
+    ro = read_rollout(path)
+    F = None if F_path is None else read_deformation(F_path, rollout=ro, rollout_path=path)
+    tables = [pq.read_table(p) for p in (path, F_path) if p is not None]
+    return ro.positions.tobytes(), ro.meta, None if F is None else F.tobytes(), tables
+
+
+def test_rollouts_written_while_simulated_decode_as_the_finished_rollouts_files(pillow_ci, tmp_path):
+    # the GPU library job's way (runs in lockstep, a stream each; F for one, row groups of one
+    # frame and of the default size) and the one-at-a-time CPU way (no F, row groups of 3
+    # frames and a last one of 1): the files decode to exactly what write_rollout /
+    # write_deformation write of the returned rollouts
+    from knockgs_core.rollout import RolloutStream, run_rollouts, write_deformation
+
+    contract, built = pillow_ci
+    ps = built.particles
+    runs = [((0.95, 1.35), "standard_x"), ((1.6, 0.8), "standard_y")]
+    streams = [RolloutStream(tmp_path / "a.parquet", tmp_path / "a.F.parquet", group_rows=1),
+               RolloutStream(tmp_path / "b.parquet")]
+    together = run_rollouts(contract, runs, particles=ps, export_F=True, streams=streams)
+    alone = run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps,
+                        stream=(single := RolloutStream(tmp_path / "c.parquet", group_rows=5000)))
+    for stream in (*streams, single):
+        stream.wait()
+    for name, ro, F in (("a", together[0], True), ("b", together[1], False), ("c", alone, False)):
+        write_rollout(tmp_path / f"{name}_whole.parquet", ro)
+        if F:
+            write_deformation(tmp_path / f"{name}_whole.F.parquet", ro)
+        F_paths = (tmp_path / f"{name}.F.parquet", tmp_path / f"{name}_whole.F.parquet") if F else (None, None)
+        streamed = _decoded(tmp_path / f"{name}.parquet", F_paths[0])
+        whole = _decoded(tmp_path / f"{name}_whole.parquet", F_paths[1])
+        assert streamed[:3] == whole[:3] and streamed[0] == ro.positions.tobytes() and streamed[1] == ro.meta
+        assert all(s.equals(w) for s, w in zip(streamed[3], whole[3]))  # rows in the writers' order
+    assert together[0].F is not None and not (tmp_path / "b.F.parquet").exists()
+    n_frames = contract.probes["standard_x"].export.n_frames
+    assert pq.ParquetFile(tmp_path / "a.parquet").metadata.num_row_groups == n_frames  # written frame by frame
+    assert pq.ParquetFile(tmp_path / "a.F.parquet").metadata.num_row_groups == n_frames
+    per_group = -(-5000 // len(ps.positions))  # frames of c's row groups, the last one shorter
+    assert pq.ParquetFile(tmp_path / "c.parquet").metadata.num_row_groups == -(-n_frames // per_group)
+    assert n_frames % per_group != 0
+    # and the simulation is the one without streams, bit for bit
+    assert alone.positions.tobytes() == run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps).positions.tobytes()
+    assert not [p for p in tmp_path.iterdir() if ".tmp" in p.name]
+
+
+@pytest.mark.parametrize("failure", ["interrupt", "blow-up", "bad input"])
+def test_a_rollout_that_fails_while_its_files_are_written_leaves_nothing(pillow_ci, tmp_path, failure):
+    # an interrupt at frame 3 (the temporary files hold frames already), the guard stopping a
+    # blow-up, a refused input: every stream of the batch aborted, no file, no temporary file
+    from knockgs_core.errors import SimulationError
+    from knockgs_core.rollout import RolloutStream, run_rollouts
+
+    contract, built = pillow_ci
+    seen = []
+
+    def progress(run, frame, n_frames, stats):
+        seen.append(frame)
+        if frame == 3 and failure == "interrupt":
+            deadline = time.monotonic() + 10
+            while not any(".tmp" in p.name for p in tmp_path.iterdir()) and time.monotonic() < deadline:
+                time.sleep(0.01)  # the writer threads have the frames' row groups in their temporary files
+            seen.append(sorted(p.name for p in tmp_path.iterdir()))
+            raise KeyboardInterrupt
+
+    runs = {"interrupt": [((1.0, 1.0), "standard_x")], "blow-up": [((1.0, 1.0), "standard_x"), ((5.0, 0.2), "standard_x")],
+            "bad input": [((1.0, 1.0), "standard_x"), ((-1.0, 1.0), "standard_x")]}[failure]
+    streams = [RolloutStream(tmp_path / f"{k}.parquet", tmp_path / f"{k}.F.parquet", group_rows=1) for k in range(len(runs))]
+    error = {"interrupt": KeyboardInterrupt, "blow-up": SimulationError, "bad input": InputError}[failure]
+    with pytest.raises(error, match=None if failure == "interrupt" else "CFL|outran|non-finite|left|theta"):
+        run_rollouts(contract, runs, particles=built.particles, export_F=True, streams=streams, progress=progress,
+                     sim_overrides={"dt": 0.02} if failure == "blow-up" else None)
+    assert list(tmp_path.iterdir()) == []
+    assert all(s.aborted and s.done for s in streams)
+    if failure == "interrupt":
+        assert any(".tmp" in name for name in seen[-1])  # it failed midway through the write
+    elif failure == "blow-up":
+        assert streams[0].frames >= 1  # the first run had handed frames over before the guard stopped the batch
+
+
+def test_a_job_writing_its_rollouts_as_they_run_keeps_them_or_loses_them_whole(pillow_ci, tmp_path):
+    # BackgroundWriter.stream, as the rollout job uses it: files complete at the block's end;
+    # a failed block (an interrupt during the second batch) removes the job's folder; a stream
+    # never finished (nor aborted) is an error at the end, with no file
+    from knockgs_core.rollout import BackgroundWriter, run_rollouts
+
+    contract, built = pillow_ci
+    ps = built.particles
+    job = tmp_path / "job"
+    with BackgroundWriter(output=job) as writer:
+        (ro,) = run_rollouts(contract, [((0.95, 1.35), "standard_x")], particles=ps,
+                             streams=[writer.stream(job / "r.parquet")])
+    assert read_rollout(job / "r.parquet").positions.tobytes() == ro.positions.tobytes()
+
+    def interrupt(run, frame, n_frames, stats):
+        if frame == 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        with BackgroundWriter(output=job) as writer:
+            run_rollouts(contract, [((0.95, 1.35), "standard_x")], particles=ps, streams=[writer.stream(job / "a.parquet")])
+            run_rollouts(contract, [((1.2, 1.0), "standard_x")], particles=ps, streams=[writer.stream(job / "b.parquet")],
+                         progress=interrupt)
+    assert not job.exists()
+    writer = BackgroundWriter()
+    stream = writer.stream(tmp_path / "never.parquet")
+    stream.frame(0, ro.positions[0])
+    with pytest.raises(InputError, match="never.parquet.*never finished"):
+        writer.close()
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(InputError, match="export_F"):
+        run_rollout(contract, (1.0, 1.0), "standard_x", particles=ps,
+                    stream=writer.stream(tmp_path / "r.parquet", tmp_path / "r.F.parquet"))
+    assert list(tmp_path.iterdir()) == []

@@ -12,15 +12,20 @@ asked for, goes to a second Parquet file (``frame, particle, F00 .. F22``).
 
 Files are written through :mod:`knockgs_core._io` (a temporary name, renamed when complete),
 so an interrupted run never leaves a partial rollout behind; they are read back with the one
-long-format reader, :mod:`knockgs_core._long_format`.
+long-format reader, :mod:`knockgs_core._long_format`. A file is written whole once the
+rollout is finished (:func:`write_rollout`, :func:`write_deformation`), or frame by frame
+while it is simulated (:class:`RolloutStream`, handed to :func:`run_rollouts`): the same
+values, order and metadata either way.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -32,6 +37,7 @@ from . import __version__
 from ._io import json_safe, remove_outputs, write_parquet
 from ._long_format import (POSITION_COLUMNS, _has_field, _meta_field, check_rollout_meta, read_long_values, read_metadata,
                            theta_tag)
+from ._long_writer import GROUP_ROWS, LONG_COMPRESSION, LongFormatStream, long_encoding, long_table
 from .errors import InputError
 from .sim import Probe, SimResult, build_model, make_state, simulate_many
 
@@ -48,6 +54,7 @@ __all__ = [
     "write_deformation",
     "read_deformation",
     "BackgroundWriter",
+    "RolloutStream",
     "theta_tag",
 ]
 
@@ -76,18 +83,20 @@ def run_rollout(
     progress: Callable[[int, int, dict], None] | None = None,
     sim_overrides: dict | None = None,
     particle_order: str = "auto",
+    stream: RolloutStream | None = None,
 ) -> Rollout:
     """Simulate ``contract`` at ``theta = (s_E, s_rho)`` under its probe ``probe_name``.
 
     ``particles`` (a :class:`knockgs_core.assets.ParticleSet`) defaults to building the
     contract's asset. ``probe`` overrides the contract's probe of that name (diagnostics).
     ``sim_overrides`` replaces fields of the contract's :class:`~knockgs_core.sim.SimParams`.
-    ``particle_order``: as in :func:`run_rollouts`.
+    ``particle_order`` and ``stream`` (the rollout's files written as it runs): as in
+    :func:`run_rollouts`.
     """
     report = None if progress is None else (lambda run, frame, n, stats: progress(frame, n, stats))
     return run_rollouts(contract, [(theta, probe_name)], particles=particles, device=device, export_F=export_F,
                         probe=probe, progress=report, sim_overrides=sim_overrides, concurrent=False,
-                        particle_order=particle_order)[0]
+                        particle_order=particle_order, streams=None if stream is None else [stream])[0]
 
 
 def run_rollouts(
@@ -102,6 +111,7 @@ def run_rollouts(
     sim_overrides: dict | None = None,
     concurrent: bool = True,
     particle_order: str = "auto",
+    streams: Sequence[RolloutStream | None] | None = None,
 ) -> list[Rollout]:
     """Several rollouts of one contract, ``runs`` = [(theta, probe_name), ...], simulated
     together (:func:`knockgs_core.sim.simulate_many`): each is what :func:`run_rollout` makes
@@ -114,7 +124,57 @@ def run_rollouts(
     within the fill rows, :func:`cell_order`: neighbours lie together in memory, which the
     GPU's by-cell P2G reads faster) or ``"auto"`` (cell on a CUDA device, asset on the CPU,
     whose rollouts stay bit for bit what they were). The rollouts are returned in the
-    particle set's order whatever the order simulated."""
+    particle set's order whatever the order simulated.
+
+    ``streams``: one :class:`RolloutStream` (or None) per run, which writes the run's files
+    while it is simulated: each exported frame is handed to it as it comes, and its metadata
+    (the returned rollout's) once the batch is done, so only the last frames and the footer
+    are written after the simulation. The files equal :func:`write_rollout`'s and
+    :func:`write_deformation`'s of the returned rollouts once decoded. When the batch fails
+    or is interrupted (a bad input, the guard stopping a blow-up, ``KeyboardInterrupt``),
+    every stream is aborted before the error propagates: no file, no temporary file."""
+    with _streamed(streams, len(runs), export_F) as on_frame:
+        out = _simulate_rollouts(contract, runs, particles=particles, device=device, export_F=export_F, probe=probe,
+                                 progress=progress, sim_overrides=sim_overrides, concurrent=concurrent,
+                                 particle_order=particle_order, on_frame=on_frame)
+        for stream, rollout in zip(streams or [], out):
+            if stream is not None:
+                stream.finish(rollout.meta)
+    return out
+
+
+@contextlib.contextmanager
+def _streamed(streams: Sequence[RolloutStream | None] | None, n_runs: int, export_F: bool):
+    """Yield the simulator's ``on_frame`` callback that hands run i's frames to ``streams[i]``
+    (None without streams); abort every stream when the block fails."""
+    if streams is None:
+        yield None
+        return
+    streams = list(streams)
+    try:
+        if len(streams) != n_runs:
+            raise InputError("run_rollouts", "streams", f"one stream (or None) per run: {n_runs} runs, "
+                                                        f"{len(streams)} streams")
+        for stream in streams:
+            if stream is not None and stream.F_path is not None and not export_F:
+                raise InputError(stream.F_path, "F", "the rollout was run without export_F")
+
+        def on_frame(run: int, frame: int, positions: np.ndarray, F: np.ndarray | None) -> None:
+            if streams[run] is not None:
+                streams[run].frame(frame, positions, F)
+
+        yield on_frame
+    except BaseException:
+        for stream in streams:
+            if stream is not None:
+                stream.abort()
+        raise
+
+
+def _simulate_rollouts(contract, runs, *, particles, device, export_F, probe, progress, sim_overrides, concurrent,
+                       particle_order, on_frame) -> list[Rollout]:
+    """:func:`run_rollouts` without its streams: ``on_frame`` as in
+    :func:`knockgs_core.sim.simulate_many`."""
     import warp as wp
 
     from ._warp import warp_device
@@ -170,7 +230,7 @@ def run_rollouts(
         inv[perm] = np.arange(len(perm), dtype=perm.dtype)
     results: list[SimResult] = simulate_many(models, frame_dt=frame_dt, n_frames=n_frames,
                                              export_F=particles.n_gs if export_F else 0, progress=progress,
-                                             concurrent=concurrent, export_index=inv)
+                                             concurrent=concurrent, export_index=inv, on_frame=on_frame)
     wall = time.perf_counter() - t0
     out = []
     for ((s_e, s_rho), run_probe, *_), (model, _), result in zip(setups, models, results):
@@ -235,17 +295,14 @@ def batches(runs: list, key: Callable[[Any], Any], *, together: bool) -> list[li
     return out
 
 
-#: codec of the long-format files: LZ4 writes a paper-scale rollout about 4x faster than zstd's
-#: default (benchmarks/README.md, "Writing rollouts"), in a file a third smaller thanks to the encodings
-LONG_COMPRESSION = "lz4"
+def _long_encoding(table: pa.Table) -> dict[str, str]:
+    """Parquet encodings of a long-format table (:func:`knockgs_core._long_writer.long_encoding`)."""
+    return long_encoding(table.column_names)
 
 
-def _long_encoding(table) -> dict[str, str]:
-    """Parquet encodings of a long-format table: the integer keys (``frame`` runs, ``particle``
-    counts up) as deltas, the float32 values split by byte (exponents and high mantissa bytes
-    compress), no dictionaries (a particle index is unique in its frame)."""
-    keys = ("frame", "particle")
-    return {name: "DELTA_BINARY_PACKED" if name in keys else "BYTE_STREAM_SPLIT" for name in table.column_names}
+def _meta_bytes(meta: dict) -> dict[bytes, bytes]:
+    """The schema metadata of a rollout's files: ``meta`` as JSON under :data:`META_KEY`."""
+    return {META_KEY: json.dumps(meta).encode()}
 
 
 def write_rollout(path, rollout: Rollout) -> None:
@@ -253,17 +310,7 @@ def write_rollout(path, rollout: Rollout) -> None:
     X = np.asarray(rollout.positions, dtype=np.float32)
     if not np.all(np.isfinite(X)):
         raise InputError(path, "x", "refusing to write non-finite positions")
-    T, N, _ = X.shape
-    table = pa.table(
-        {
-            "frame": pa.array(np.repeat(np.arange(T, dtype=np.int32), N)),
-            "particle": pa.array(np.tile(np.arange(N, dtype=np.int32), T)),
-            "x": pa.array(X[:, :, 0].reshape(-1)),
-            "y": pa.array(X[:, :, 1].reshape(-1)),
-            "z": pa.array(X[:, :, 2].reshape(-1)),
-        }
-    )
-    table = table.replace_schema_metadata({META_KEY: json.dumps(rollout.meta).encode()})
+    table = long_table(X, POSITION_COLUMNS).replace_schema_metadata(_meta_bytes(rollout.meta))
     write_parquet(path, table, compression=LONG_COMPRESSION, column_encoding=_long_encoding(table))
 
 
@@ -273,13 +320,99 @@ def write_deformation(path, rollout: Rollout) -> None:
         raise InputError(path, "F", "the rollout was run without export_F")
     F = np.asarray(rollout.F, dtype=np.float32)
     T, N = F.shape[:2]
-    cols = {"frame": pa.array(np.repeat(np.arange(T, dtype=np.int32), N)),
-            "particle": pa.array(np.tile(np.arange(N, dtype=np.int32), T))}
-    flat = F.reshape(T * N, 9)
-    for c, name in enumerate(F_COLUMNS):
-        cols[name] = pa.array(flat[:, c])
-    table = pa.table(cols).replace_schema_metadata({META_KEY: json.dumps(rollout.meta).encode()})
+    table = long_table(F.reshape(T, N, 9), F_COLUMNS).replace_schema_metadata(_meta_bytes(rollout.meta))
     write_parquet(path, table, compression=LONG_COMPRESSION, column_encoding=_long_encoding(table))
+
+
+class RolloutStream:
+    """Writes one rollout's files while it is simulated: positions to ``path`` and, with
+    ``F_path``, the deformation gradients of the Gaussian-associated particles.
+
+    Hand it to :func:`run_rollouts` (``streams``) or :func:`run_rollout` (``stream``), which
+    call :meth:`frame` after each exported frame and :meth:`finish` with the rollout's
+    metadata, or :meth:`abort` when the simulation fails. Each file is written on a thread
+    of its own (:class:`knockgs_core._long_writer.LongFormatStream`), the frames appended as
+    Parquet row groups (at least ``group_rows`` rows each) as they come, so that when the
+    simulation ends only the last frames and the footers are left to write; :meth:`wait`
+    waits for them. Once decoded, the files equal :func:`write_rollout`'s and
+    :func:`write_deformation`'s of the finished rollout (values, row order, metadata), and
+    like them they appear only when complete: an abort, a failed write or the program's
+    end before :meth:`finish` leaves no file and no temporary file.
+    """
+
+    def __init__(self, path, F_path=None, *, group_rows: int = GROUP_ROWS):
+        self.path = Path(path)
+        self.F_path = None if F_path is None else Path(F_path)
+        self._positions = LongFormatStream(path, POSITION_COLUMNS, group_rows=group_rows, refuse_non_finite="positions")
+        try:
+            self._F = None if F_path is None else LongFormatStream(F_path, F_COLUMNS, group_rows=group_rows)
+        except BaseException:
+            self._positions.abort()
+            raise
+
+    @property
+    def _streams(self) -> list[LongFormatStream]:
+        return [s for s in (self._positions, self._F) if s is not None]
+
+    @property
+    def frames(self) -> int:
+        """The frames handed over so far."""
+        return self._positions.frames
+
+    @property
+    def finished(self) -> bool:
+        """Whether :meth:`finish` has handed the metadata over."""
+        return self._positions.finished
+
+    @property
+    def aborted(self) -> bool:
+        """Whether :meth:`abort` was called (by :func:`run_rollouts` when the simulation failed)."""
+        return any(s.aborted for s in self._streams)
+
+    @property
+    def done(self) -> bool:
+        """Whether the writes have stopped (files complete, a write failed, or aborted)."""
+        return all(s.done for s in self._streams)
+
+    def frame(self, index: int, positions: np.ndarray, F: np.ndarray | None = None) -> None:
+        """Hand exported frame ``index`` over (0, 1, ... in order): ``positions`` [N, 3]
+        float32 [m], particles in the particle set's order; ``F`` [n_gs, 3, 3] float32, the
+        deformation gradients, needed with ``F_path``. The arrays are kept until written,
+        not copied: they must not change afterwards. Raises a failed write's error."""
+        if self._F is not None and F is None:
+            raise InputError(self.F_path, "F", "the rollout was run without export_F")
+        if self._F is not None:
+            F = np.asarray(F, dtype=np.float32)
+            if F.ndim != 3 or F.shape[1:] != (3, 3):
+                raise InputError(self.F_path, "F", f"frame {index} has shape {F.shape}, expected (n_gs, 3, 3)")
+        self._positions.put(index, positions)
+        if self._F is not None:
+            self._F.put(index, F.reshape(len(F), 9))
+
+    def finish(self, meta: dict) -> None:
+        """The rollout is done: its ``meta`` goes into both files' footers, which are then
+        closed and renamed on their threads. The frames handed over must be as many as
+        ``meta["export_times"]`` lists."""
+        times = meta.get("export_times")
+        n_frames = len(times) if isinstance(times, list) else None
+        for stream in self._streams:
+            stream.finish(_meta_bytes(meta), n_frames=n_frames)
+
+    def abort(self) -> None:
+        """Stop both writes: no files, no temporary files (returns once they have stopped)."""
+        for stream in self._streams:
+            stream.abort()
+
+    def wait(self) -> None:
+        """Wait until both files are complete; raise the first failed write's error."""
+        error = None
+        for stream in self._streams:
+            try:
+                stream.wait()
+            except Exception as exc:
+                error = error or exc
+        if error is not None:
+            raise error
 
 
 class BackgroundWriter:
@@ -295,6 +428,14 @@ class BackgroundWriter:
     interrupted, once the writes under way have finished, so no partial output outlives the
     job (a workflow manager may remove it earlier, while a write is still under way). Several workers suit a
     batch of rollouts that finish together (a GPU's library job): their writes overlap.
+
+    ``stream(path, F_path=None)`` instead gives a :class:`RolloutStream` for a rollout about
+    to be simulated (hand it to :func:`run_rollouts`): its files are written while it runs,
+    on threads of their own (outside the ``workers`` count), so only the last frames are
+    written after the simulation. ``close`` also waits for every stream and raises the first
+    failed one's error (a later ``stream`` or ``submit`` raises it once it has stopped); a
+    stream never finished is aborted there (no file) and reported as an error. When the
+    block fails, the unfinished streams are aborted before the output goes.
     """
 
     def __init__(self, workers: int = 1, *, output=None):
@@ -308,6 +449,7 @@ class BackgroundWriter:
         self.outputs = [Path(o) for o in outputs]
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="rollout-writer")
         self._pending = deque()
+        self._streams: list[RolloutStream] = []
 
     def _wait(self, keep: int = 0) -> None:
         """Wait for the oldest writes until at most ``keep`` are in flight (raising the first error)."""
@@ -315,6 +457,7 @@ class BackgroundWriter:
             self._pending.popleft().result()
 
     def submit(self, path, rollout: Rollout, F_path=None) -> None:
+        self._reap_streams()
         self._wait(self.workers - 1)
 
         def write():
@@ -324,12 +467,51 @@ class BackgroundWriter:
 
         self._pending.append(self._pool.submit(write))
 
+    def stream(self, path, F_path=None, *, group_rows: int = GROUP_ROWS) -> RolloutStream:
+        """A :class:`RolloutStream` writing a rollout's positions to ``path`` (and its
+        deformation gradients to ``F_path``) while it is simulated; raises the error of an
+        earlier stream whose write failed."""
+        self._reap_streams()
+        stream = RolloutStream(path, F_path, group_rows=group_rows)
+        self._streams.append(stream)
+        return stream
+
+    def _reap_streams(self) -> None:
+        """Forget the streams whose writes have stopped, raising the first error of a finished one."""
+        stopped = [s for s in self._streams if (s.finished or s.aborted) and s.done]
+        self._streams = [s for s in self._streams if s not in stopped]
+        for stream in stopped:
+            if not stream.aborted:
+                stream.wait()
+
+    def _close_streams(self) -> None:
+        """Wait for the finished streams, abort the others; raise the first error (an aborted
+        stream, whose simulation failed and raised already, is none)."""
+        error = None
+        streams, self._streams = self._streams, []
+        for stream in streams:
+            try:
+                if stream.aborted:
+                    stream.abort()  # returns once its thread has stopped
+                elif not stream.finished:
+                    stream.abort()
+                    raise InputError(stream.path, "frame", "the rollout's stream was never finished: no file written")
+                else:
+                    stream.wait()
+            except Exception as exc:
+                error = error or exc
+        if error is not None:
+            raise error
+
     def close(self) -> None:
-        """Wait for every write (raising the first error) and stop the threads."""
+        """Wait for every write and stream (raising the first error) and stop the threads."""
         try:
             self._wait()
         finally:
-            self._pool.shutdown(wait=True)
+            try:
+                self._close_streams()
+            finally:
+                self._pool.shutdown(wait=True)
 
     def __enter__(self):
         return self

@@ -40,8 +40,9 @@ def schedule(run):
 
 # On a GPU the runs of one schedule are simulated together, each on its own CUDA stream
 # (P2G's atomics on separate grids overlap); on the CPU one after the other (the results are
-# the same bit for bit either way). Each finished rollout is written on a background thread,
-# the rollouts of a batch (which finish together) on one thread each.
+# the same bit for bit either way). Each rollout's files are written while it is simulated,
+# frame by frame on threads of their own (a stream per rollout), so that once a batch ends
+# only its last frames and the files' footers are left to write.
 groups = batches(p.runs, schedule, together=p.device.startswith("cuda"))
 extra = {} if passive is None else passive.run_kwargs()
 
@@ -49,7 +50,7 @@ extra = {} if passive is None else passive.run_kwargs()
 # a failed or interrupted job leaves no output (the writer removes it once its writes have
 # stopped), so a resumed run simulates it again instead of taking a partial folder
 output = sorted({folder, F_folder}) if "folder" in snakemake.output.keys() else [Path(snakemake.output.rollout)]
-with BackgroundWriter(workers=max((len(g) for g in groups), default=1), output=output) as writer:
+with BackgroundWriter(output=output) as writer:
     for group in groups:
         tags = [f"[{i + 1}/{len(p.runs)}] theta ({run['theta'][0]:.6f}, {run['theta'][1]:.6f}) probe {run['probe']}"
                 for i, run in group]
@@ -58,9 +59,10 @@ with BackgroundWriter(workers=max((len(g) for g in groups), default=1), output=o
             if frame % 5 == 0 or frame == n_frames - 1:
                 print(f"{tags[k]}: frame {frame}/{n_frames - 1} cfl {stats['cfl']:.3g}", file=log, flush=True)
 
+        streams = [writer.stream(run["rollout"], run["F"]) for _, run in group]
         rollouts = run_rollouts(contract, [(run["theta"], run["probe"]) for _, run in group], particles=particles,
-                                device=p.device, export_F=group[0][1]["F"] is not None, progress=progress, **extra)
+                                device=p.device, export_F=group[0][1]["F"] is not None, progress=progress,
+                                streams=streams, **extra)
         for tag, (_, run), ro in zip(tags, group, rollouts):
-            writer.submit(run["rollout"], ro, run["F"])
             print(f"{tag}: done, {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s"
                   f"{' (the batch of %d)' % len(group) if len(group) > 1 else ''}", file=log, flush=True)

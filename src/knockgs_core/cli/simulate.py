@@ -38,7 +38,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from .._io import check_outputs
     from ..contract import load_contract
-    from ..rollout import run_rollout, write_deformation, write_rollout
+    from ..rollout import RolloutStream, run_rollout
     from ._common import contract_inputs
 
     if not all(math.isfinite(v) and v > 0 for v in args.theta):
@@ -59,11 +59,15 @@ def run(args) -> int:
             print(f"frame {frame}/{n_frames - 1}  cfl {stats['cfl']:.3g}  min det F {stats['min_det_F']:.5f}",
                   file=sys.stderr, flush=True)
 
+    # the files are written frame by frame while the rollout runs (atomically: none on a failure)
+    stream = RolloutStream(args.output, args.export_F)
     rollout = run_rollout(contract, args.theta, args.probe, particles=particles, device=args.device,
-                          export_F=bool(args.export_F), progress=progress)
-    write_rollout(args.output, rollout)
-    if args.export_F:
-        write_deformation(args.export_F, rollout)
+                          export_F=bool(args.export_F), progress=progress, stream=stream)
+    try:
+        stream.wait()
+    except BaseException:  # an interrupt while the last frames are written: no file either
+        stream.abort()
+        raise
     m = rollout.meta
     print(
         f"{m['object']}/{m['profile']} theta=({m['theta'][0]:g}, {m['theta'][1]:g}) probe={args.probe}: "

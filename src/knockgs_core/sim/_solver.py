@@ -855,6 +855,7 @@ def simulate_many(
     progress: Callable[[int, int, int, dict], None] | None = None,
     concurrent: bool = False,
     export_index: np.ndarray | None = None,
+    on_frame: Callable[[int, int, np.ndarray, np.ndarray | None], None] | None = None,
 ) -> list[SimResult]:
     """Run several independent simulations (``runs``: (model, state) pairs, all with the same
     time step) in lockstep and export the same frames from each, as :func:`simulate` does.
@@ -868,7 +869,12 @@ def simulate_many(
     run. ``export_index`` [particle_count] int: exported row i is particle ``export_index[i]``
     (gathered on the device: a model simulated in another order, e.g. by grid cell, exports in
     its particle set's order); the first ``export_F`` rows of it give the deformation gradients.
-    Returns one :class:`SimResult` per run, in order."""
+    ``on_frame(run, frame, positions, F)`` is called right after each frame of each run is
+    exported, frame 0 included (before ``progress``): ``positions`` [particle_count, 3]
+    float32 [m] and ``F`` [export_F, 3, 3] float32 (None without ``export_F``) are that
+    frame's rows of the result's arrays, final once handed over (a consumer may keep them
+    without a copy, and must not write to them), e.g. to write the frame while the next one
+    is simulated. Returns one :class:`SimResult` per run, in order."""
     import contextlib
 
     if not runs:
@@ -900,6 +906,8 @@ def simulate_many(
             F = np.empty((n_frames, export_F, 3, 3), dtype=np.float32) if export_F else None
             stats.append(solver.check(state))
             exporters[i].export(state, X, F, 0)
+        if on_frame is not None:
+            on_frame(i, 0, X[0], None if F is None else F[0])
         solvers.append(solver)
         positions.append(X)
         Fs.append(F)
@@ -918,6 +926,8 @@ def simulate_many(
             with on(i):
                 stats[i] = solvers[i].check(state)
                 exporters[i].export(state, positions[i], Fs[i], frame)
+            if on_frame is not None:
+                on_frame(i, frame, positions[i][frame], None if Fs[i] is None else Fs[i][frame])
             if progress is not None:
                 progress(i, frame, n_frames, stats[i])
     times = np.arange(n_frames, dtype=np.float64) * frame_dt
