@@ -31,3 +31,19 @@ def test_nan_and_minus_inf_fail_in_numeric_and_mixed_columns(tmp_path):
     text = "\n".join(r["problems"])
     assert "num.csv: NaN in ['rmse']" in text
     assert "mixed_nan.csv" in text and "mixed_inf.csv" in text and "observed_order" in text
+
+
+def test_a_killed_writes_hidden_temporary_file_is_not_a_rollout(tmp_path):
+    # a rollout streamed to a hidden temporary file (.NAME.tmpPID.parquet) until it is complete:
+    # a job killed mid-rollout leaves it behind, truncated; the audit reads the rollouts only
+    from knockgs_core.rollout import Rollout, write_rollout
+
+    folder = tmp_path / "rollouts"
+    folder.mkdir()
+    X = np.zeros((2, 3, 3), dtype=np.float32)
+    write_rollout(folder / "a.parquet", Rollout(positions=X, F=None, meta={"n_gs": 3}))
+    (folder / ".b.parquet.tmp123.parquet").write_bytes(b"PAR1 truncated")
+    r = audit_nonfinite([folder], [])
+    assert r["passed"], r["problems"]
+    (folder / "c.parquet").write_bytes(b"PAR1 truncated")  # a visible broken file is still a finding
+    assert not audit_nonfinite([folder], [])["passed"]

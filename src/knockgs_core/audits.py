@@ -137,9 +137,12 @@ def audit_leakage(
 
 
 def _rollout_files(dirs: Sequence) -> list[Path]:
+    """The rollout files under ``dirs``: not the deformation gradients (``*.F.parquet``), and not
+    the hidden temporary file of a write a killed job left behind (``.NAME.tmpPID.parquet``)."""
     files: list[Path] = []
     for d in dirs:
-        files += sorted(p for p in Path(d).rglob("*.parquet") if not p.name.endswith(".F.parquet"))
+        files += sorted(p for p in Path(d).rglob("*.parquet") if not p.name.endswith(".F.parquet")
+                        and not p.name.startswith("."))
     return files
 
 
