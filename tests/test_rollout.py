@@ -72,6 +72,21 @@ def test_rollouts_are_bitwise_deterministic(pillow_ci):
     assert a.positions.tobytes() == b.positions.tobytes()
 
 
+def test_reproducible_rollouts_are_the_default_up_to_rounding_and_say_so(pillow_ci):
+    # the reproducible P2G (deterministic=True, for GPU runs) sums the same terms in another
+    # order: the same motion to float rounding, the option recorded in the metadata
+    contract, built = pillow_ci
+    ps = built.particles
+    a = run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps)
+    b = run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps, deterministic=True)
+    c = run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps, deterministic=True)
+    assert b.positions.tobytes() == c.positions.tobytes()
+    disp = np.abs(a.positions - a.positions[0]).max()
+    assert disp > 1e-3
+    assert np.abs(b.positions - a.positions).max() < 1e-4 * disp
+    assert b.meta["deterministic"] is True and "deterministic" not in a.meta
+
+
 def test_stiffer_heavier_scaling_on_an_asset(pillow_ci):
     """On an asset: E and rho both x a divide the small-strain response by a."""
     contract, built = pillow_ci

@@ -84,19 +84,21 @@ def run_rollout(
     sim_overrides: dict | None = None,
     particle_order: str = "auto",
     stream: RolloutStream | None = None,
+    deterministic: bool = False,
 ) -> Rollout:
     """Simulate ``contract`` at ``theta = (s_E, s_rho)`` under its probe ``probe_name``.
 
     ``particles`` (a :class:`knockgs_core.assets.ParticleSet`) defaults to building the
     contract's asset. ``probe`` overrides the contract's probe of that name (diagnostics).
     ``sim_overrides`` replaces fields of the contract's :class:`~knockgs_core.sim.SimParams`.
-    ``particle_order`` and ``stream`` (the rollout's files written as it runs): as in
-    :func:`run_rollouts`.
+    ``particle_order``, ``stream`` (the rollout's files written as it runs) and
+    ``deterministic``: as in :func:`run_rollouts`.
     """
     report = None if progress is None else (lambda run, frame, n, stats: progress(frame, n, stats))
     return run_rollouts(contract, [(theta, probe_name)], particles=particles, device=device, export_F=export_F,
                         probe=probe, progress=report, sim_overrides=sim_overrides, concurrent=False,
-                        particle_order=particle_order, streams=None if stream is None else [stream])[0]
+                        particle_order=particle_order, streams=None if stream is None else [stream],
+                        deterministic=deterministic)[0]
 
 
 def run_rollouts(
@@ -112,6 +114,7 @@ def run_rollouts(
     concurrent: bool = True,
     particle_order: str = "auto",
     streams: Sequence[RolloutStream | None] | None = None,
+    deterministic: bool = False,
 ) -> list[Rollout]:
     """Several rollouts of one contract, ``runs`` = [(theta, probe_name), ...], simulated
     together (:func:`knockgs_core.sim.simulate_many`): each is what :func:`run_rollout` makes
@@ -132,11 +135,16 @@ def run_rollouts(
     are written after the simulation. The files equal :func:`write_rollout`'s and
     :func:`write_deformation`'s of the returned rollouts once decoded. When the batch fails
     or is interrupted (a bad input, the guard stopping a blow-up, ``KeyboardInterrupt``),
-    every stream is aborted before the error propagates: no file, no temporary file."""
+    every stream is aborted before the error propagates: no file, no temporary file.
+
+    ``deterministic``: the bitwise-reproducible P2G (``MPMSolver(deterministic=True)``): on a
+    GPU the same rollout, bit for bit, on every run (the float atomics of the default P2G add
+    in the order the GPU schedules them); recorded in the metadata. CPU rollouts are
+    reproducible either way (and differ between the two in the last bits)."""
     with _streamed(streams, len(runs), export_F) as on_frame:
         out = _simulate_rollouts(contract, runs, particles=particles, device=device, export_F=export_F, probe=probe,
                                  progress=progress, sim_overrides=sim_overrides, concurrent=concurrent,
-                                 particle_order=particle_order, on_frame=on_frame)
+                                 particle_order=particle_order, on_frame=on_frame, deterministic=deterministic)
         for stream, rollout in zip(streams or [], out):
             if stream is not None:
                 stream.finish(rollout.meta)
@@ -172,7 +180,7 @@ def _streamed(streams: Sequence[RolloutStream | None] | None, n_runs: int, expor
 
 
 def _simulate_rollouts(contract, runs, *, particles, device, export_F, probe, progress, sim_overrides, concurrent,
-                       particle_order, on_frame) -> list[Rollout]:
+                       particle_order, on_frame, deterministic=False) -> list[Rollout]:
     """:func:`run_rollouts` without its streams: ``on_frame`` as in
     :func:`knockgs_core.sim.simulate_many`."""
     import warp as wp
@@ -230,7 +238,8 @@ def _simulate_rollouts(contract, runs, *, particles, device, export_F, probe, pr
         inv[perm] = np.arange(len(perm), dtype=perm.dtype)
     results: list[SimResult] = simulate_many(models, frame_dt=frame_dt, n_frames=n_frames,
                                              export_F=particles.n_gs if export_F else 0, progress=progress,
-                                             concurrent=concurrent, export_index=inv, on_frame=on_frame)
+                                             concurrent=concurrent, export_index=inv, on_frame=on_frame,
+                                             deterministic=deterministic)
     wall = time.perf_counter() - t0
     out = []
     for ((s_e, s_rho), run_probe, *_), (model, _), result in zip(setups, models, results):
@@ -258,6 +267,8 @@ def _simulate_rollouts(contract, runs, *, particles, device, export_F, probe, pr
             meta["simulated_with"] = len(runs)  # wall_seconds is then the batch's
         if perm is not None:
             meta["particle_order"] = "cell"
+        if deterministic:
+            meta["deterministic"] = True
         out.append(Rollout(positions=result.positions, F=result.F, meta=meta))
     return out
 

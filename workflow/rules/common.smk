@@ -31,6 +31,7 @@ validate(config, "../schemas/config.schema.yaml", set_default=True)
 PROFILE = config["profile"]
 P = f"results/{PROFILE}"
 DEVICE = config["device"]
+DETERMINISTIC = config["deterministic"]  # the rollout jobs' bitwise-reproducible P2G (GPU)
 ON_GPU = DEVICE.startswith("cuda")
 OBJECTS = list(config["objects"])
 SPLIT = config["split"]

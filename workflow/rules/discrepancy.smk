@@ -96,6 +96,7 @@ rule discrepancy_library:
         runs=lambda wc: library_runs(wc.chunk, contract(wc.object, wc.res).roles["calibration"], f"{D}/{wc.res}/library/{wc.object}",
                                      export_F=False),
         device=DEVICE,
+        deterministic=DETERMINISTIC,
     resources:
         mem_mb=2000,
         runtime=20 * LIBRARY_CHUNK,

@@ -115,6 +115,7 @@ rule rollout_passive_library:
         object=lambda wc: wc.object,
         runs=lambda wc: library_runs(wc.chunk, PASSIVE_PROBE, f"{P}/rollouts/{wc.object}/passive", export_F=False),
         device=DEVICE,
+        deterministic=DETERMINISTIC,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
         runtime=60 * LIBRARY_CHUNK if PROFILE == "paper" else 20 * LIBRARY_CHUNK,
@@ -143,6 +144,7 @@ rule rollout_passive_targets:
         runs=lambda wc: [{"theta": th, "probe": PASSIVE_PROBE, "rollout": passive_target_rollouts(wc.object, wc.split)[name],
                           "F": None} for name, th in target_thetas(wc.split).items()],
         device=DEVICE,
+        deterministic=DETERMINISTIC,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
         runtime=60 * 5 if PROFILE == "paper" else 20 * 5,

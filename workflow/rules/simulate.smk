@@ -29,6 +29,7 @@ rule rollout_library:
         object=lambda wc: wc.object,
         runs=lambda wc: library_runs(wc.chunk, calibration_probe(wc.object), library_root(wc.object), export_F=LIBRARY_F),
         device=DEVICE,
+        deterministic=DETERMINISTIC,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
         runtime=60 * LIBRARY_CHUNK if PROFILE == "paper" else 20 * LIBRARY_CHUNK,
@@ -59,6 +60,7 @@ rule rollout_eval:
         object=lambda wc: wc.object,
         runs=evaluation_runs,
         device=DEVICE,
+        deterministic=DETERMINISTIC,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
         runtime=lambda wc: (60 if PROFILE == "paper" else 20) * len(simulated_probes(wc.object, wc.theta)),
@@ -88,6 +90,7 @@ rule rollout_diag:
         runs=lambda wc: [{"theta": parse_theta(wc.theta), "probe": wc.probe,
                           "rollout": f"{P}/rollouts/{wc.object}/diag/{wc.theta}/{wc.probe}.parquet", "F": None}],
         device=DEVICE,
+        deterministic=DETERMINISTIC,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
         runtime=60 if PROFILE == "paper" else 20,

@@ -61,8 +61,8 @@ with BackgroundWriter(output=output) as writer:
 
         streams = [writer.stream(run["rollout"], run["F"]) for _, run in group]
         rollouts = run_rollouts(contract, [(run["theta"], run["probe"]) for _, run in group], particles=particles,
-                                device=p.device, export_F=group[0][1]["F"] is not None, progress=progress,
-                                streams=streams, **extra)
+                                device=p.device, deterministic=p.deterministic, export_F=group[0][1]["F"] is not None,
+                                progress=progress, streams=streams, **extra)
         for tag, (_, run), ro in zip(tags, group, rollouts):
             print(f"{tag}: done, {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s"
                   f"{' (the batch of %d)' % len(group) if len(group) > 1 else ''}", file=log, flush=True)

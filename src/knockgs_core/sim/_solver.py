@@ -856,6 +856,7 @@ def simulate_many(
     concurrent: bool = False,
     export_index: np.ndarray | None = None,
     on_frame: Callable[[int, int, np.ndarray, np.ndarray | None], None] | None = None,
+    deterministic: bool = False,
 ) -> list[SimResult]:
     """Run several independent simulations (``runs``: (model, state) pairs, all with the same
     time step) in lockstep and export the same frames from each, as :func:`simulate` does.
@@ -874,7 +875,9 @@ def simulate_many(
     float32 [m] and ``F`` [export_F, 3, 3] float32 (None without ``export_F``) are that
     frame's rows of the result's arrays, final once handed over (a consumer may keep them
     without a copy, and must not write to them), e.g. to write the frame while the next one
-    is simulated. Returns one :class:`SimResult` per run, in order."""
+    is simulated. ``deterministic``: each run's solver with the bitwise-reproducible P2G
+    (:class:`MPMSolver`'s option: a GPU rollout the same bit for bit on every run). Returns
+    one :class:`SimResult` per run, in order."""
     import contextlib
 
     if not runs:
@@ -900,7 +903,7 @@ def simulate_many(
     solvers, positions, Fs, stats = [], [], [], []
     for i, (model, state) in enumerate(runs):
         with on(i):
-            solver = MPMSolver(model)
+            solver = MPMSolver(model, deterministic=deterministic)
             n = model.particle_count
             X = np.empty((n_frames, n, 3), dtype=np.float32)
             F = np.empty((n_frames, export_F, 3, 3), dtype=np.float32) if export_F else None
