@@ -34,7 +34,7 @@ def rollouts_only(args, out: Path) -> dict:
     """Time the asset build and one rollout per evaluation probe (theta = (1, 1))."""
     from knockgs_core.assets import build_asset
     from knockgs_core.contract import load_contract
-    from knockgs_core.rollout import run_rollout, write_rollout
+    from knockgs_core.rollout import RolloutStream, run_rollout, write_rollout
 
     timing: dict = {}
     t0 = time.perf_counter()
@@ -44,13 +44,19 @@ def rollouts_only(args, out: Path) -> dict:
     print(f"asset: {ps.n_gs} GS + {ps.n_fill} fill particles in {timing['asset_s']:.1f} s", flush=True)
     rows = []
     for probe in [contract.roles["calibration"]] + list(contract.roles["heldout"]):
+        path = out / f"{probe}.parquet"
+        stream = RolloutStream(path) if args.stream else None  # the rollout jobs' way: frames written as they come
         t = time.perf_counter()
-        ro = run_rollout(contract, (1.0, 1.0), probe, particles=ps, device=args.device)
+        ro = run_rollout(contract, (1.0, 1.0), probe, particles=ps, device=args.device, stream=stream)
         t_sim = time.perf_counter() - t
         t = time.perf_counter()
-        write_rollout(out / f"{probe}.parquet", ro)
+        if stream is not None:
+            stream.wait()  # the last frames and the footer
+        else:
+            write_rollout(path, ro)
         rows.append({"probe": probe, "substeps": ro.meta["stats"]["steps"], "simulate_s": t_sim,
-                     "write_s": time.perf_counter() - t, "particles": ps.n_gs + ps.n_fill,
+                     "write_s": time.perf_counter() - t, "written": "streamed" if stream else "whole",
+                     "particles": ps.n_gs + ps.n_fill,
                      "max_cfl": ro.meta["stats"]["max_cfl"]})
         print(rows[-1], flush=True)
     timing["rollouts"] = rows
@@ -78,6 +84,8 @@ def main() -> None:
     ap.add_argument("--out", required=True)
     ap.add_argument("--fresh", action="store_true", help="re-run every job of the main table (Snakemake --forceall)")
     ap.add_argument("--rollouts-only", action="store_true", help="time the asset and one rollout per evaluation probe, then stop")
+    ap.add_argument("--stream", action="store_true",
+                    help="with --rollouts-only: write each rollout's frames while it runs (write_s: after the simulation)")
     args = ap.parse_args()
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
