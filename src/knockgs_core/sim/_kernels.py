@@ -519,6 +519,18 @@ def p2g_chunk_list(start: wp.array(dtype=wp.int32), index: wp.array(dtype=wp.int
 
 
 @wp.func
+def stencil_offset(n: int) -> wp.vec3i:
+    """Stencil node ``n`` (0..26) of a base cell as its offset ``(i, j, k)``, ``n = 9 i + 3 j + k``."""
+    return wp.vec3i(n // 9, (n // 3) % 3, n % 3)
+
+
+@wp.func
+def stencil_node(key: int, o: wp.vec3i, n_grid: int) -> wp.vec3i:
+    """The grid node at offset ``o`` from the base cell ``key`` (its index in the grid)."""
+    return wp.vec3i(key // (n_grid * n_grid) + o[0], (key // n_grid) % n_grid + o[1], key % n_grid + o[2])
+
+
+@wp.func
 def chunk_sum(s: int, e: int, i: int, j: int, k: int, dx: float, affine_flip: int, order: wp.array(dtype=wp.int32),
               fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: wp.array(dtype=wp.mat33),
               mC: wp.array(dtype=wp.mat33)):
@@ -581,9 +593,7 @@ def p2g_cells(
     sum to the grid with one atomic."""
     c, n = wp.tid()
     total = n_chunks[0]
-    i = n // 9
-    j = (n // 3) % 3
-    k = n % 3
+    o = stencil_offset(n)
     dx = 1.0 / inv_dx
     while c < total:
         s = chunks[c]
@@ -591,15 +601,13 @@ def p2g_cells(
         if key == none_key:
             c += stride
             continue
-        sum_mv, sum_m, sum_old = chunk_sum(s, chunk_end(c, total, count, chunks), i, j, k, dx, affine_flip, order,
+        sum_mv, sum_m, sum_old = chunk_sum(s, chunk_end(c, total, count, chunks), o[0], o[1], o[2], dx, affine_flip, order,
                                            fx, mv, affine, mC)
-        gi = key // (n_grid * n_grid) + i
-        gj = (key // n_grid) % n_grid + j
-        gk = key % n_grid + k
-        wp.atomic_add(grid_mv, gi, gj, gk, sum_mv)
-        wp.atomic_add(grid_m, gi, gj, gk, sum_m)
+        g = stencil_node(key, o, n_grid)
+        wp.atomic_add(grid_mv, g[0], g[1], g[2], sum_mv)
+        wp.atomic_add(grid_m, g[0], g[1], g[2], sum_m)
         if affine_flip == 1:
-            wp.atomic_add(grid_mv_old, gi, gj, gk, sum_old)
+            wp.atomic_add(grid_mv_old, g[0], g[1], g[2], sum_old)
         c += stride
 
 
@@ -640,14 +648,12 @@ def p2g_chunk_sums(
     total = n_chunks[0]
     if c == 0 and n == 0 and total > capacity:
         overflow[0] = 1
-    i = n // 9
-    j = (n // 3) % 3
-    k = n % 3
+    o = stencil_offset(n)
     dx = 1.0 / inv_dx
     while c < total and c < capacity:
         s = chunks[c]
         if keys[order[s]] != none_key:
-            sum_mv, sum_m, sum_old = chunk_sum(s, chunk_end(c, total, count, chunks), i, j, k, dx, affine_flip, order,
+            sum_mv, sum_m, sum_old = chunk_sum(s, chunk_end(c, total, count, chunks), o[0], o[1], o[2], dx, affine_flip, order,
                                                fx, mv, affine, mC)
             sums_mv[27 * c + n] = sum_mv
             sums_m[27 * c + n] = sum_m
@@ -690,9 +696,7 @@ def p2g_cell_sums(
     node minus the row's offset). Entries of cells without particles stay zero."""
     c, n = wp.tid()
     total = wp.min(n_chunks[0], capacity)
-    i = n // 9
-    j = (n // 3) % 3
-    k = n % 3
+    o = stencil_offset(n)
     while c < total:
         key = chunk_key(c, chunks, keys, order)
         first = key != none_key
@@ -713,10 +717,8 @@ def p2g_cell_sums(
                 if affine_flip == 1:
                     acc_old += sums_old[27 * d + n]
                 d += 1
-            gi = key // (n_grid * n_grid) + i - lo[0]
-            gj = (key // n_grid) % n_grid + j - lo[1]
-            gk = key % n_grid + k - lo[2]
-            local = (gi * dims[1] + gj) * dims[2] + gk
+            g = stencil_node(key, o, n_grid) - lo
+            local = (g[0] * dims[1] + g[1]) * dims[2] + g[2]
             node_mv[n, local] = acc_mv
             node_m[n, local] = acc_m
             if affine_flip == 1:

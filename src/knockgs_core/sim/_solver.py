@@ -746,7 +746,8 @@ class MPMSolver:
         that is None."""
         m, p = self.model, self.model.params
         cmds = self._cmds
-        cmds["zero"].launch()
+        if self._gather is None:  # the reproducible P2G's gather writes every node of the box
+            cmds["zero"].launch()
         if not prepared:
             cmds["p2g"].set_param_by_name("probe_on", probe_on)
             cmds["p2g"].launch()
