@@ -13,6 +13,7 @@ or in the asset's (``--order asset``).
     python3 benchmarks/kernel_profile.py --object pillow --profile paper --device cuda:0 --p2g cells cells+graph scatter
     python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells cells+graph --resort 1 10 --slots 0 16384
     python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells+graph --fuse off on
+    python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells cells+graph --line 1 3
 """
 
 from __future__ import annotations
@@ -42,12 +43,30 @@ def main() -> None:
                          "the P2G by cells only), each profiled")
     ap.add_argument("--resort", type=int, nargs="+", default=[10],
                     help="intervals of the P2G by cells' sort in substeps (MPMSolver.resort_every), each profiled")
+    ap.add_argument("--line", type=int, nargs="+", choices=[1, 3], default=[None],
+                    help="stencil nodes a thread of the chunk sums sums at once (MPMSolver.node_line; default: the "
+                         "solver's), each profiled")
     ap.add_argument("--deterministic", nargs="+", choices=["on", "off"], default=["off"],
                     help="the bitwise-reproducible P2G (MPMSolver(deterministic=...); on: by cells, sorted every "
                          "substep), each profiled; list one twice to compare the runs' bits (MD5 of u)")
+    ap.add_argument("--fast-math", action="store_true",
+                    help="compile the solver's kernels with fast math (approximate division, square root, sine and "
+                         "cosine; denormals flushed): a measurement only, the solver never does")
+    ap.add_argument("--block-dim", type=int, default=0,
+                    help="threads per block of the solver's launches (Warp's module option; 0: Warp's default)")
     args = ap.parse_args()
 
     import warp as wp
+
+    from knockgs_core.sim import _kernels
+
+    options = {}
+    if args.fast_math:
+        options["fast_math"] = True
+    if args.block_dim:
+        options["block_dim"] = args.block_dim
+    if options:
+        wp.set_module_options(options, module=_kernels)
 
     from knockgs_core.assets import build_asset
     from knockgs_core.contract import load_contract
@@ -64,9 +83,9 @@ def main() -> None:
     ref = getattr(contract, "probe_reference_particles", None)
     model = build_model(ps.positions, E=E, nu=nu, rho=rho, params=contract.sim, volumes=ps.volumes, probe=probe,
                         probe_force_scale=float(ref) / len(ps.positions) if ref else 1.0, device=args.device)
-    runs = [(v, n, r, k, f, d) for v in args.p2g for n in args.slots for r in args.resort for k in args.chunk
-            for f in args.fuse for d in args.deterministic]
-    for variant, slots, resort, chunk, fuse, det in runs:
+    runs = [(v, n, r, k, f, d, line) for v in args.p2g for n in args.slots for r in args.resort for k in args.chunk
+            for f in args.fuse for d in args.deterministic for line in args.line]
+    for variant, slots, resort, chunk, fuse, det, line in runs:
         state = make_state(model, ps.positions)
         p2g, graph = variant.split("+")[0], variant.endswith("+graph")
         fuse = {"auto": "auto", "on": True, "off": False}[fuse]
@@ -75,7 +94,7 @@ def main() -> None:
         if det == "on" and p2g != "cells":
             continue
         solver = MPMSolver(model, p2g=p2g, graph=graph, fuse=fuse, max_chunk_slots=slots or None, resort_every=resort,
-                           cell_chunk=chunk, deterministic=det == "on")
+                           cell_chunk=chunk, node_line=line, deterministic=det == "on")
         solver.check(state)
         for _ in range(args.warm):
             solver.step(state)
@@ -96,8 +115,9 @@ def main() -> None:
             count[r.name] += 1
         all_ms = sum(total.values())
         print(f"{args.object} {args.profile}, P2G {variant} ({args.order} order, chunk slots {slots or 'all'}, sort every "
-              f"{resort} substeps, chunks of {chunk}, G2P fused with the next P2G half: {solver.fuse}, "
-              f"reproducible: {solver.deterministic}): "
+              f"{resort} substeps, chunks of {chunk}, node line {solver.node_line}, "
+              f"G2P fused with the next P2G half: {solver.fuse}, "
+              f"reproducible: {solver.deterministic}, module options {options or 'default'}): "
               f"{len(ps.positions)} particles, n_grid {contract.sim.n_grid}, "
               f"active box {[h - lo for lo, h in zip(solver._lo, solver._hi)]}, {args.steps} substeps, "
               f"wall {1e3 * wall / args.steps:.4f} ms per substep")

@@ -393,8 +393,8 @@ class MPMSolver:
     (another state, or a state whose step count was changed, is refused), and nothing else may
     change it between substeps. ``"auto"``: where substeps are graphs and P2G is by cells.
 
-    ``resort_every``, ``cell_chunk``, ``max_chunk_slots``: the P2G by cells' settings (the class
-    attributes of the same names document them); they set speed only.
+    ``resort_every``, ``cell_chunk``, ``max_chunk_slots``, ``node_line``: the P2G by cells'
+    settings (the class attributes of the same names document them); they set speed only.
 
     ``deterministic``: a GPU rollout the same bit for bit on every run. Float atomics add a
     node's contributions in the order the GPU schedules its threads, so the last bits of a GPU
@@ -425,6 +425,11 @@ class MPMSolver:
     #: most particles in one chunk of the P2G by cells (a thread sums a chunk's contributions
     #: to one node; a cell with more is split)
     cell_chunk: int = 32
+    #: stencil nodes a thread of the chunk sums sums at once: 1 (a node a thread, 27 threads a
+    #: chunk) or 3 (a line of nodes along z, 9 threads a chunk, each particle's terms read once
+    #: for three nodes). Each node's sums are the same, in the same order: the same bits in the
+    #: reproducible P2G, and with float atomics wherever a thread sums one chunk (the default)
+    node_line: int = 3
     #: cap on the threads of the chunk sums (in chunks; None: one per possible chunk, see
     #: :meth:`_record`); each thread strides over the chunks beyond, so it sets speed only
     max_chunk_slots: int | None = None
@@ -438,7 +443,7 @@ class MPMSolver:
 
     def __init__(self, model: Model, *, p2g: str = "auto", graph: bool | str = "auto", fuse: bool | str = "auto",
                  resort_every: int | None = None, cell_chunk: int | None = None, max_chunk_slots: int | None = None,
-                 deterministic: bool = False):
+                 node_line: int | None = None, deterministic: bool = False):
         self.model = model
         if deterministic not in (True, False):
             raise InputError("MPMSolver", "deterministic", f"must be True or False, got {deterministic!r}")
@@ -449,6 +454,10 @@ class MPMSolver:
             self.cell_chunk = cell_chunk
         if max_chunk_slots is not None:
             self.max_chunk_slots = max_chunk_slots
+        if node_line is not None:
+            self.node_line = node_line
+        if self.node_line not in (1, 3) or isinstance(self.node_line, bool):
+            raise InputError("MPMSolver", "node_line", f"must be 1 or 3, got {self.node_line!r}")
         p = model.params
         cuda = wp.get_device(model.device).is_cuda
         if graph == "auto":
@@ -608,8 +617,8 @@ class MPMSolver:
             else:
                 cmds["p2g_cells"] = wp.launch(
                     K.p2g_cells,
-                    dim=(slots, 27),
-                    inputs=[c.chunks, c.n_chunks, slots, c.keys, c.order, c.none_key, m.particle_count, p.n_grid,
+                    dim=(slots, 27 // self.node_line),
+                    inputs=[c.chunks, c.n_chunks, slots, self.node_line, c.keys, c.order, c.none_key, m.particle_count, p.n_grid,
                             self._inv_dx, flip, c.fx, c.mv, c.affine, c.mC],
                     outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
                     **rec,
@@ -676,8 +685,8 @@ class MPMSolver:
         s.reserve(min(m.particle_count, math.prod(dims) + m.particle_count // self.cell_chunk + 2), math.prod(dims))
         cmds["p2g_chunk_sums"] = wp.launch(
             K.p2g_chunk_sums,
-            dim=(slots, 27),
-            inputs=[c.chunks, c.n_chunks, slots, c.keys, c.order, c.none_key, m.particle_count, s.capacity,
+            dim=(slots, 27 // self.node_line),
+            inputs=[c.chunks, c.n_chunks, slots, self.node_line, c.keys, c.order, c.none_key, m.particle_count, s.capacity,
                     self._inv_dx, flip, c.fx, c.mv, c.affine, c.mC],
             outputs=[s.sums_mv, s.sums_m, s.sums_old, s.overflow],
             **rec,
