@@ -54,6 +54,9 @@ def main() -> None:
                          "cosine; denormals flushed): a measurement only, the solver never does")
     ap.add_argument("--block-dim", type=int, default=0,
                     help="threads per block of the solver's launches (Warp's module option; 0: Warp's default)")
+    ap.add_argument("--max-registers", type=int, default=0,
+                    help="cap on the registers per thread of the particle kernels (CUDA __maxnreg__; 0: the "
+                         "solver's, _kernels.CUDA_MAX_REGISTERS on its heavy kernels)")
     args = ap.parse_args()
 
     import warp as wp
@@ -67,6 +70,10 @@ def main() -> None:
         options["block_dim"] = args.block_dim
     if options:
         wp.set_module_options(options, module=_kernels)
+    particle_kernels = ("p2g_prepare", "g2p", "g2p_prepare", "p2g_cells", "p2g_chunk_sums")
+    if args.max_registers:  # the same kernels, registered again with the cap (the solver looks them up by name)
+        for name in particle_kernels:
+            setattr(_kernels, name, wp.kernel(getattr(_kernels, name).func, cuda_max_registers=args.max_registers))
 
     from knockgs_core.assets import build_asset
     from knockgs_core.contract import load_contract
@@ -117,7 +124,8 @@ def main() -> None:
         print(f"{args.object} {args.profile}, P2G {variant} ({args.order} order, chunk slots {slots or 'all'}, sort every "
               f"{resort} substeps, chunks of {chunk}, node line {solver.node_line}, "
               f"G2P fused with the next P2G half: {solver.fuse}, "
-              f"reproducible: {solver.deterministic}, module options {options or 'default'}): "
+              f"reproducible: {solver.deterministic}, module options {options or 'default'}, "
+              f"register cap {args.max_registers or 'none'}): "
               f"{len(ps.positions)} particles, n_grid {contract.sim.n_grid}, "
               f"active box {[h - lo for lo, h in zip(solver._lo, solver._hi)]}, {args.steps} substeps, "
               f"wall {1e3 * wall / args.steps:.4f} ms per substep")
@@ -126,6 +134,15 @@ def main() -> None:
         for name, ms in sorted(total.items(), key=lambda kv: -kv[1]):
             print(f"| {name} | {count[name]} | {ms / args.steps:.4f} | {100 * ms / max(all_ms, 1e-12):.1f} % |")
         print(f"| all | {sum(count.values())} | {all_ms / args.steps:.4f} | 100 % |")
+        if wp.get_device(args.device).is_cuda:
+            props = []
+            for name in particle_kernels:
+                try:
+                    q = wp.get_cuda_kernel_properties(getattr(_kernels, name), device=args.device)
+                except RuntimeError:  # not loaded in this variant
+                    continue
+                props.append(f"{name} {q['register_count']} registers, {q['local_memory_size']} B local")
+            print("kernels: " + "; ".join(props))
         u32 = state.particle_u.numpy()
         u = u32.astype("float64")
         print(f"RMS displacement after {state.step} substeps: {float((u ** 2).sum(axis=1).mean() ** 0.5):.9e} m "

@@ -645,3 +645,29 @@ def test_cell_crowding_counts_for_particles_not_cells():
     t = MPMSolver.CELLS_CROWDING
     assert [MPMSolver.auto_p2g(True, c) for c in (1.0, t, 8.0, 124.0)] == ["scatter", "cells", "cells", "cells"]
     assert MPMSolver.auto_p2g(False, 124.0) == "scatter"
+
+
+def test_cuda_build_caps_the_registers_of_the_heavy_particle_kernels(tmp_path):
+    """The solver's kernels build for CUDA (sm_90 PTX by NVRTC, no GPU needed), and G2P, the
+    fused G2P and the chunk sums carry the register cap that lets more of their threads hide
+    memory latency (``_kernels.CUDA_MAX_REGISTERS``; benchmarks/README.md), the others none."""
+    import pathlib
+    import re
+
+    from knockgs_core.sim import _kernels
+
+    try:
+        wp.compile_aot_module(_kernels.g2p.module, arch=90, use_ptx=True, module_dir=tmp_path)
+    except Exception as exc:  # a Warp build without NVRTC
+        pytest.skip(f"no CUDA compiler in this Warp build ({exc})")
+    ptx = "".join(p.read_text() for p in pathlib.Path(tmp_path).rglob("*.ptx"))
+    caps = {}
+    for entry in re.split(r"\.entry ", ptx)[1:]:
+        name = re.match(r"(\w+?)_[0-9a-f]{8}_cuda_kernel_forward", entry)
+        if name:
+            cap = re.search(r"\.maxnreg (\d+)", entry.split("{", 1)[0])
+            caps[name.group(1)] = int(cap.group(1)) if cap else None
+    capped = {"g2p", "g2p_prepare", "p2g_cells", "p2g_chunk_sums"}
+    assert {k for k, v in caps.items() if v is not None} == capped
+    assert all(caps[k] == _kernels.CUDA_MAX_REGISTERS for k in capped)
+    assert {"p2g", "p2g_prepare", "grid_update", "particle_stats"} <= set(caps)

@@ -29,6 +29,13 @@ from .. import _warp  # noqa: F401  (Warp's log level: no start-up banner in log
 
 wp.set_module_options({"enable_backward": False})
 
+#: cap on the registers per thread of the GPU's heavy particle kernels (G2P, the fused G2P,
+#: the chunk sums; CUDA ``__maxnreg__``, ignored on the CPU): more threads resident per SM
+#: to hide their memory latency, at the cost of a few spills. Paper-scale Pillow on an H100
+#: (benchmarks/README.md): a substep as a graph 0.435 ms capped at 96 against 0.466 ms uncapped
+#: (``g2p`` 140 registers, 0.232 against 0.155 ms); caps of 128, 80, 72 and 64 paid less
+CUDA_MAX_REGISTERS = 96
+
 
 # --------------------------------------------------------------------------------------
 # shared math
@@ -613,7 +620,7 @@ def chunk_end(c: int, total: int, count: int, chunks: wp.array(dtype=wp.int32)) 
     return e
 
 
-@wp.kernel
+@wp.kernel(cuda_max_registers=CUDA_MAX_REGISTERS)
 def p2g_cells(
     chunks: wp.array(dtype=wp.int32),
     n_chunks: wp.array(dtype=wp.int32),
@@ -683,7 +690,7 @@ def p2g_cells(
 # one stencil node (``p2g_cell_sums``: one row of node arrays per stencil offset, so no two
 # cells write one entry); each node then sums its 27 rows in row order (``p2g_gather``). No
 # float atomics: the same bits on every run, whatever the threads' schedule.
-@wp.kernel
+@wp.kernel(cuda_max_registers=CUDA_MAX_REGISTERS)
 def p2g_chunk_sums(
     chunks: wp.array(dtype=wp.int32),
     n_chunks: wp.array(dtype=wp.int32),
@@ -906,7 +913,7 @@ def g2p_particle(
     return True, up, vp, Cp, Fp
 
 
-@wp.kernel
+@wp.kernel(cuda_max_registers=CUDA_MAX_REGISTERS)
 def g2p(
     grid_v: wp.array3d(dtype=wp.vec3),
     inv_dx: float,
@@ -939,7 +946,7 @@ def g2p(
                  grid_v_old, u, v, C, F, overrun)
 
 
-@wp.kernel
+@wp.kernel(cuda_max_registers=CUDA_MAX_REGISTERS)
 def g2p_prepare(
     grid_v: wp.array3d(dtype=wp.vec3),
     inv_dx: float,
