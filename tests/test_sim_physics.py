@@ -447,6 +447,23 @@ def test_fused_substeps_are_the_unfused_bit_for_bit(rng, transfer):
         MPMSolver(model, p2g="scatter", fuse=True)
 
 
+def pushed_shell(params, X, steps: int, **solver_options):
+    """Step the shell scene's particles ``X`` for ``steps`` substeps under a strong push on one
+    end (particles change cells, cells empty), with the guard every ``params.guard_every``
+    substeps; the solver takes ``solver_options``. Returns (model, state, solver)."""
+    probe = Probe("p", (0.0, 2.0, 0.0), box=Box(center=(1.15, 1.0, 0.85), half_size=(0.06, 0.25, 0.2)), n_steps=4,
+                  dt_ref=5e-4)
+    model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, probe=probe, device="cpu")
+    state = make_state(model, X)
+    solver = MPMSolver(model, **solver_options)
+    solver.check(state)
+    for _ in range(steps):
+        solver.step(state)
+        if state.step % params.guard_every == 0:
+            solver.check(state)
+    return model, state, solver
+
+
 @pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
 def test_reproducible_p2g_gives_the_same_bits_in_any_thread_order(rng, transfer):
     # The P2G by cells adds each chunk's sums to the grid with float atomics, in the order the
@@ -457,22 +474,13 @@ def test_reproducible_p2g_gives_the_same_bits_in_any_thread_order(rng, transfer)
     # the scatter up to rounding.
     # (a strong push: particles change cells, and cells empty, whose chunk ranges go stale)
     params, X = shell_scene(rng, transfer, shell=4000, guard_every=10)
-    probe = Probe("p", (0.0, 2.0, 0.0), box=Box(center=(1.15, 1.0, 0.85), half_size=(0.06, 0.25, 0.2)), n_steps=4,
-                  dt_ref=5e-4)
     out = {}
     variants = [("scatter", False, None, False), ("cells", False, None, False), ("cells", False, 1, False),
                 ("cells", False, 3, False), ("cells", True, None, False), ("cells", True, 1, False),
                 ("cells", True, 3, False), ("cells", True, None, True)]
     for p2g, deterministic, slots, graph in variants:
-        model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, probe=probe, device="cpu")
-        state = make_state(model, X)
-        solver = MPMSolver(model, p2g=p2g, deterministic=deterministic, max_chunk_slots=slots, graph=graph,
-                           fuse=graph, resort_every=1)
-        solver.check(state)
-        for _ in range(60):
-            solver.step(state)
-            if state.step % params.guard_every == 0:
-                solver.check(state)
+        model, state, _ = pushed_shell(params, X, 60, p2g=p2g, deterministic=deterministic, max_chunk_slots=slots,
+                                       graph=graph, fuse=graph, resort_every=1)
         # the grid holds all the mass (the gather wrote every node of the active box)
         assert state.grid_m.numpy().sum() == pytest.approx(model.mass_host.astype(np.float64).sum(), rel=1e-5)
         out[p2g, deterministic, slots, graph] = [a.numpy().copy() for a in (state.particle_u, state.particle_F,
@@ -488,7 +496,6 @@ def test_reproducible_p2g_gives_the_same_bits_in_any_thread_order(rng, transfer)
     # the atomics' order shows in the bits (else the test above could not fail)
     atomic = [out[k][0] for k in out if k[0] == "cells" and not k[1]]
     assert any(not np.array_equal(atomic[0], a) for a in atomic[1:])
-    model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, probe=probe, device="cpu")
     assert MPMSolver(model, deterministic=True).p2g == "cells"  # chosen whatever the crowding
     with pytest.raises(InputError, match="deterministic"):
         MPMSolver(model, p2g="scatter", deterministic=True)
@@ -504,22 +511,14 @@ def test_chunk_sums_by_node_lines_are_the_sums_by_nodes_bit_for_bit(rng, transfe
     # order: the same bits with float atomics (sorts every 3rd substep, chunks of 5, graphs and
     # fused substeps), and in the reproducible P2G whatever the threads (chunks shared among two).
     params, X = shell_scene(rng, transfer, shell=3000, guard_every=10)
-    probe = Probe("p", (0.0, 2.0, 0.0), box=Box(center=(1.15, 1.0, 0.85), half_size=(0.06, 0.25, 0.2)), n_steps=4,
-                  dt_ref=5e-4)
     out = {}
     variants = ((False, None, False), (False, None, True), (True, None, False), (True, 2, True))
     for deterministic, slots, graph in variants:
         for line in (1, 3):
-            model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, probe=probe, device="cpu")
-            state = make_state(model, X)
-            solver = MPMSolver(model, p2g="cells", deterministic=deterministic, max_chunk_slots=slots, graph=graph,
-                               fuse=graph, resort_every=3, cell_chunk=5, node_line=line)
+            model, state, solver = pushed_shell(params, X, 40, p2g="cells", deterministic=deterministic,
+                                                max_chunk_slots=slots, graph=graph, fuse=graph, resort_every=3,
+                                                cell_chunk=5, node_line=line)
             assert solver.node_line == line
-            solver.check(state)
-            for _ in range(40):
-                solver.step(state)
-                if state.step % params.guard_every == 0:
-                    solver.check(state)
             out[deterministic, slots, graph, line] = [a.numpy().copy() for a in (state.particle_u, state.particle_F,
                                                                                  state.particle_v, state.grid_mv)]
     assert np.abs(out[False, None, False, 1][0]).max() > 1e-3  # the body moved
@@ -528,7 +527,6 @@ def test_chunk_sums_by_node_lines_are_the_sums_by_nodes_bit_for_bit(rng, transfe
             assert np.array_equal(a, b)
     # the variants differ among themselves in the last bits (so equal bits above are not trivial)
     assert not np.array_equal(out[False, None, False, 1][0], out[True, None, False, 1][0])
-    model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, probe=probe, device="cpu")
     for bad in (2, 27, True):
         with pytest.raises(InputError, match="node_line"):
             MPMSolver(model, p2g="cells", node_line=bad)
