@@ -64,5 +64,5 @@ with BackgroundWriter(output=output) as writer:
                                 device=p.device, deterministic=p.deterministic, export_F=group[0][1]["F"] is not None,
                                 progress=progress, streams=streams, **extra)
         for tag, (_, run), ro in zip(tags, group, rollouts):
-            print(f"{tag}: done, {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s"
+            print(f"{tag}: done on {ro.meta['device']}, {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s"
                   f"{' (the batch of %d)' % len(group) if len(group) > 1 else ''}", file=log, flush=True)

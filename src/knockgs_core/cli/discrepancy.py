@@ -46,7 +46,8 @@ def _common(p) -> None:
     p.add_argument("--object", required=True, help="object name (config/objects/NAME.yaml) or a contract path")
     p.add_argument("--profile", default="default", help="resolution profile: ci, default or paper")
     p.add_argument("--particles", help="particles .npz from `knockgs asset` (default: build the asset)")
-    p.add_argument("--device", help="Warp device (cpu, cuda:0); default $KNOCKGS_DEVICE or cpu")
+    p.add_argument("--device",
+                   help="Warp device (cpu; cuda: a GPU no other process holds; cuda:0); default $KNOCKGS_DEVICE or cpu")
     p.add_argument("--config-dir", help="folder holding objects/ (default: the project's config/)")
 
 

@@ -34,7 +34,7 @@ def register(sub) -> None:
     rg.add_argument("--profile", default="default", help="resolution profile of the contract (ci, default, paper)")
     rg.add_argument("--width", type=image_side, help="image width in pixels (default: the contract camera's)")
     rg.add_argument("--height", type=image_side, help="image height in pixels (default: the contract camera's)")
-    rg.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
+    rg.add_argument("--device", default="cpu", help="Warp device (cpu; cuda: a GPU no other process holds; cuda:0)")
     rg.add_argument("--config-dir", help="folder holding objects/ (default: the project's config/)")
     rg.add_argument("-o", "--output", required=True, help="output .npz")
     rg.set_defaults(func=run_rgbd)

@@ -37,7 +37,7 @@ def register(sub) -> None:
     fr.add_argument("--profile", default="default", help="resolution profile of the contract (ci, default, paper)")
     fr.add_argument("--width", type=image_side, help="image width, 1 .. 8192 pixels (default: the contract camera's)")
     fr.add_argument("--height", type=image_side, help="image height, 1 .. 8192 pixels (default: the contract camera's)")
-    fr.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
+    fr.add_argument("--device", default="cpu", help="Warp device (cpu; cuda: a GPU no other process holds; cuda:0)")
     fr.add_argument("--config-dir", help="folder holding objects/ (default: the project's config/)")
     fr.set_defaults(func=run_frames)
     ply = s.add_parser("ply", help="a standard 3DGS PLY per frame (F Sigma_0 F^T as scales and rotations)")

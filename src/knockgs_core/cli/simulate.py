@@ -29,7 +29,8 @@ def register(sub) -> None:
     p.add_argument("--particles", help="particles .npz from `knockgs asset` (default: build the asset)")
     p.add_argument("--export-F", dest="export_F", metavar="R.F.parquet",
                    help="also write the GS particles' deformation gradients here (needed by `knockgs render`)")
-    p.add_argument("--device", help="Warp device (cpu, cuda:0); default $KNOCKGS_DEVICE or cpu")
+    p.add_argument("--device",
+                   help="Warp device (cpu; cuda: a GPU no other process holds; cuda:0); default $KNOCKGS_DEVICE or cpu")
     p.add_argument("--config-dir", help="folder holding objects/ (default: the project's config/)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=run)

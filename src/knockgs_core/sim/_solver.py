@@ -198,8 +198,9 @@ def build_model(
     and at most one :class:`ParticleTranslation` may be active at any time.
     """
     _check_params(params)
-    device = device or default_device()
-    warp_device(device)  # starts Warp (quiet on a CPU run); one line naming an unavailable device
+    # starts Warp (quiet on a CPU run); one line naming an unavailable device; "cuda" is the
+    # card this process claimed (knockgs_core._warp.resolve_device)
+    device = warp_device(device or default_device()).alias
     x = np.ascontiguousarray(positions, dtype=np.float32)
     if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] == 0:
         raise InputError("positions", "shape", f"expected (N, 3) with N > 0, got {x.shape}")
