@@ -12,6 +12,7 @@ from knockgs_core.errors import InputError
 from knockgs_core.metrics import (
     crop_boxes,
     crop_ssim,
+    curve_differences,
     curve_metrics,
     foreground_psnr,
     joint_error_pct,
@@ -71,6 +72,33 @@ def test_trajectory_rmse_shape_errors(rng):
         trajectory_rmse(x[:, :9], x)
     with pytest.raises(InputError, match="target"):
         trajectory_rmse(x, x[..., :2])
+
+
+def test_float32_trajectories_score_as_their_float64_copies_bit_for_bit(rng):
+    # rollouts are float32; the metrics sample and convert what they use, frame by frame, and
+    # must give the bits of the whole trajectory converted to float64 first (the reference)
+    X = rng.uniform(0.0, 2.0, size=(7, 3001, 3)).astype(np.float32)
+    P = (X + rng.normal(scale=1e-3, size=X.shape)).astype(np.float32)
+    X64, P64 = X.astype(np.float64), P.astype(np.float64)
+    ref_curve = np.sqrt(np.mean(np.sum((X64 - X64[0]) ** 2, axis=-1), axis=1))
+    assert np.array_equal(rms_displacement_curve(X), ref_curve)
+    idx = np.random.default_rng(42).choice(3001, size=500, replace=False)
+    ref_rmse = float(np.sqrt(np.mean(np.sum((P64[:, idx] - X64[:, idx]) ** 2, axis=-1))))
+    assert trajectory_rmse(P, X, max_particles=500) == ref_rmse
+    assert trajectory_rmse(P, X) == float(np.sqrt(np.mean(np.sum((P64 - X64) ** 2, axis=-1))))
+    assert curve_metrics(P, X) == curve_metrics(P64, X64)
+    assert curve_differences(rms_displacement_curve(P), ref_curve) == curve_metrics(P, X)
+    # a non-finite value is refused wherever it lies, sampled or not
+    bad = P.copy()
+    bad[3, np.setdiff1d(np.arange(3001), idx)[0], 1] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        trajectory_rmse(bad, X, max_particles=500)
+    with pytest.raises(InputError, match="NaN"):
+        rms_displacement_curve(bad)
+    with pytest.raises(InputError, match="not a numeric array"):
+        rms_displacement_curve(np.full((2, 2, 3), "a"))
+    with pytest.raises(InputError, match="frames"):
+        curve_differences(np.zeros(3), np.zeros(4))
 
 
 def test_rms_displacement_curve_analytic(rng):

@@ -194,3 +194,59 @@ def test_passive_protocol_gravity_search(pillow_ps):
     assert abs(rec["passive_mean_rms"] / rec["probe_a_mean_rms"] - 1.0) < 0.1
     assert prot.gravity == (0.0, 0.0, -rec["gravity_magnitude"])  # the camera's up is +z
     assert all(chk["passive_bitwise_equal"] and chk["active_max_abs_diff"] > 1e-3 for chk in rec["invariance"])
+
+
+def test_shift_evaluation_reads_each_rollout_once_and_scores_as_each_method_alone(tmp_path, monkeypatch):
+    # every method's frozen estimates against each target's rollout: the target's file is read
+    # once for all methods and a prediction two methods share once, with the rows that a
+    # method's own write-back evaluation gives and the metrics computed here from the files
+    import knockgs_core.experiments._main as main
+    from knockgs_core.experiments import evaluate_method, evaluate_shift
+    from knockgs_core.metrics import curve_metrics, joint_error_pct, trajectory_rmse
+    from knockgs_core.rollout import Rollout, read_rollout, theta_tag, write_rollout
+
+    rng = np.random.default_rng(5)
+    T, n_gs, n_fill = 6, 40, 5
+    x0 = rng.uniform(0.5, 1.5, size=(n_gs + n_fill, 3)).astype(np.float32)
+    targets = pd.DataFrame({"case_name": ["t1", "t2"], "E_scale": [0.8, 1.2], "density_scale": [1.1, 0.9]})
+    estimates = {
+        "fixed": {"predictions": [{"case_name": c, "E_scale": 1.0, "density_scale": 1.0} for c in ("t1", "t2")]},
+        "near": {"predictions": [{"case_name": "t1", "E_scale": 0.82, "density_scale": 1.08},
+                                 {"case_name": "t2", "E_scale": 1.0, "density_scale": 1.0}]},
+        "other": {"predictions": [{"case_name": "t1", "E_scale": 0.7, "density_scale": 1.2},
+                                  {"case_name": "t2", "E_scale": 1.25, "density_scale": 0.95},
+                                  {"case_name": "t9", "E_scale": 3.0, "density_scale": 3.0}]},
+    }
+    paths = {}
+    thetas = {(1.0, 1.0), (0.82, 1.08), (0.7, 1.2), (1.25, 0.95), (0.8, 1.1), (1.2, 0.9)}
+    for th in sorted(thetas):
+        rate = rng.normal(scale=1e-3 * th[0] / th[1], size=(1, n_gs + n_fill, 3))
+        X = (x0[None] + np.arange(T)[:, None, None] * rate).astype(np.float32)
+        path = tmp_path / f"{theta_tag(th)}.parquet"
+        write_rollout(path, Rollout(X, None, {"n_gs": n_gs, "n_fill": n_fill, "export_times": list(range(T))}))
+        paths[f"duration_x_fine/{theta_tag(th)}"] = path
+    reads = []
+
+    def counting(path):
+        reads.append(path)
+        return read_rollout(path)
+
+    monkeypatch.setattr(main, "read_rollout", counting)
+    where = lambda probe, th: paths[f"{probe}/{theta_tag(th)}"]  # noqa: E731
+    ev = evaluate_shift(estimates, targets, where, ["duration_x_fine"])
+    # t1: truth, fixed, near, other; t2: truth, fixed (= near's), other
+    assert len(reads) == 7 and len(set(reads)) == 6
+    assert list(ev["method"]) == ["fixed", "fixed", "near", "near", "other", "other"]
+    for m, est in estimates.items():
+        alone = evaluate_method({"predictions": est["predictions"][:2]}, targets, where, ["duration_x_fine"])
+        rows = ev[ev["method"] == m].drop(columns="method").reset_index(drop=True)
+        pd.testing.assert_frame_equal(rows, alone)
+        for r in rows.itertuples(index=False):
+            truth = read_rollout(where("duration_x_fine", (r.E_true, r.rho_true))).positions[:, :n_gs]
+            pred = read_rollout(where("duration_x_fine", (r.E_hat, r.rho_hat))).positions[:, :n_gs]
+            assert r.traj_rmse == trajectory_rmse(pred, truth)
+            assert r.curve_rmse == curve_metrics(pred, truth)["curve_rmse"]
+            assert r.joint_error_pct == joint_error_pct((r.E_hat, r.rho_hat), (r.E_true, r.rho_true))
+    with pytest.raises(InputError, match="no estimate for target t2"):
+        evaluate_shift({"short": {"predictions": estimates["near"]["predictions"][:1]}}, targets, where,
+                       ["duration_x_fine"])

@@ -17,7 +17,7 @@ import pandas as pd
 from .. import _io
 from ..descriptors import FEATURE_NAMES, descriptor
 from ..errors import InputError
-from ..metrics import curve_metrics, joint_error_pct, trajectory_rmse
+from ..metrics import curve_differences, joint_error_pct, rms_displacement_curve, trajectory_rmse
 from ..rollout import read_rollout, theta_tag
 
 __all__ = [
@@ -26,6 +26,7 @@ __all__ = [
     "frozen_estimate",
     "oracle_estimate",
     "evaluate_method",
+    "evaluate_methods",
     "estimate_thetas",
     "file_sha256",
     "theta_tag",
@@ -154,36 +155,62 @@ def evaluate_method(
     error, trajectory RMSE over Gaussian-associated particles and curve metrics.
 
     ``rollout_path(probe, theta) -> path`` locates rollouts; a target's truth is the rollout
-    at its hidden theta.
+    at its hidden theta. One method's :func:`evaluate_methods`.
     """
-    thetas = estimate_thetas(estimate)
-    rows = []
+    return evaluate_methods({"": estimate}, targets, rollout_path, probes, max_particles=max_particles, seed=seed)[""]
+
+
+def evaluate_methods(
+    estimates: Mapping[str, Mapping],
+    targets: pd.DataFrame,
+    rollout_path,
+    probes: Sequence[str],
+    *,
+    max_particles: int = 100_000,
+    seed: int = 42,
+) -> dict[str, pd.DataFrame]:
+    """:func:`evaluate_method` of several methods' estimates (method -> estimates document)
+    at once: each target's truth under a probe is read once for all methods, with its RMS
+    displacement curve, and a prediction that several methods share (the same theta) is read
+    once. Returns method -> its rows, the same as :func:`evaluate_method` of it alone.
+    """
+    thetas = {m: estimate_thetas(est) for m, est in estimates.items()}
+    rows: dict[str, list] = {m: [] for m in estimates}
     for rec in targets.itertuples(index=False):
-        if rec.case_name not in thetas:
-            raise InputError("estimates", "predictions", f"no estimate for target {rec.case_name}")
-        est = thetas[rec.case_name]
+        for m, th in thetas.items():
+            if rec.case_name not in th:
+                raise InputError("estimates", "predictions", f"no estimate for target {rec.case_name}")
         truth = (float(rec.E_scale), float(rec.density_scale))
-        err = joint_error_pct(est, truth)
+        errors = {m: joint_error_pct(th[rec.case_name], truth) for m, th in thetas.items()}
         for probe in probes:
-            pred = read_rollout(rollout_path(probe, est))
             true = read_rollout(rollout_path(probe, truth))
             n_gs = int(true.meta["n_gs"])
-            if pred.positions.shape != true.positions.shape:
-                raise InputError(rollout_path(probe, est), "positions", "shape differs from the target rollout")
-            P, X = pred.positions[:, :n_gs], true.positions[:, :n_gs]
-            row = {
-                "target": rec.case_name,
-                "E_true": truth[0],
-                "rho_true": truth[1],
-                "E_hat": est[0],
-                "rho_hat": est[1],
-                "joint_error_pct": err,
-                "probe": probe,
-                "traj_rmse": trajectory_rmse(P, X, max_particles=max_particles, seed=seed),
-            }
-            row.update(curve_metrics(P, X))
-            rows.append(row)
-    return pd.DataFrame(rows)
+            X = true.positions[:, :n_gs]
+            q = rms_displacement_curve(X)
+            by_path: dict = {}  # prediction path -> its trajectory RMSE and curve metrics
+            for m, th in thetas.items():
+                est = th[rec.case_name]
+                path = rollout_path(probe, est)
+                if path not in by_path:
+                    pred = read_rollout(path)
+                    if pred.positions.shape != true.positions.shape:
+                        raise InputError(path, "positions", "shape differs from the target rollout")
+                    P = pred.positions[:, :n_gs]
+                    by_path[path] = {"traj_rmse": trajectory_rmse(P, X, max_particles=max_particles, seed=seed),
+                                     **curve_differences(rms_displacement_curve(P), q)}
+                    del pred, P
+                rows[m].append({
+                    "target": rec.case_name,
+                    "E_true": truth[0],
+                    "rho_true": truth[1],
+                    "E_hat": est[0],
+                    "rho_hat": est[1],
+                    "joint_error_pct": errors[m],
+                    "probe": probe,
+                    **by_path[path],
+                })
+            del true, X
+    return {m: pd.DataFrame(r) for m, r in rows.items()}
 
 
 def write_json(obj, path) -> None:

@@ -6,13 +6,14 @@ caller's job -- frames and particles are never replicates.
 """
 
 from ._image import crop_boxes, crop_ssim, foreground_psnr
-from ._trajectory import curve_metrics, joint_error_pct, rms_displacement_curve, trajectory_rmse
+from ._trajectory import curve_differences, curve_metrics, joint_error_pct, rms_displacement_curve, trajectory_rmse
 
 __all__ = [
     "joint_error_pct",
     "trajectory_rmse",
     "rms_displacement_curve",
     "curve_metrics",
+    "curve_differences",
     "foreground_psnr",
     "crop_ssim",
     "crop_boxes",

@@ -35,9 +35,22 @@ def joint_error_pct(theta_hat, theta_true) -> float:
     return float(50.0 * np.sum(np.abs(hat - true) / true))
 
 
+def _checked(value, source: str, field: str) -> np.ndarray:
+    """``value`` as a [T, N, 3] array of real numbers, all finite, without a copy where it is
+    one already (float32 rollouts stay float32: the callers convert what they use to float64)."""
+    arr = np.asarray(value)
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        return _array(value, source, field, 3, 3)  # converted, or refused as not numeric
+    if arr.ndim != 3 or arr.shape[-1] != 3:
+        raise InputError(source, field, f"expected shape [T, N, 3], got {list(arr.shape)}")
+    if np.issubdtype(arr.dtype, np.floating) and not np.isfinite(arr).all():
+        raise InputError(source, field, "contains NaN or infinite values")
+    return arr
+
+
 def _pair(pred, target, src):
-    pred = _array(pred, src, "pred", 3, 3)
-    target = _array(target, src, "target", 3, 3)
+    pred = _checked(pred, src, "pred")
+    target = _checked(target, src, "target")
     if pred.shape != target.shape:
         raise InputError(src, "pred", f"shape {list(pred.shape)} differs from target "
                          f"{list(target.shape)} (fixed correspondence needs equal shapes)")
@@ -59,9 +72,11 @@ def trajectory_rmse(pred, target, *, max_particles: int = 100_000, seed: int = 4
     if int(max_particles) < 1:
         raise InputError(src, "max_particles", f"must be >= 1, got {max_particles!r}")
     n = pred.shape[1]
-    if n > max_particles:
+    if n > max_particles:  # the sample first, then float64: the same values as converting first
         idx = np.random.default_rng(seed).choice(n, size=int(max_particles), replace=False)
         pred, target = pred[:, idx], target[:, idx]
+    pred = np.asarray(pred, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
     return float(np.sqrt(np.mean(np.sum((pred - target) ** 2, axis=-1))))
 
 
@@ -70,10 +85,12 @@ def rms_displacement_curve(X) -> np.ndarray:
 
     ``X: [T, N, 3]``; returns ``[T]`` (same length unit as ``X``; not normalized).
     """
-    X = _array(X, "metrics.rms_displacement_curve", "X", 3, 3)
+    X = _checked(X, "metrics.rms_displacement_curve", "X")
     if X.shape[0] == 0 or X.shape[1] == 0:
         raise InputError("metrics.rms_displacement_curve", "X", "needs at least one frame and one particle")
-    return np.sqrt(np.mean(np.sum((X - X[0]) ** 2, axis=-1), axis=1))
+    # frame by frame in float64 (a frame's copy, not the whole trajectory's): the same sums
+    X0 = np.asarray(X[0], dtype=np.float64)
+    return np.sqrt(np.array([np.mean(np.sum((np.asarray(Xt, dtype=np.float64) - X0) ** 2, axis=-1)) for Xt in X]))
 
 
 def curve_metrics(pred_X, target_X) -> dict[str, float]:
@@ -88,8 +105,14 @@ def curve_metrics(pred_X, target_X) -> dict[str, float]:
       frames* (length x frames; multiply by the frame interval for length x time);
     - ``final_abs_diff``: ``|p_{T-1} - q_{T-1}|``.
     """
-    p = rms_displacement_curve(pred_X)
-    q = rms_displacement_curve(target_X)
+    return curve_differences(rms_displacement_curve(pred_X), rms_displacement_curve(target_X))
+
+
+def curve_differences(p, q) -> dict[str, float]:
+    """:func:`curve_metrics` of two RMS-displacement curves ``p`` (prediction) and ``q``
+    (target), each ``[T]``: for a target compared with several predictions, its curve once."""
+    p = np.asarray(p, dtype=np.float64)
+    q = np.asarray(q, dtype=np.float64)
     if p.shape != q.shape:
         raise InputError("metrics.curve_metrics", "pred_X",
                          f"has {p.size} frames but target_X has {q.size}")
