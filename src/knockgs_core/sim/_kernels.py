@@ -149,6 +149,15 @@ def kelvin_voigt_kirchhoff(L: wp.mat33, J: float, mu: float, lam: float, retarda
 # grid kernels (launched over the active box)
 # --------------------------------------------------------------------------------------
 @wp.kernel
+def state_rest(F: wp.array(dtype=wp.mat33d), rot: wp.array(dtype=wp.quat)):
+    """A particle at rest in its reference shape: ``F = I`` and its rotation the identity
+    (the initial state, set on the device: no host array, no copy)."""
+    p = wp.tid()
+    F[p] = wp.identity(n=3, dtype=wp.float64)
+    rot[p] = wp.quat_identity()
+
+
+@wp.kernel
 def grid_zero(
     lo: wp.vec3i,
     affine_flip: int,

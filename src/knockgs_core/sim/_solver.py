@@ -270,16 +270,20 @@ def make_state(model: Model, positions: np.ndarray, velocities: np.ndarray | Non
     n, dev, g = model.particle_count, model.device, model.params.n_grid
     g_old = g if model.params.transfer == "affine_flip" else 1
     x = np.ascontiguousarray(positions, dtype=np.float32)
-    v = np.zeros_like(x) if velocities is None else np.ascontiguousarray(velocities, dtype=np.float32)
-    eye = np.tile(np.eye(3, dtype=np.float32), (n, 1, 1))
-    rot = np.tile(np.array([0, 0, 0, 1], dtype=np.float32), (n, 1))
+    if velocities is None:
+        v = wp.zeros(n, dtype=wp.vec3, device=dev)
+    else:
+        v = wp.array(np.ascontiguousarray(velocities, dtype=np.float32), dtype=wp.vec3, device=dev)
+    F = wp.empty(n, dtype=wp.mat33d, device=dev)
+    rot = wp.empty(n, dtype=wp.quat, device=dev)
+    wp.launch(K.state_rest, dim=n, outputs=[F, rot], device=dev)  # F = I, rotations the identity
     return State(
         particle_x0=wp.array(x, dtype=wp.vec3, device=dev),
         particle_u=wp.zeros(n, dtype=wp.vec3, device=dev),
-        particle_v=wp.array(v, dtype=wp.vec3, device=dev),
-        particle_F=wp.array(eye.astype(np.float64), dtype=wp.mat33d, device=dev),
+        particle_v=v,
+        particle_F=F,
         particle_C=wp.zeros(n, dtype=wp.mat33, device=dev),
-        particle_rot=wp.array(rot, dtype=wp.quat, device=dev),
+        particle_rot=rot,
         grid_mv=wp.zeros((g, g, g), dtype=wp.vec3, device=dev),
         grid_m=wp.zeros((g, g, g), dtype=float, device=dev),
         grid_mv_old=wp.zeros((g_old, g_old, g_old), dtype=wp.vec3, device=dev),
