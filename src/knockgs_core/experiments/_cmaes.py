@@ -357,24 +357,25 @@ def cmaes_estimate(runs: Mapping[str, Mapping], *, seed: int, budget: int, setti
 def cmaes_rows(estimates: Mapping[int, Mapping], targets: pd.DataFrame, rollout_path: Callable, frames_path: Callable,
                probes: Sequence[str]) -> pd.DataFrame:
     """Write-back evaluation of every seed's frozen estimates, exactly as the main benchmark's
-    (:func:`knockgs_core.experiments.evaluate_method` for the joint error and the trajectory
+    (:func:`knockgs_core.experiments.evaluate_methods` for the joint error and the trajectory
     RMSE over the Gaussian-associated particles, :func:`~knockgs_core.experiments.render_metrics_rows`
     for the foreground PSNR and object-crop SSIM): one row per (seed, target, probe), with the
     estimate's final video loss. ``estimates``: seed -> estimate document
     (:func:`cmaes_estimate`); ``rollout_path(probe, theta)`` and ``frames_path(probe, theta)``
     locate rollouts and rendered frames (``.npz``)."""
-    from ._main import evaluate_method, render_metrics_rows
+    from ._main import evaluate_methods, render_metrics_rows
 
+    if not estimates:
+        raise InputError("CMA-ES table", "estimates", "no seed")
+    evals = evaluate_methods(estimates, targets, rollout_path, probes)  # each target's rollout read once
     frames = []
     for seed, doc in estimates.items():
-        ev = evaluate_method(doc, targets, rollout_path, probes)
+        ev = evals[seed]
         im = render_metrics_rows(doc, targets, frames_path, probes)
         df = ev.merge(im, on=["target", "probe"], how="left", validate="one_to_one")
         df.insert(0, "seed", int(seed))
         df["video_loss"] = df["target"].map({n: r["loss"] for n, r in doc.get("runs", {}).items()})
         frames.append(df)
-    if not frames:
-        raise InputError("CMA-ES table", "estimates", "no seed")
     return pd.concat(frames, ignore_index=True)
 
 
