@@ -101,6 +101,13 @@ def test_a_process_keeps_its_claim_and_cards_are_named_safely(tmp_path):
         release_all()
 
 
+def test_a_lock_folder_that_cannot_be_made_is_one_clear_error(tmp_path):
+    (tmp_path / "file").write_text("not a folder")
+    with pytest.raises(InputError, match="KNOCKGS_GPU_LOCKS") as err:
+        claim_slot(["GPU-x"], lock_dir=tmp_path / "file" / "locks")
+    assert "file/locks" in str(err.value) and "\n" not in str(err.value)
+
+
 def test_the_lock_folder_follows_the_environment(tmp_path, monkeypatch):
     monkeypatch.setenv(_device_claim.LOCKS_ENV, str(tmp_path / "locks"))
     assert default_lock_dir() == tmp_path / "locks"

@@ -21,6 +21,8 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from .errors import InputError
+
 try:
     import fcntl
 except ImportError:  # not POSIX: no claims, the first card is taken
@@ -80,7 +82,9 @@ def claim_slot(
     Returns the index of the first card no other process holds; this process holds it until it
     exits (a card it already holds is returned again). When all are held, polls every ``poll_s``
     seconds, ``log`` told once, until one is free; raises :class:`TimeoutError` after ``wait_s``
-    seconds (None: wait as long as it takes). Without ``fcntl`` (not POSIX) returns 0.
+    seconds (None: wait as long as it takes). Without ``fcntl`` (not POSIX) returns 0. Raises
+    :class:`~knockgs_core.errors.InputError` (one line, naming the folder) where the lock files
+    cannot be kept.
     """
     if not keys:
         raise ValueError("claim_slot: no cards to claim")
@@ -90,13 +94,17 @@ def claim_slot(
         if key in _HELD:
             return i
     folder = Path(lock_dir) if lock_dir is not None else default_lock_dir()
-    folder.mkdir(parents=True, exist_ok=True)
     start = time.monotonic()
     told = False
     while True:
         for i, key in enumerate(keys):
-            if _try_lock(key, folder):
-                return i
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+                if _try_lock(key, folder):
+                    return i
+            except OSError as exc:
+                raise InputError(os.fspath(folder), LOCKS_ENV, f"cannot keep GPU lock files there ({exc.strerror or exc}); "
+                                 f"set ${LOCKS_ENV} to a writable folder") from None
         if wait_s is not None and time.monotonic() - start >= wait_s:
             raise TimeoutError(f"all {len(keys)} GPUs are held by other processes (lock files in {folder})")
         if log is not None and not told:
