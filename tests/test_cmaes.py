@@ -202,3 +202,48 @@ def test_cmaes_on_the_pillow_is_deterministic_on_the_cpu(tmp_path):
     runs = [cmaes_calibrate(simulate_render, target, bounds=BOUNDS, budget=4, seed=6401) for _ in range(2)]
     assert runs[0]["calls"] == 4 and runs[0]["history"] == runs[1]["history"]
     assert all(h["loss"] > 0 for h in runs[0]["history"])
+
+
+def test_cmaes_rows_score_every_seed_as_alone_reading_each_target_rollout_once(tmp_path, monkeypatch):
+    # the seeds' frozen estimates are scored together: each target's rollout is read once for all
+    # seeds (and a theta two seeds share once), with the rows each seed's own evaluation gives
+    import pandas as pd
+
+    import knockgs_core.experiments._main as main
+    from _rollouts import theta_rollouts
+    from knockgs_core.experiments import evaluate_method
+    from knockgs_core.experiments._cmaes import cmaes_rows
+    from knockgs_core.rollout import read_rollout, theta_tag
+
+    targets = pd.DataFrame({"case_name": ["t1", "t2"], "E_scale": [0.8, 1.2], "density_scale": [1.1, 0.9]})
+    docs = {6401: {"predictions": [{"case_name": "t1", "E_scale": 0.82, "density_scale": 1.08},
+                                   {"case_name": "t2", "E_scale": 1.25, "density_scale": 0.95}],
+                   "runs": {"t1": {"loss": 0.5}, "t2": {"loss": 0.25}}},
+            6402: {"predictions": [{"case_name": "t1", "E_scale": 0.82, "density_scale": 1.08},
+                                   {"case_name": "t2", "E_scale": 1.1, "density_scale": 1.0}]}}
+    thetas = {(0.8, 1.1), (1.2, 0.9), (0.82, 1.08), (1.25, 0.95), (1.1, 1.0)}
+    paths = theta_rollouts(tmp_path, thetas, "standard_y")
+    where = lambda probe, th: paths[f"{probe}/{theta_tag(th)}"]  # noqa: E731
+    reads = []
+
+    def counting(path):
+        reads.append(path)
+        return read_rollout(path)
+
+    def image_rows(doc, targets, frames_path, probes):
+        return pd.DataFrame([{"target": c, "probe": p, "psnr_fg": 40.0} for c in targets["case_name"] for p in probes])
+
+    monkeypatch.setattr(main, "read_rollout", counting)
+    monkeypatch.setattr(main, "render_metrics_rows", image_rows)
+    rows = cmaes_rows(docs, targets, where, None, ["standard_y"])
+    # t1: truth and the shared estimate; t2: truth and the two seeds' estimates
+    assert len(reads) == 5 and len(set(reads)) == 5
+    assert list(rows["seed"]) == [6401, 6401, 6402, 6402]
+    assert list(rows["video_loss"].iloc[:2]) == [0.5, 0.25] and rows["video_loss"].iloc[2:].isna().all()
+    monkeypatch.setattr(main, "read_rollout", read_rollout)
+    for seed, doc in docs.items():
+        alone = evaluate_method(doc, targets, where, ["standard_y"])
+        got = rows[rows["seed"] == seed].reset_index(drop=True)
+        pd.testing.assert_frame_equal(got[alone.columns], alone)
+    with pytest.raises(InputError, match="no seed"):
+        cmaes_rows({}, targets, where, None, ["standard_y"])

@@ -203,11 +203,11 @@ def test_shift_evaluation_reads_each_rollout_once_and_scores_as_each_method_alon
     import knockgs_core.experiments._main as main
     from knockgs_core.experiments import evaluate_method, evaluate_shift
     from knockgs_core.metrics import curve_metrics, joint_error_pct, trajectory_rmse
-    from knockgs_core.rollout import Rollout, read_rollout, theta_tag, write_rollout
+    from knockgs_core.rollout import read_rollout, theta_tag
 
-    rng = np.random.default_rng(5)
-    T, n_gs, n_fill = 6, 40, 5
-    x0 = rng.uniform(0.5, 1.5, size=(n_gs + n_fill, 3)).astype(np.float32)
+    from _rollouts import theta_rollouts
+
+    n_gs = 40
     targets = pd.DataFrame({"case_name": ["t1", "t2"], "E_scale": [0.8, 1.2], "density_scale": [1.1, 0.9]})
     estimates = {
         "fixed": {"predictions": [{"case_name": c, "E_scale": 1.0, "density_scale": 1.0} for c in ("t1", "t2")]},
@@ -217,14 +217,8 @@ def test_shift_evaluation_reads_each_rollout_once_and_scores_as_each_method_alon
                                   {"case_name": "t2", "E_scale": 1.25, "density_scale": 0.95},
                                   {"case_name": "t9", "E_scale": 3.0, "density_scale": 3.0}]},
     }
-    paths = {}
     thetas = {(1.0, 1.0), (0.82, 1.08), (0.7, 1.2), (1.25, 0.95), (0.8, 1.1), (1.2, 0.9)}
-    for th in sorted(thetas):
-        rate = rng.normal(scale=1e-3 * th[0] / th[1], size=(1, n_gs + n_fill, 3))
-        X = (x0[None] + np.arange(T)[:, None, None] * rate).astype(np.float32)
-        path = tmp_path / f"{theta_tag(th)}.parquet"
-        write_rollout(path, Rollout(X, None, {"n_gs": n_gs, "n_fill": n_fill, "export_times": list(range(T))}))
-        paths[f"duration_x_fine/{theta_tag(th)}"] = path
+    paths = theta_rollouts(tmp_path, thetas, "duration_x_fine", n_gs=n_gs)
     reads = []
 
     def counting(path):

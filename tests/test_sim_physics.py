@@ -669,3 +669,19 @@ def test_cuda_build_caps_the_registers_of_the_heavy_particle_kernels(tmp_path):
     assert {k for k, v in caps.items() if v is not None} == capped
     assert all(caps[k] == _kernels.CUDA_MAX_REGISTERS for k in capped)
     assert {"p2g", "p2g_prepare", "grid_update", "particle_stats"} <= set(caps)
+
+
+def test_the_initial_state_is_at_rest_in_its_reference_shape():
+    # set on the device: F the float64 identity, rotations the identity quaternion, u and C zero,
+    # v zero or the velocities given
+    rng = np.random.default_rng(3)
+    x = rng.uniform(0.5, 1.5, size=(257, 3)).astype(np.float32)
+    model = build_model(x, E=1e4, nu=0.3, rho=100.0, params=SimParams(n_grid=16, grid_lim=2.0, dt=1e-4), device="cpu")
+    v = rng.normal(size=(257, 3)).astype(np.float32)
+    for velocities, expected in ((None, np.zeros_like(v)), (v, v)):
+        s = make_state(model, x, velocities)
+        F = s.particle_F.numpy()
+        assert F.dtype == np.float64 and np.array_equal(F, np.broadcast_to(np.eye(3), (257, 3, 3)))
+        assert np.array_equal(s.particle_rot.numpy(), np.broadcast_to(np.float32([0, 0, 0, 1]), (257, 4)))
+        assert np.array_equal(s.particle_x0.numpy(), x) and not s.particle_u.numpy().any()
+        assert not s.particle_C.numpy().any() and np.array_equal(s.particle_v.numpy(), expected)
