@@ -13,13 +13,12 @@ the trajectory RMSE (100,000 particles sampled) and the curve metrics, each in b
 from __future__ import annotations
 
 import argparse
-import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
+from _timing import median_time
 from knockgs_core.metrics import curve_metrics, trajectory_rmse
 from knockgs_core.rollout import Rollout, read_rollout, write_rollout
 
@@ -51,15 +50,6 @@ def _former_curves(pred, target):
             "auc_abs_diff": float(abs(p.sum() - q.sum())), "final_abs_diff": float(abs(p[-1] - q[-1]))}
 
 
-def _median(fn, repeats):
-    times, out = [], None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times), out
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=121)
@@ -76,14 +66,14 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "rollout.parquet"
         write_rollout(path, Rollout(target, None, {"n_gs": args.gs, "n_fill": N - args.gs, "export_times": list(range(T))}))
-        t_read, ro = _median(lambda: read_rollout(path), args.repeats)
+        t_read, ro = median_time(lambda: read_rollout(path), args.repeats)
         assert np.array_equal(ro.positions, target)
         del ro
     P, X = pred[:, :args.gs], target[:, :args.gs]
-    t_rmse, rmse = _median(lambda: trajectory_rmse(P, X), args.repeats)
-    t_rmse0, rmse0 = _median(lambda: _former_rmse(P, X), args.repeats)
-    t_curve, curves = _median(lambda: curve_metrics(P, X), args.repeats)
-    t_curve0, curves0 = _median(lambda: _former_curves(P, X), args.repeats)
+    t_rmse, rmse = median_time(lambda: trajectory_rmse(P, X), args.repeats)
+    t_rmse0, rmse0 = median_time(lambda: _former_rmse(P, X), args.repeats)
+    t_curve, curves = median_time(lambda: curve_metrics(P, X), args.repeats)
+    t_curve0, curves0 = median_time(lambda: _former_curves(P, X), args.repeats)
     if rmse != rmse0 or curves != curves0:
         raise SystemExit(f"the metrics differ from the former formulas: {rmse} / {rmse0}, {curves} / {curves0}")
     print(f"{T} frames x {args.gs} of {N} particles, median of {args.repeats}; the same bits as the former formulas")

@@ -12,12 +12,11 @@ host arrays of identities and copied), whose state must equal today's.
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import numpy as np
 import warp as wp
 
+from _timing import median_time
 from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.rollout import _permuted, cell_order
@@ -37,15 +36,6 @@ def _former_state(model, x):
             wp.zeros((g_old,) * 3, dtype=wp.vec3, device=dev))
 
 
-def _median(fn, repeats):
-    times, out = [], None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times), out
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--object", default="pillow")
@@ -57,18 +47,18 @@ def main() -> None:
     contract = load_contract(args.object, args.profile)
     p = contract.sim
     r = args.repeats
-    t_read, ps = _median(lambda: load_particles(args.particles), r)
-    t_order, perm = _median(lambda: cell_order(ps, n_grid=p.n_grid, grid_lim=p.grid_lim), r)
+    t_read, ps = median_time(lambda: load_particles(args.particles), r)
+    t_order, perm = median_time(lambda: cell_order(ps, n_grid=p.n_grid, grid_lim=p.grid_lim), r)
     ps = _permuted(ps, perm)
-    t_probes, probes = _median(lambda: contract.resolve_probes(ps), r)
+    t_probes, probes = median_time(lambda: contract.resolve_probes(ps), r)
     probe = probes[contract.calibration_probe.name]
     n = len(ps.positions)
     scale = float(contract.probe_reference_particles) / n if contract.probe_reference_particles else 1.0
-    t_mat, (E, nu, rho) = _median(lambda: contract.particle_materials(ps, (1.0, 1.0)), r)
-    t_model, model = _median(lambda: build_model(ps.positions, E=E, nu=nu, rho=rho, params=p, volumes=ps.volumes,
+    t_mat, (E, nu, rho) = median_time(lambda: contract.particle_materials(ps, (1.0, 1.0)), r)
+    t_model, model = median_time(lambda: build_model(ps.positions, E=E, nu=nu, rho=rho, params=p, volumes=ps.volumes,
                                                  probe=probe, probe_force_scale=scale, device=args.device), r)
-    t_state, state = _median(lambda: make_state(model, ps.positions), r)
-    t_former, former = _median(lambda: _former_state(model, ps.positions), r)
+    t_state, state = median_time(lambda: make_state(model, ps.positions), r)
+    t_former, former = median_time(lambda: _former_state(model, ps.positions), r)
     for now, before in zip((state.particle_x0, state.particle_u, state.particle_v, state.particle_F, state.particle_C,
                             state.particle_rot), former):
         assert np.array_equal(now.numpy(), before.numpy())
