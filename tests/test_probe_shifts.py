@@ -241,6 +241,14 @@ def test_shift_evaluation_reads_each_rollout_once_and_scores_as_each_method_alon
             assert r.traj_rmse == trajectory_rmse(pred, truth)
             assert r.curve_rmse == curve_metrics(pred, truth)["curve_rmse"]
             assert r.joint_error_pct == joint_error_pct((r.E_hat, r.rho_hat), (r.E_true, r.rho_true))
+    # three threads score the targets side by side: the same rows in the same order, each file
+    # read as often
+    reads.clear()
+    pd.testing.assert_frame_equal(evaluate_shift(estimates, targets, where, ["duration_x_fine"], workers=3), ev)
+    assert len(reads) == 7 and len(set(reads)) == 6
+    # a target without an estimate is refused before any file is read
+    reads.clear()
     with pytest.raises(InputError, match="no estimate for target t2"):
         evaluate_shift({"short": {"predictions": estimates["near"]["predictions"][:1]}}, targets, where,
-                       ["duration_x_fine"])
+                       ["duration_x_fine"], workers=2)
+    assert reads == []

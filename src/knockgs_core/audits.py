@@ -26,6 +26,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 
 from ._long_format import POSITION_COLUMNS, check_rollout_meta, read_long_values, read_metadata
+from ._threads import ordered_map
 from .descriptors import FEATURE_NAMES
 from .errors import InputError
 
@@ -146,15 +147,20 @@ def _rollout_files(dirs: Sequence) -> list[Path]:
     return files
 
 
-def audit_nonfinite(rollout_dirs: Sequence, tables: Iterable) -> dict:
-    """Every rollout coordinate and every numeric table cell is finite."""
-    problems = []
+def audit_nonfinite(rollout_dirs: Sequence, tables: Iterable, *, workers: int = 1) -> dict:
+    """Every rollout coordinate and every numeric table cell is finite. The rollouts are read
+    by ``workers`` threads (:func:`knockgs_core._threads.ordered_map`; the same verdict for
+    any count)."""
     files = _rollout_files(rollout_dirs)
-    for f in files:
+
+    def rollout_problem(f) -> str | None:
         try:  # the long-format reader refuses non-finite values, naming the column
             read_long_values(f, POSITION_COLUMNS)
         except InputError as exc:
-            problems.append(f"{f}: non-finite {exc.field}" if "non-finite" in exc.message else f"{f}: {exc.message}")
+            return f"{f}: non-finite {exc.field}" if "non-finite" in exc.message else f"{f}: {exc.message}"
+        return None
+
+    problems = [msg for msg in ordered_map(rollout_problem, files, workers=workers) if msg is not None]
     n_tables = 0
     for f in tables:
         n_tables += 1
@@ -181,30 +187,31 @@ def audit_nonfinite(rollout_dirs: Sequence, tables: Iterable) -> dict:
     return {"passed": not problems, "rollouts_checked": len(files), "tables_checked": n_tables, "problems": problems}
 
 
-def audit_missing_frames(rollout_dirs: Sequence) -> dict:
-    """Every rollout has rows for all frames x particles and as many frames as its probe exports."""
-    problems = []
+def audit_missing_frames(rollout_dirs: Sequence, *, workers: int = 1) -> dict:
+    """Every rollout has rows for all frames x particles and as many frames as its probe exports.
+    The rollouts are read by ``workers`` threads (the same verdict for any count)."""
     files = _rollout_files(rollout_dirs)
-    for f in files:
+
+    def frames_problem(f) -> str | None:
         try:
             md = _rollout_meta(f)
             n_frames = md["probe"]["export"]["n_frames"]
             n = md["n_gs"] + md["n_fill"]
         except InputError as exc:
-            problems.append(f"{f}: {exc.field}: {exc.message}")
-            continue
+            return f"{f}: {exc.field}: {exc.message}"
         except (KeyError, TypeError):
-            problems.append(f"{f}: metadata.knockgs: no probe.export.n_frames, n_gs or n_fill")
-            continue
+            return f"{f}: metadata.knockgs: no probe.export.n_frames, n_gs or n_fill"
         try:
             t = pq.read_table(f, columns=["frame", "particle"])
         except Exception as exc:  # truncated or corrupted: ArrowInvalid, OSError
-            problems.append(f"{f}: unreadable ({type(exc).__name__}: {' '.join(str(exc).split())})")
-            continue
+            return f"{f}: unreadable ({type(exc).__name__}: {' '.join(str(exc).split())})"
         frames = t.column("frame").to_numpy()
         counts = np.bincount(frames, minlength=n_frames) if frames.size and frames.min() >= 0 else np.zeros(0, int)
         if len(counts) != n_frames or np.any(counts != n):
-            problems.append(f"{f}: expected {n_frames} frames x {n} particles, found frame counts {counts.tolist()[:8]}...")
+            return f"{f}: expected {n_frames} frames x {n} particles, found frame counts {counts.tolist()[:8]}..."
+        return None
+
+    problems = [msg for msg in ordered_map(frames_problem, files, workers=workers) if msg is not None]
     return {"passed": not problems, "rollouts_checked": len(files), "problems": problems}
 
 

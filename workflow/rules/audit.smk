@@ -66,6 +66,7 @@ rule audit_nonfinite:
         f"logs/{PROFILE}/audits/nonfinite.log",
     params:
         rollout_dirs=[f"{P}/rollouts/{o}" for o in OBJECTS],
+    threads: READ_THREADS
     script:
         "../scripts/audit.py"
 
@@ -81,6 +82,7 @@ rule audit_missing_frames:
         f"logs/{PROFILE}/audits/missing_frames.log",
     params:
         rollout_dirs=[f"{P}/rollouts/{o}" for o in OBJECTS],
+    threads: READ_THREADS
     script:
         "../scripts/audit.py"
 

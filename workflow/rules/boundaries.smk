@@ -184,6 +184,7 @@ rule boundary_evaluate:
         probes=lambda wc: [boundary_probe_b(wc.object)],
         rollouts=boundary_writeback_rollouts,
         labels=lambda wc: {"object": wc.object, "condition": wc.condition, "library": wc.library},
+    threads: READ_THREADS
     script:
         "../scripts/evaluate.py"
 
@@ -273,6 +274,7 @@ rule loo_evaluate:
         probes=lambda wc: [boundary_probe_b(wc.object)],
         rollouts=loo_writeback_rollouts,
         labels=lambda wc: {"object": wc.object, "condition": "leave_one_object_out", "library": "shared"},
+    threads: READ_THREADS
     script:
         "../scripts/evaluate.py"
 

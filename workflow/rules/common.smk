@@ -33,6 +33,10 @@ P = f"results/{PROFILE}"
 DEVICE = config["device"]
 DETERMINISTIC = config["deterministic"]  # the rollout jobs' bitwise-reproducible P2G (GPU)
 ON_GPU = DEVICE.startswith("cuda")
+# the paper profile's rollouts are large (0.2-0.9 GB each): the jobs that read many of them
+# (descriptors, evaluations, shift tables, audits) read them on threads; the same outputs for
+# any count (knockgs_core._threads.ordered_map)
+READ_THREADS = 8 if PROFILE == "paper" else 1
 OBJECTS = list(config["objects"])
 SPLIT = config["split"]
 METHODS = list(config["methods"])

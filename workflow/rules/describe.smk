@@ -1,10 +1,6 @@
 # Probe-A descriptors: the candidate library and the targets' queries (no labels).
 
 
-# the paper profile's rollouts are large (~0.5 GB each): their descriptors are read by threads
-DESCRIPTOR_THREADS = 8 if PROFILE == "paper" else 1
-
-
 rule library_descriptors:
     conda:
         "../envs/knockgs.yaml"
@@ -16,7 +12,7 @@ rule library_descriptors:
         f"logs/{PROFILE}/descriptors/{{object}}/library.log",
     params:
         rollouts=lambda wc: library_rollouts(wc.object),
-    threads: DESCRIPTOR_THREADS
+    threads: READ_THREADS
     script:
         "../scripts/library_descriptors.py"
 
@@ -33,6 +29,6 @@ rule query_descriptors:
     params:
         names=lambda wc: list(target_thetas(wc.split)),
         rollouts=query_rollouts,
-    threads: DESCRIPTOR_THREADS
+    threads: READ_THREADS
     script:
         "../scripts/query_descriptors.py"

@@ -16,5 +16,6 @@ rule evaluate:
         split=lambda wc: wc.split,
         rollouts=evaluation_rollouts,
         labels=lambda wc: {"object": wc.object, "method": wc.method},
+    threads: READ_THREADS
     script:
         "../scripts/evaluate.py"

@@ -51,6 +51,7 @@ rule duration_table:
         probe_a_rollouts=lambda wc: {theta_tag(th): eval_rollout(wc.object, calibration_probe(wc.object), th)
                                      for th in target_thetas().values()},
         targets=lambda wc: list(target_thetas()),
+    threads: READ_THREADS
     script:
         "../scripts/shift_table.py"
 
@@ -74,6 +75,7 @@ rule contact_table:
         methods=lambda wc: list(shift_estimates(wc.object)),
         rollouts=lambda wc: diag_rollouts(wc.object, SHIFTS["contact"], [SHIFTS["contact_target"]]),
         targets=[SHIFTS["contact_target"]],
+    threads: READ_THREADS
     script:
         "../scripts/shift_table.py"
 

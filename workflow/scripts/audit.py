@@ -16,9 +16,9 @@ if name == "leakage":
                                    sensitivity_grids=snakemake.input.sensitivity, frozen=p.frozen,
                                    passive_library_rollouts=p.passive_library)
 elif name == "nonfinite":
-    verdict = audits.audit_nonfinite(p.rollout_dirs, snakemake.input.tables)
+    verdict = audits.audit_nonfinite(p.rollout_dirs, snakemake.input.tables, workers=snakemake.threads)
 elif name == "missing_frames":
-    verdict = audits.audit_missing_frames(p.rollout_dirs)
+    verdict = audits.audit_missing_frames(p.rollout_dirs, workers=snakemake.threads)
 elif name == "rollout_metadata":
     objects = audits.rollout_expectations(p.objects, p.profile, p.rollout_dirs, snakemake.input.particles)
     verdict = audits.audit_rollout_metadata(objects)

@@ -13,7 +13,8 @@ p = snakemake.params
 with open(snakemake.input.estimate) as fh:
     est = json.load(fh)
 targets = load_targets(p.split, snakemake.input.targets)
-df = evaluate_method(est, targets, lambda probe, th: p.rollouts[f"{probe}/{theta_tag(th)}"], p.probes)
+df = evaluate_method(est, targets, lambda probe, th: p.rollouts[f"{probe}/{theta_tag(th)}"], p.probes,
+                     workers=snakemake.threads)
 for i, (key, value) in enumerate(p.labels.items()):
     df.insert(i, key, value)
 write_text(snakemake.output.table, df.to_csv(index=False, float_format="%.10g", lineterminator="\n"))

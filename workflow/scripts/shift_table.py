@@ -3,6 +3,7 @@ re-simulated under the shift probes, against the targets' rollouts under the sam
 import json
 import sys
 
+from knockgs_core._threads import ordered_map
 from knockgs_core.contract import load_targets
 from knockgs_core.experiments import contact_table, duration_table, evaluate_shift, protocol_distance, shift_note
 from knockgs_core.reporting import write_table
@@ -17,18 +18,21 @@ for m, path in zip(p.methods, snakemake.input.estimates):
         estimates[m] = json.load(fh)
 targets = load_targets(p.split, snakemake.input.targets)
 targets = targets[targets["case_name"].isin(p.targets)].reset_index(drop=True)
-evals = evaluate_shift(estimates, targets, lambda probe, th: p.rollouts[f"{probe}/{theta_tag(th)}"], p.probes)
+evals = evaluate_shift(estimates, targets, lambda probe, th: p.rollouts[f"{probe}/{theta_tag(th)}"], p.probes,
+                       workers=snakemake.threads)
 if p.kind == "duration":
     table = duration_table(evals, p.methods)
-    pairs = []
-    for rec in targets.itertuples(index=False):
-        th = (float(rec.E_scale), float(rec.density_scale))
-        a = read_rollout(p.probe_a_rollouts[theta_tag(th)])
-        b = read_rollout(p.rollouts[f"{p.probes[0]}/{theta_tag(th)}"])
+
+    def protocol_pair(rec):
+        """A target's GS-particle trajectories under Probe A and the shift probe, with their frame steps."""
+        tag = theta_tag((float(rec.E_scale), float(rec.density_scale)))
+        a = read_rollout(p.probe_a_rollouts[tag])
+        b = read_rollout(p.rollouts[f"{p.probes[0]}/{tag}"])
         n = int(a.meta["n_gs"])
-        pairs.append((a.positions[:, :n], a.meta["probe"]["export"]["frame_dt"], b.positions[:, :n],
-                      b.meta["probe"]["export"]["frame_dt"]))
-    dist = protocol_distance(pairs)
+        return (a.positions[:, :n], a.meta["probe"]["export"]["frame_dt"], b.positions[:, :n],
+                b.meta["probe"]["export"]["frame_dt"])
+
+    dist = protocol_distance(ordered_map(protocol_pair, list(targets.itertuples(index=False)), workers=snakemake.threads))
     print(f"protocol distance: {dist}", file=log)
     table["protocol_distance_mean"] = dist["mean"]
     table["protocol_distance_sd"] = dist["sd"]

@@ -19,6 +19,7 @@ from ..descriptors import FEATURE_NAMES, descriptor
 from ..errors import InputError
 from ..metrics import curve_differences, joint_error_pct, rms_displacement_curve, trajectory_rmse
 from ..rollout import read_rollout, theta_tag
+from .._threads import ordered_map
 
 __all__ = [
     "library_table",
@@ -50,16 +51,10 @@ def _descriptor_of(path) -> np.ndarray:
 
 
 def _descriptors_of(paths, workers: int) -> list[np.ndarray]:
-    """The descriptors of rollout files ``paths``, in order, read by ``workers`` threads (the
-    Parquet reads and most array work release the GIL); the first failing file's error is
-    raised, as a serial loop would."""
-    paths = list(paths)
-    if workers <= 1 or len(paths) <= 1:
-        return [_descriptor_of(p) for p in paths]
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(max_workers=min(int(workers), len(paths))) as pool:
-        return list(pool.map(_descriptor_of, paths))
+    """The descriptors of rollout files ``paths``, in order, read by ``workers`` threads
+    (:func:`knockgs_core._threads.ordered_map`); the first failing file's error is raised, as
+    a serial loop would."""
+    return ordered_map(_descriptor_of, paths, workers=int(workers))
 
 
 def library_table(candidates: pd.DataFrame, rollouts: Mapping[str, str], *, workers: int = 1) -> pd.DataFrame:
@@ -150,14 +145,16 @@ def evaluate_method(
     *,
     max_particles: int = 100_000,
     seed: int = 42,
+    workers: int = 1,
 ) -> pd.DataFrame:
     """Frozen write-back evaluation: one row per (target, probe) with the joint parameter
     error, trajectory RMSE over Gaussian-associated particles and curve metrics.
 
     ``rollout_path(probe, theta) -> path`` locates rollouts; a target's truth is the rollout
-    at its hidden theta. One method's :func:`evaluate_methods`.
+    at its hidden theta. One method's :func:`evaluate_methods` (``workers`` threads).
     """
-    return evaluate_methods({"": estimate}, targets, rollout_path, probes, max_particles=max_particles, seed=seed)[""]
+    return evaluate_methods({"": estimate}, targets, rollout_path, probes, max_particles=max_particles, seed=seed,
+                            workers=workers)[""]
 
 
 def evaluate_methods(
@@ -168,18 +165,26 @@ def evaluate_methods(
     *,
     max_particles: int = 100_000,
     seed: int = 42,
+    workers: int = 1,
 ) -> dict[str, pd.DataFrame]:
     """:func:`evaluate_method` of several methods' estimates (method -> estimates document)
     at once: each target's truth under a probe is read once for all methods, with its RMS
     displacement curve, and a prediction that several methods share (the same theta) is read
     once. Returns method -> its rows, the same as :func:`evaluate_method` of it alone.
+
+    ``workers`` threads score the targets side by side (:func:`knockgs_core._threads.ordered_map`;
+    each holds a truth and a prediction in memory at a time); the rows are the same, in the
+    same order, for any count. Every target's estimates are checked before a file is read.
     """
     thetas = {m: estimate_thetas(est) for m, est in estimates.items()}
-    rows: dict[str, list] = {m: [] for m in estimates}
-    for rec in targets.itertuples(index=False):
+    records = list(targets.itertuples(index=False))
+    for rec in records:
         for m, th in thetas.items():
             if rec.case_name not in th:
                 raise InputError("estimates", "predictions", f"no estimate for target {rec.case_name}")
+
+    def target_rows(rec) -> dict[str, list]:
+        rows: dict[str, list] = {m: [] for m in thetas}
         truth = (float(rec.E_scale), float(rec.density_scale))
         errors = {m: joint_error_pct(th[rec.case_name], truth) for m, th in thetas.items()}
         for probe in probes:
@@ -210,7 +215,10 @@ def evaluate_methods(
                     **by_path[path],
                 })
             del true, X
-    return {m: pd.DataFrame(r) for m, r in rows.items()}
+        return rows
+
+    per_target = ordered_map(target_rows, records, workers=workers)
+    return {m: pd.DataFrame([row for rows in per_target for row in rows[m]]) for m in thetas}
 
 
 def write_json(obj, path) -> None:

@@ -122,17 +122,18 @@ def shift_note(table: pd.DataFrame, *, kind: str, distance: Mapping | None = Non
 
 
 def evaluate_shift(estimates: Mapping[str, Mapping], targets: pd.DataFrame, rollout_path: Callable,
-                   probes: Sequence[str]) -> pd.DataFrame:
+                   probes: Sequence[str], *, workers: int = 1) -> pd.DataFrame:
     """Write-back rows of every method's frozen estimates (``estimates``: method -> estimate
     document) under ``probes``, for the targets in ``targets``; a ``method`` column first.
-    Each target's rollout is read once for all methods (:func:`evaluate_methods`)."""
+    Each target's rollout is read once for all methods (:func:`evaluate_methods`, ``workers``
+    threads)."""
     from ._main import evaluate_methods
 
     wanted = set(targets["case_name"])
     chosen = {m: {**est, "predictions": [p for p in est["predictions"] if p["case_name"] in wanted]}
               for m, est in estimates.items()}
     frames = []
-    for m, df in evaluate_methods(chosen, targets, rollout_path, probes).items():
+    for m, df in evaluate_methods(chosen, targets, rollout_path, probes, workers=workers).items():
         df.insert(0, "method", m)
         frames.append(df)
     return pd.concat(frames, ignore_index=True)
