@@ -14,6 +14,7 @@ or in the asset's (``--order asset``).
     python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells cells+graph --resort 1 10 --slots 0 16384
     python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells+graph --fuse off on
     python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells cells+graph --line 1 3
+    python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells+graph --particles OUT/pillow.npz
 """
 
 from __future__ import annotations
@@ -34,6 +35,8 @@ def main() -> None:
     ap.add_argument("--p2g", nargs="+", default=["scatter", "cells", "cells+graph"],
                     help="P2G variants of MPMSolver to profile (+graph: substeps replayed as CUDA graphs)")
     ap.add_argument("--order", choices=["cell", "asset"], default="cell")
+    ap.add_argument("--particles", help="the object's particles .npz: read where it exists, else built and written "
+                                        "there (processes comparing code versions then share one asset)")
     ap.add_argument("--slots", type=int, nargs="+", default=[0],
                     help="caps on the chunk-sum threads (MPMSolver.max_chunk_slots; 0: none), each profiled")
     ap.add_argument("--chunk", type=int, nargs="+", default=[32],
@@ -75,12 +78,19 @@ def main() -> None:
         for name in particle_kernels:
             setattr(_kernels, name, wp.kernel(getattr(_kernels, name).func, cuda_max_registers=args.max_registers))
 
-    from knockgs_core.assets import build_asset
+    from pathlib import Path
+
+    from knockgs_core.assets import build_asset, load_particles, save_particles
     from knockgs_core.contract import load_contract
     from knockgs_core.sim import MPMSolver, build_model, make_state
 
     contract = load_contract(args.object, args.profile)
-    ps = build_asset(contract).particles
+    if args.particles and Path(args.particles).exists():
+        ps = load_particles(args.particles, contract=contract)
+    else:
+        ps = build_asset(contract).particles
+        if args.particles:
+            save_particles(ps, args.particles, contract=contract)
     if args.order == "cell":
         from knockgs_core.rollout import _permuted, cell_order
 
