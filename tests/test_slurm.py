@@ -145,6 +145,29 @@ def _gpu_rules() -> set[str]:
     return rules
 
 
+def _device_rules() -> set[str]:
+    """The rules that hand the profile's device to their script (``device=DEVICE``): they
+    simulate or render on it."""
+    rules = set()
+    for smk in (ROOT / "workflow" / "rules").glob("*.smk"):
+        for block in re.split(r"^(?=(?:rule|checkpoint) )", smk.read_text(), flags=re.M):
+            head = re.match(r"(?:rule|checkpoint) (\w+):", block)
+            if head and re.search(r"^\s+device=DEVICE,$", block, flags=re.M):
+                rules.add(head.group(1))
+    return rules
+
+
+def test_every_rule_that_runs_on_the_device_requests_a_gpu_and_goes_to_the_gpu_partition():
+    # a rule that simulates or renders on the profile's device must hold a GPU of the run's
+    # budget (--resources gpu=N; else it waits on a card other jobs hold, or starts beside N
+    # GPU jobs) and go to the GPU partition on a cluster (else it meets no GPU there)
+    device_rules = _device_rules()
+    assert {"rollout_library", "render", "discrepancy_run", "passive_protocol", "ladder_observe_targets"} <= device_rules
+    assert device_rules == _gpu_rules()
+    profile = yaml.safe_load((ROOT / "profiles/slurm-gpu/config.yaml").read_text())
+    assert set(profile["set-resources"]) == device_rules
+
+
 def _dry_run_jobs(stdout: str) -> dict[str, list[str]]:
     """rule -> the ``resources:`` lines of its planned jobs in a dry run's output."""
     jobs: dict[str, list[str]] = {}

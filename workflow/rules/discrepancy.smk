@@ -124,6 +124,8 @@ rule discrepancy_case:
         object=DISCREPANCY_OBJECT,
         profile=DISCREPANCY_RES,
         device=DEVICE,
+    resources:
+        gpu=1 if ON_GPU else 0,
     threads: 1
     script:
         "../scripts/discrepancy_case.py"
@@ -154,6 +156,8 @@ rule discrepancy_run:
         probe=_DISCREPANCY_CONTRACT.roles["calibration"],
         heldout_probe=_DISCREPANCY_CONTRACT.roles["heldout"][0],
         library=DISCREPANCY_LIBRARY,
+    resources:
+        gpu=1 if ON_GPU else 0,
     threads: 1
     script:
         "../scripts/discrepancy_run.py"

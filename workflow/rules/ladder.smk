@@ -46,6 +46,8 @@ rule ladder_observe_library:
         height=RENDER["height"],
         settings=LADDER,
         device=DEVICE,
+    resources:
+        gpu=1 if ON_GPU else 0,
     script:
         "../scripts/ladder_observe.py"
 
@@ -72,6 +74,8 @@ rule ladder_observe_targets:
         height=RENDER["height"],
         settings=LADDER,
         device=DEVICE,
+    resources:
+        gpu=1 if ON_GPU else 0,
     script:
         "../scripts/ladder_observe.py"
 

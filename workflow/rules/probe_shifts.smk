@@ -95,6 +95,8 @@ rule passive_protocol:
         profile=PROFILE,
         object=lambda wc: wc.object,
         device=DEVICE,
+    resources:
+        gpu=1 if ON_GPU else 0,
     script:
         "../scripts/passive_protocol.py"
 
