@@ -250,6 +250,49 @@ def test_rows_in_the_writers_order_read_as_shuffled_rows(tmp_path, rng):
     assert err.value.field == "frame"
 
 
+def test_canonical_files_are_read_row_group_by_row_group_and_others_as_before(tmp_path, rng, monkeypatch):
+    # a file in the writers' order is read a row group at a time into the result (row groups
+    # of 7 rows cut frames anywhere), never as one whole table; a file with no statistics, a
+    # row group out of order or a null takes the general path: the same array, or its error
+    x = random_rollout(rng)
+    n_t, n_p, _ = x.shape
+    frame = np.repeat(np.arange(n_t, dtype=np.int32), n_p)
+    particle = np.tile(np.arange(n_p, dtype=np.int32), n_t)
+    xyz = x.reshape(-1, 3)
+
+    def write(name, order=slice(None), **options):
+        cols = {"frame": frame[order], "particle": particle[order], "x": xyz[order, 0], "y": xyz[order, 1],
+                "z": xyz[order, 2]}
+        pq.write_table(pa.table(cols), tmp_path / name, row_group_size=7, **options)
+        return tmp_path / name
+
+    swap = np.arange(frame.size)
+    swap[[3, 4]] = swap[[4, 3]]  # one pair of rows out of order, inside a row group
+    files = {"canonical": write("canonical.parquet"), "no_stats": write("no_stats.parquet", write_statistics=False),
+             "swapped": write("swapped.parquet", swap)}
+    assert pq.ParquetFile(files["canonical"]).metadata.num_row_groups == -(-frame.size // 7)
+    general = pq.read_table
+    whole_reads = []
+    monkeypatch.setattr(pq, "read_table", lambda *a, **k: whole_reads.append(a[0]) or general(*a, **k))
+    for name, path in files.items():
+        whole_reads.clear()
+        got = read_positions(path)
+        assert got.dtype == np.float32 and np.array_equal(got, x), name
+        assert whole_reads == ([] if name == "canonical" else [str(path)]), name
+    nulls = pa.table({"frame": frame, "particle": particle, "x": pa.array(xyz[:, 0], mask=np.arange(frame.size) == 9),
+                      "y": xyz[:, 1], "z": xyz[:, 2]})
+    pq.write_table(nulls, tmp_path / "null.parquet", row_group_size=7)
+    with pytest.raises(InputError, match="1 null values") as err:
+        read_positions(tmp_path / "null.parquet")
+    assert err.value.field == "x"
+    short = pa.table({"frame": frame[:-1], "particle": particle[:-1], "x": xyz[:-1, 0], "y": xyz[:-1, 1],
+                      "z": xyz[:-1, 2]})
+    pq.write_table(short, tmp_path / "short.parquet", row_group_size=7)  # the last frame lacks a particle
+    with pytest.raises(InputError) as err:
+        read_positions(tmp_path / "short.parquet")
+    assert err.value.field == "particle"
+
+
 def test_descriptor_table(tmp_path, rng):
     a, b = random_rollout(rng), translating_pair()
     path = write_rollout(tmp_path / "a.parquet", a)

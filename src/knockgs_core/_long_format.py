@@ -144,6 +144,13 @@ def read_long_values(
         if col not in schema.names:
             raise InputError(source, col, "missing column")
     try:
+        streamed = _read_canonical(pq.ParquetFile(source), columns)
+    except Exception as exc:  # a truncated or corrupted file: ArrowInvalid, OSError
+        raise InputError(source, "file", f"cannot read Parquet file: {exc}") from None
+    if streamed is not None:
+        _check_finite(source, streamed, columns)
+        return _subset(source, streamed, np.arange(streamed.shape[1]), particles)
+    try:
         table = pq.read_table(source, columns=list(wanted_cols))
     except Exception as exc:  # a truncated or corrupted file: ArrowInvalid, OSError
         raise InputError(source, "file", f"cannot read Parquet file: {exc}") from None
@@ -209,6 +216,55 @@ def read_long_values(
         t = int(np.argmax(differ))
         raise InputError(source, "particle", f"frame {t} holds a different particle set than frame 0")
     return _subset(source, values.reshape(n_t, n_p, len(columns)), ids[0], particles)
+
+
+def _particles_per_frame(meta) -> int | None:
+    """The particle count a file in the writers' canonical order has per frame, from the
+    ``particle`` column's row-group statistics (its largest id + 1), or None where a row group
+    has none."""
+    j = meta.schema.names.index("particle")
+    top = -1
+    for g in range(meta.num_row_groups):
+        stats = meta.row_group(g).column(j).statistics
+        if stats is None or not stats.has_min_max:
+            return None
+        top = max(top, int(stats.max))
+    return top + 1 if top >= 0 else None
+
+
+def _read_canonical(pf, columns: Sequence[str]) -> np.ndarray | None:
+    """The values [T, N, C] (float32) of a Parquet file ``pf`` whose rows are in the writers'
+    canonical order (frame-major, particles 0..N-1 in every frame), read row group by row group
+    into the result: at most one row group beside it in memory, not the whole table and its
+    copies. None where the file is not so (another order, a gap, nulls, other types, no
+    statistics): the caller's general path then reads it and names what is wrong. Finiteness
+    is the caller's to check."""
+    import pyarrow as pa
+
+    meta = pf.metadata
+    types = {f.name: f.type for f in pf.schema_arrow}
+    if not all(pa.types.is_integer(types[k]) for k in ("frame", "particle")) or not all(
+            pa.types.is_floating(types[c]) or pa.types.is_integer(types[c]) for c in columns):
+        return None
+    n_rows, n = meta.num_rows, _particles_per_frame(meta)
+    if not n_rows or not n or n_rows % n:
+        return None
+    out = np.empty((n_rows // n, n, len(columns)), dtype=np.float32)
+    flat = out.reshape(n_rows, len(columns))
+    r0 = 0
+    for g in range(meta.num_row_groups):
+        t = pf.read_row_group(g, columns=["frame", "particle", *columns])
+        if any(t.column(c).null_count for c in t.column_names):
+            return None
+        m = t.num_rows
+        rows = np.arange(r0, r0 + m, dtype=np.int64)
+        if not (np.array_equal(t.column("particle").to_numpy(), rows % n)
+                and np.array_equal(t.column("frame").to_numpy(), rows // n)):
+            return None
+        for k, c in enumerate(columns):
+            flat[r0:r0 + m, k] = t.column(c).to_numpy()
+        r0 += m
+    return out if r0 == n_rows else None
 
 
 def _check_finite(source, values: np.ndarray, columns: Sequence[str]) -> None:

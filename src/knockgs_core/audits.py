@@ -201,12 +201,20 @@ def audit_missing_frames(rollout_dirs: Sequence, *, workers: int = 1) -> dict:
             return f"{f}: {exc.field}: {exc.message}"
         except (KeyError, TypeError):
             return f"{f}: metadata.knockgs: no probe.export.n_frames, n_gs or n_fill"
-        try:
-            t = pq.read_table(f, columns=["frame", "particle"])
+        try:  # the frame column a row group at a time: its rows per frame, not the whole column in memory
+            pf = pq.ParquetFile(f)
+            counts = np.zeros(n_frames, dtype=np.int64)
+            for g in range(pf.metadata.num_row_groups):
+                frames = pf.read_row_group(g, columns=["frame"]).column("frame").to_numpy()
+                if frames.size and frames.min() < 0:
+                    counts = np.zeros(0, dtype=np.int64)
+                    break
+                got = np.bincount(frames)
+                if got.size > counts.size:
+                    counts = np.pad(counts, (0, got.size - counts.size))
+                counts[:got.size] += got
         except Exception as exc:  # truncated or corrupted: ArrowInvalid, OSError
             return f"{f}: unreadable ({type(exc).__name__}: {' '.join(str(exc).split())})"
-        frames = t.column("frame").to_numpy()
-        counts = np.bincount(frames, minlength=n_frames) if frames.size and frames.min() >= 0 else np.zeros(0, int)
         if len(counts) != n_frames or np.any(counts != n):
             return f"{f}: expected {n_frames} frames x {n} particles, found frame counts {counts.tolist()[:8]}..."
         return None

@@ -66,6 +66,8 @@ rule audit_nonfinite:
         f"logs/{PROFILE}/audits/nonfinite.log",
     params:
         rollout_dirs=[f"{P}/rollouts/{o}" for o in OBJECTS],
+    resources:
+        mem_mb=READ_MEM_MB,
     threads: READ_THREADS
     script:
         "../scripts/audit.py"
@@ -82,6 +84,8 @@ rule audit_missing_frames:
         f"logs/{PROFILE}/audits/missing_frames.log",
     params:
         rollout_dirs=[f"{P}/rollouts/{o}" for o in OBJECTS],
+    resources:
+        mem_mb=READ_MEM_MB,
     threads: READ_THREADS
     script:
         "../scripts/audit.py"

@@ -184,6 +184,8 @@ rule boundary_evaluate:
         probes=lambda wc: [boundary_probe_b(wc.object)],
         rollouts=boundary_writeback_rollouts,
         labels=lambda wc: {"object": wc.object, "condition": wc.condition, "library": wc.library},
+    resources:
+        mem_mb=READ_MEM_MB,
     threads: READ_THREADS
     script:
         "../scripts/evaluate.py"
@@ -274,6 +276,8 @@ rule loo_evaluate:
         probes=lambda wc: [boundary_probe_b(wc.object)],
         rollouts=loo_writeback_rollouts,
         labels=lambda wc: {"object": wc.object, "condition": "leave_one_object_out", "library": "shared"},
+    resources:
+        mem_mb=READ_MEM_MB,
     threads: READ_THREADS
     script:
         "../scripts/evaluate.py"

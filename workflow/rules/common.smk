@@ -37,6 +37,10 @@ ON_GPU = DEVICE.startswith("cuda")
 # (descriptors, evaluations, shift tables, audits) read them on threads; the same outputs for
 # any count (knockgs_core._threads.ordered_map)
 READ_THREADS = 8 if PROFILE == "paper" else 1
+# their memory: a 121-frame paper-scale rollout held with its prediction and scored takes ~3 GB a
+# thread, a read alone ~1.2 GB (benchmarks/reading_memory_bench.py); the duration table's five
+# targets on threads ~15 GB
+READ_MEM_MB = 16000 if PROFILE == "paper" else 2000
 OBJECTS = list(config["objects"])
 SPLIT = config["split"]
 METHODS = list(config["methods"])

@@ -12,6 +12,8 @@ rule library_descriptors:
         f"logs/{PROFILE}/descriptors/{{object}}/library.log",
     params:
         rollouts=lambda wc: library_rollouts(wc.object),
+    resources:
+        mem_mb=READ_MEM_MB,
     threads: READ_THREADS
     script:
         "../scripts/library_descriptors.py"
@@ -29,6 +31,8 @@ rule query_descriptors:
     params:
         names=lambda wc: list(target_thetas(wc.split)),
         rollouts=query_rollouts,
+    resources:
+        mem_mb=READ_MEM_MB,
     threads: READ_THREADS
     script:
         "../scripts/query_descriptors.py"

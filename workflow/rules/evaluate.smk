@@ -16,6 +16,8 @@ rule evaluate:
         split=lambda wc: wc.split,
         rollouts=evaluation_rollouts,
         labels=lambda wc: {"object": wc.object, "method": wc.method},
+    resources:
+        mem_mb=READ_MEM_MB,
     threads: READ_THREADS
     script:
         "../scripts/evaluate.py"

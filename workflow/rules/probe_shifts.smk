@@ -51,6 +51,8 @@ rule duration_table:
         probe_a_rollouts=lambda wc: {theta_tag(th): eval_rollout(wc.object, calibration_probe(wc.object), th)
                                      for th in target_thetas().values()},
         targets=lambda wc: list(target_thetas()),
+    resources:
+        mem_mb=READ_MEM_MB,
     threads: READ_THREADS
     script:
         "../scripts/shift_table.py"
@@ -75,6 +77,8 @@ rule contact_table:
         methods=lambda wc: list(shift_estimates(wc.object)),
         rollouts=lambda wc: diag_rollouts(wc.object, SHIFTS["contact"], [SHIFTS["contact_target"]]),
         targets=[SHIFTS["contact_target"]],
+    resources:
+        mem_mb=READ_MEM_MB,
     threads: READ_THREADS
     script:
         "../scripts/shift_table.py"
