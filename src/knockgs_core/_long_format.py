@@ -144,7 +144,8 @@ def read_long_values(
         if col not in schema.names:
             raise InputError(source, col, "missing column")
     try:
-        streamed = _read_canonical(pq.ParquetFile(source), columns)
+        with pq.ParquetFile(source) as pf:
+            streamed = _read_canonical(pf, columns)
     except Exception as exc:  # a truncated or corrupted file: ArrowInvalid, OSError
         raise InputError(source, "file", f"cannot read Parquet file: {exc}") from None
     if streamed is not None:

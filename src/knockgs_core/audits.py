@@ -202,17 +202,17 @@ def audit_missing_frames(rollout_dirs: Sequence, *, workers: int = 1) -> dict:
         except (KeyError, TypeError):
             return f"{f}: metadata.knockgs: no probe.export.n_frames, n_gs or n_fill"
         try:  # the frame column a row group at a time: its rows per frame, not the whole column in memory
-            pf = pq.ParquetFile(f)
-            counts = np.zeros(n_frames, dtype=np.int64)
-            for g in range(pf.metadata.num_row_groups):
-                frames = pf.read_row_group(g, columns=["frame"]).column("frame").to_numpy()
-                if frames.size and frames.min() < 0:
-                    counts = np.zeros(0, dtype=np.int64)
-                    break
-                got = np.bincount(frames)
-                if got.size > counts.size:
-                    counts = np.pad(counts, (0, got.size - counts.size))
-                counts[:got.size] += got
+            with pq.ParquetFile(f) as pf:
+                counts = np.zeros(n_frames, dtype=np.int64)
+                for g in range(pf.metadata.num_row_groups):
+                    frames = pf.read_row_group(g, columns=["frame"]).column("frame").to_numpy()
+                    if frames.size and frames.min() < 0:
+                        counts = np.zeros(0, dtype=np.int64)
+                        break
+                    got = np.bincount(frames)
+                    if got.size > counts.size:
+                        counts = np.pad(counts, (0, got.size - counts.size))
+                    counts[:got.size] += got
         except Exception as exc:  # truncated or corrupted: ArrowInvalid, OSError
             return f"{f}: unreadable ({type(exc).__name__}: {' '.join(str(exc).split())})"
         if len(counts) != n_frames or np.any(counts != n):
