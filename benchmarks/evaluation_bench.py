@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from _synthetic import sway, swaying_cloud
 from _timing import median_time
 from knockgs_core.metrics import curve_metrics, trajectory_rmse
 from knockgs_core.rollout import Rollout, read_rollout, write_rollout
@@ -59,9 +60,8 @@ def main() -> None:
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     T, N = args.frames, args.particles
-    x0 = rng.uniform(0.5, 1.5, size=(N, 3)).astype(np.float32)
-    wave = np.sin(np.linspace(0.0, 6.0, T, dtype=np.float32))[:, None, None]
-    target = x0[None] + 0.02 * wave * rng.uniform(-1, 1, size=(1, N, 3)).astype(np.float32)
+    x0, wave = swaying_cloud(rng, T, N)
+    target = sway(rng, x0, wave)
     pred = (target + 1e-4 * rng.standard_normal(size=(T, N, 3))).astype(np.float32)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "rollout.parquet"

@@ -11,6 +11,7 @@ process's peak resident memory (``VmHWM`` of ``/proc/self/status``: this process
 those rules comes from these numbers.
 
     python3 benchmarks/reading_memory_bench.py [--targets 4] [--workers 1 2 4] [--frames 121] [--dir DIR]
+    python3 benchmarks/reading_memory_bench.py --targets 1 --jobs read table
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from _synthetic import sway, swaying_cloud
 
 CHILD = r"""
 import json, sys, time
@@ -39,8 +42,14 @@ if job == "evaluate":
     where = lambda probe, th: f"{folder}/{'truth' if th[1] == 1.0 else 'pred'}{int(th[0]) - 1}.parquet"
     rows = evaluate_methods({"a": est, "b": est}, targets, where, ["p"], workers=workers)
     assert len(rows["a"]) == n
-else:
+elif job == "audit":
     assert audit_nonfinite([folder], [], workers=workers)["passed"]
+elif job == "read":  # one rollout file, as every reader of rollouts reads it
+    from knockgs_core.rollout import read_rollout
+    assert read_rollout(f"{folder}/truth0.parquet").positions.size
+else:  # "table": Arrow's whole table of the same file, for scale
+    import pyarrow.parquet as pq
+    assert pq.read_table(f"{folder}/truth0.parquet").num_rows
 peak_kb = next(int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("VmHWM:"))
 print(json.dumps({"seconds": time.perf_counter() - t0, "peak_gb": peak_kb / 2**20}))
 """
@@ -54,18 +63,20 @@ def main() -> None:
     ap.add_argument("--particles", type=int, default=695_881)
     ap.add_argument("--gs", type=int, default=584_000)
     ap.add_argument("--dir", help="folder for the synthetic rollouts (default: a temporary one)")
+    ap.add_argument("--jobs", nargs="+", choices=["evaluate", "audit", "read", "table"], default=["evaluate", "audit"],
+                    help="what each fresh process does: score the targets, audit the files, read one file, or read "
+                         "one file as Arrow's whole table (read and table take one thread)")
     args = ap.parse_args()
     from knockgs_core.rollout import Rollout, write_rollout
 
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         rng = np.random.default_rng(0)
         T, N = args.frames, args.particles
-        x0 = rng.uniform(0.5, 1.5, size=(N, 3)).astype(np.float32)
-        wave = np.sin(np.linspace(0.0, 6.0, T, dtype=np.float32))[:, None, None]
+        x0, wave = swaying_cloud(rng, T, N)
         meta = {"n_gs": args.gs, "n_fill": N - args.gs, "export_times": list(range(T))}
         t0 = time.perf_counter()
         for i in range(args.targets):
-            truth = x0[None] + 0.02 * wave * rng.uniform(-1, 1, size=(1, N, 3)).astype(np.float32)
+            truth = sway(rng, x0, wave)
             write_rollout(Path(tmp) / f"truth{i}.parquet", Rollout(truth, None, meta))
             pred = truth + np.float32(1e-4) * wave
             write_rollout(Path(tmp) / f"pred{i}.parquet", Rollout(pred, None, meta))
@@ -75,8 +86,8 @@ def main() -> None:
               f"{time.perf_counter() - t0:.0f} s")
         print("| job | threads | peak resident memory [GB] | seconds |")
         print("|---|---:|---:|---:|")
-        for job in ("evaluate", "audit"):
-            for w in args.workers:
+        for job in args.jobs:
+            for w in (args.workers if job in ("evaluate", "audit") else [1]):
                 out = subprocess.run([sys.executable, "-c", CHILD, job, tmp, str(w), str(args.targets)],
                                      capture_output=True, text=True)
                 if out.returncode < 0:  # the kernel's OOM killer, typically

@@ -209,10 +209,8 @@ def audit_missing_frames(rollout_dirs: Sequence, *, workers: int = 1) -> dict:
                     if frames.size and frames.min() < 0:
                         counts = np.zeros(0, dtype=np.int64)
                         break
-                    got = np.bincount(frames)
-                    if got.size > counts.size:
-                        counts = np.pad(counts, (0, got.size - counts.size))
-                    counts[:got.size] += got
+                    got = np.bincount(frames, minlength=counts.size)
+                    counts = np.pad(counts, (0, got.size - counts.size)) + got
         except Exception as exc:  # truncated or corrupted: ArrowInvalid, OSError
             return f"{f}: unreadable ({type(exc).__name__}: {' '.join(str(exc).split())})"
         if len(counts) != n_frames or np.any(counts != n):
