@@ -15,6 +15,7 @@ or in the asset's (``--order asset``).
     python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells+graph --fuse off on
     python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells cells+graph --line 1 3
     python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells+graph --particles OUT/pillow.npz
+    python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells cells+graph --sums list windows
 """
 
 from __future__ import annotations
@@ -42,13 +43,16 @@ def main() -> None:
     ap.add_argument("--chunk", type=int, nargs="+", default=[32],
                     help="most particles a chunk of the P2G by cells (MPMSolver.cell_chunk), each profiled")
     ap.add_argument("--fuse", nargs="+", choices=["auto", "on", "off"], default=["auto"],
-                    help="G2P fused with the next substep's per-particle P2G half (MPMSolver(fuse=...); on: graphs and "
+                    help="G2P fused with the next substep's per-particle P2G half (MPMSolver(fuse=...); on: "
                          "the P2G by cells only), each profiled")
     ap.add_argument("--resort", type=int, nargs="+", default=[10],
                     help="intervals of the P2G by cells' sort in substeps (MPMSolver.resort_every), each profiled")
     ap.add_argument("--line", type=int, nargs="+", choices=[1, 3], default=[None],
                     help="stencil nodes a thread of the chunk sums sums at once (MPMSolver.node_line; default: the "
                          "solver's), each profiled")
+    ap.add_argument("--sums", nargs="+", choices=["windows", "list"], default=[None],
+                    help="how the P2G by cells sums its chunks (MPMSolver.cell_sums; default: the solver's), each "
+                         "profiled")
     ap.add_argument("--deterministic", nargs="+", choices=["on", "off"], default=["off"],
                     help="the bitwise-reproducible P2G (MPMSolver(deterministic=...); on: by cells, sorted every "
                          "substep), each profiled; list one twice to compare the runs' bits (MD5 of u)")
@@ -100,18 +104,18 @@ def main() -> None:
     ref = getattr(contract, "probe_reference_particles", None)
     model = build_model(ps.positions, E=E, nu=nu, rho=rho, params=contract.sim, volumes=ps.volumes, probe=probe,
                         probe_force_scale=float(ref) / len(ps.positions) if ref else 1.0, device=args.device)
-    runs = [(v, n, r, k, f, d, line) for v in args.p2g for n in args.slots for r in args.resort for k in args.chunk
-            for f in args.fuse for d in args.deterministic for line in args.line]
-    for variant, slots, resort, chunk, fuse, det, line in runs:
+    runs = [(v, n, r, k, f, d, line, w) for v in args.p2g for n in args.slots for r in args.resort for k in args.chunk
+            for f in args.fuse for d in args.deterministic for line in args.line for w in args.sums]
+    for variant, slots, resort, chunk, fuse, det, line, sums in runs:
         state = make_state(model, ps.positions)
         p2g, graph = variant.split("+")[0], variant.endswith("+graph")
         fuse = {"auto": "auto", "on": True, "off": False}[fuse]
-        if fuse is True and not (graph and p2g == "cells"):
+        if fuse is True and p2g != "cells":
             continue
         if det == "on" and p2g != "cells":
             continue
         solver = MPMSolver(model, p2g=p2g, graph=graph, fuse=fuse, max_chunk_slots=slots or None, resort_every=resort,
-                           cell_chunk=chunk, node_line=line, deterministic=det == "on")
+                           cell_chunk=chunk, node_line=line, cell_sums=sums, deterministic=det == "on")
         solver.check(state)
         for _ in range(args.warm):
             solver.step(state)
@@ -132,7 +136,7 @@ def main() -> None:
             count[r.name] += 1
         all_ms = sum(total.values())
         print(f"{args.object} {args.profile}, P2G {variant} ({args.order} order, chunk slots {slots or 'all'}, sort every "
-              f"{resort} substeps, chunks of {chunk}, node line {solver.node_line}, "
+              f"{resort} substeps, chunks of {chunk}, node line {solver.node_line}, sums by {solver.cell_sums}, "
               f"G2P fused with the next P2G half: {solver.fuse}, "
               f"reproducible: {solver.deterministic}, module options {options or 'default'}, "
               f"register cap {args.max_registers or 'none'}): "

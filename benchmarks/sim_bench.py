@@ -44,7 +44,7 @@ def block(n_particles: int, n_grid: int, grid_lim: float = 2.0, ppc: int = 8) ->
 
 def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: str, *, transfer: str = "affine_flip",
              graph: bool | str = "auto", p2g: str = "auto", ppc: int = 8, order: str = "lattice",
-             line: int | None = None) -> dict:
+             line: int | None = None, sums: str | None = None) -> dict:
     import warp as wp
 
     from knockgs_core.sim import MPMSolver, Probe, SimParams, build_model, make_state
@@ -57,7 +57,8 @@ def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: st
     model = build_model(X, E=1e4, nu=0.3, rho=2000.0, params=params, probe=Probe("standard_x", (-0.18, 0.0, 0.0)), device=device)
     state = make_state(model, X)
     reproducible = p2g == "cells-reproducible"  # MPMSolver(deterministic=True): no float atomics on the grid
-    solver = MPMSolver(model, graph=graph, p2g="cells" if reproducible else p2g, deterministic=reproducible, node_line=line)
+    solver = MPMSolver(model, graph=graph, p2g="cells" if reproducible else p2g, deterministic=reproducible, node_line=line,
+                       cell_sums=None if reproducible else sums)
     solver.check(state)
     for _ in range(20):  # warm-up (kernel load, caches)
         solver.step(state)
@@ -84,6 +85,7 @@ def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: st
         "crowding": solver.crowding,
         "order": order,
         "node_line": solver.node_line,
+        "cell_sums": solver.cell_sums,
         "steps": steps,
         "median_s": med,
         "particle_substeps_per_s": rate,
@@ -126,6 +128,9 @@ def main() -> None:
     ap.add_argument("--line", nargs="+", type=int, choices=[1, 3], default=[None],
                     help="stencil nodes a thread of the chunk sums sums at once (MPMSolver.node_line; default: the "
                          "solver's), each measured")
+    ap.add_argument("--sums", nargs="+", choices=["windows", "list"], default=[None],
+                    help="how the P2G by cells sums its chunks (MPMSolver.cell_sums; default: the solver's), each "
+                         "measured")
     ap.add_argument("--cold", action="store_true", help="also measure a cold compile")
     ap.add_argument("--json", help="write results here")
     args = ap.parse_args()
@@ -133,21 +138,22 @@ def main() -> None:
     print(f"# device {args.device}, {platform.processor() or platform.machine()}, python {platform.python_version()}")
     transfers = ["affine_flip", "apic"] if args.transfer == "both" else [args.transfer]
     graphs = {"auto": ["auto"], "off": [False], "both": [False, "auto"]}[args.graph]
-    print("| particles | per cell | order | n_grid | transfer | graph | P2G | node line | particle-substeps/s | ms/substep "
-          "| s per 6000-substep rollout |")
-    print("|---:|---:|---|---:|---|---|---|---:|---:|---:|---:|")
+    print("| particles | per cell | order | n_grid | transfer | graph | P2G | node line | sums | particle-substeps/s "
+          "| ms/substep | s per 6000-substep rollout |")
+    print("|---:|---:|---|---:|---|---|---|---:|---|---:|---:|---:|")
     for case in args.cases:
         n, g = (int(v) for v in case.split(":"))
         for ppc in args.ppc:
             for transfer in transfers:
                 for graph in graphs:
-                    for order, p2g, line in ((o, v, k) for o in args.order for v in args.p2g for k in args.line):
+                    for order, p2g, line, sums in ((o, v, k, w) for o in args.order for v in args.p2g
+                                                   for k in args.line for w in args.sums):
                         r = run_case(n, g, args.steps, args.repeats, args.device, transfer=transfer, graph=graph, p2g=p2g,
-                                     ppc=ppc, order=order, line=line)
+                                     ppc=ppc, order=order, line=line, sums=sums)
                         rows.append(r)
                         crowd = "" if r["crowding"] is None else f" (crowding {r['crowding']:.1f})"
                         print(f"| {r['particles']:,} | {ppc} | {order} | {g} | {transfer} | {'on' if r['graph'] else 'off'} | "
-                              f"{p2g}: {r['p2g']}{crowd} | {r['node_line']} | "
+                              f"{p2g}: {r['p2g']}{crowd} | {r['node_line']} | {r['cell_sums']} | "
                               f"{r['particle_substeps_per_s']:.3g} | {r['ms_per_substep']:.3f} | "
                               f"{r['s_per_6000_substeps']:.2f} |", flush=True)
     out = {"device": args.device, "rows": rows}

@@ -467,8 +467,8 @@ def pushed_shell(params, X, steps: int, **solver_options):
 @pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
 def test_reproducible_p2g_gives_the_same_bits_in_any_thread_order(rng, transfer):
     # The P2G by cells adds each chunk's sums to the grid with float atomics, in the order the
-    # threads run: how the chunks are shared among the threads (max_chunk_slots) changes that
-    # order on the CPU, as the GPU's scheduling does from run to run, and with it the last bits.
+    # threads run: how the listed chunks are shared among the threads (max_chunk_slots) changes
+    # that order on the CPU, as the GPU's scheduling does from run to run, and with it the last bits.
     # The reproducible P2G (deterministic=True) gathers the chunk sums per node in a fixed
     # order: the same bits whatever the sharing, replayed as graphs and fused or not; both are
     # the scatter up to rounding.
@@ -480,7 +480,7 @@ def test_reproducible_p2g_gives_the_same_bits_in_any_thread_order(rng, transfer)
                 ("cells", True, 3, False), ("cells", True, None, True)]
     for p2g, deterministic, slots, graph in variants:
         model, state, _ = pushed_shell(params, X, 60, p2g=p2g, deterministic=deterministic, max_chunk_slots=slots,
-                                       graph=graph, fuse=graph, resort_every=1)
+                                       graph=graph, fuse=graph, resort_every=1, cell_sums=None if deterministic else "list")
         # the grid holds all the mass (the gather wrote every node of the active box)
         assert state.grid_m.numpy().sum() == pytest.approx(model.mass_host.astype(np.float64).sum(), rel=1e-5)
         out[p2g, deterministic, slots, graph] = [a.numpy().copy() for a in (state.particle_u, state.particle_F,
@@ -517,7 +517,7 @@ def test_chunk_sums_by_node_lines_are_the_sums_by_nodes_bit_for_bit(rng, transfe
         for line in (1, 3):
             model, state, solver = pushed_shell(params, X, 40, p2g="cells", deterministic=deterministic,
                                                 max_chunk_slots=slots, graph=graph, fuse=graph, resort_every=3,
-                                                cell_chunk=5, node_line=line)
+                                                cell_chunk=5, node_line=line, cell_sums="list")
             assert solver.node_line == line
             out[deterministic, slots, graph, line] = [a.numpy().copy() for a in (state.particle_u, state.particle_F,
                                                                                  state.particle_v, state.grid_mv)]
@@ -530,6 +530,48 @@ def test_chunk_sums_by_node_lines_are_the_sums_by_nodes_bit_for_bit(rng, transfe
     for bad in (2, 27, True):
         with pytest.raises(InputError, match="node_line"):
             MPMSolver(model, p2g="cells", node_line=bad)
+
+
+@pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
+def test_p2g_by_windows_gives_the_chunk_lists_sums_bit_for_bit(rng, transfer):
+    # The GPU's default sums by windows: a block of cell_chunk threads stages the terms of as many
+    # sorted positions in shared memory and sums each run of one base cell from there, with no
+    # chunk list. The runs are the list's chunks, summed node by node in the same order, so with
+    # one thread a block (the CPU's) the same bits as the list, substep for substep (sorts every
+    # 3rd substep, chunks of 5, particles changing cells; graphs and fused G2P or not). With
+    # blocks of 5 threads (Warp's CPU fibers: the lanes' atomics interleave as on a GPU) the same
+    # response to rounding, the grid holding all the mass.
+    params, X = shell_scene(rng, transfer, shell=3000, guard_every=10)
+    out = {}
+    for graph in (False, True):
+        for sums in ("list", "windows"):
+            model, state, solver = pushed_shell(params, X, 40, p2g="cells", graph=graph, fuse=graph, resort_every=3,
+                                                cell_chunk=5, cell_sums=sums)
+            assert solver.cell_sums == sums and ("p2g_windows" in solver._cmds) == (sums == "windows")
+            out[graph, sums] = [a.numpy().copy() for a in (state.particle_u, state.particle_F, state.particle_v,
+                                                           state.grid_mv, state.grid_m)]
+        for a, b in zip(out[graph, "list"], out[graph, "windows"]):
+            assert np.array_equal(a, b)
+    u = out[False, "list"][0]
+    assert np.abs(u).max() > 1e-3  # the body moved
+    scale = np.sqrt((u ** 2).sum(-1).mean())
+    wp.config.enable_cpu_blocks = True
+    try:
+        model, state, _ = pushed_shell(params, X, 40, p2g="cells", resort_every=3, cell_chunk=5, cell_sums="windows")
+    finally:
+        wp.config.enable_cpu_blocks = False
+    assert np.sqrt(((state.particle_u.numpy() - u) ** 2).sum(-1).mean()) < 1e-5 * scale
+    assert state.grid_m.numpy().sum() == pytest.approx(model.mass_host.astype(np.float64).sum(), rel=1e-5)
+    # the reproducible P2G sums the list; the option and the window's size are checked
+    assert MPMSolver(model, deterministic=True).cell_sums == "list"
+    assert MPMSolver(model, p2g="cells").cell_sums == "windows"
+    with pytest.raises(InputError, match="cell_sums"):
+        MPMSolver(model, p2g="cells", deterministic=True, cell_sums="windows")
+    with pytest.raises(InputError, match="cell_sums"):
+        MPMSolver(model, p2g="cells", cell_sums="rows")
+    with pytest.raises(InputError, match="cell_chunk"):
+        MPMSolver(model, p2g="cells", cell_chunk=300).step(make_state(model, X))
+    model, state, _ = pushed_shell(params, X, 3, p2g="cells", cell_chunk=300, cell_sums="list")  # the list takes any
 
 
 def test_p2g_variant_is_checked_and_the_cpu_keeps_the_scatter():

@@ -23,6 +23,8 @@ the remaining dissipation is per second, not per substep). Positions advect with
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
 from .. import _warp  # noqa: F401  (Warp's log level: no start-up banner in logs and CLI output)
@@ -689,6 +691,120 @@ def p2g_cells(
             if affine_flip == 1:
                 wp.atomic_add(grid_mv_old, g[0], g[1], g[2], sum_old)
         c += stride
+
+
+# P2G by windows (``MPMSolver(cell_sums="windows")``, W = ``cell_chunk``): the chunk sums above stage nothing: each of a
+# chunk's threads reads the chunk's particles one after the other through the sort's order, a
+# chain of dependent global loads, and the chunk list costs three launches a substep. Here one
+# block of ``W`` threads takes the ``W`` sorted positions ``b W .. b W + W - 1``: its threads
+# put those particles' terms in shared memory together, then each thread sums one run of
+# equal keys (a window is cut where the key changes, as the chunk list cuts a chunk, and at its
+# ends) to one stencil node from shared memory and adds the sum with one atomic
+# (:func:`window_sums`). With ``W = MPMSolver.cell_chunk`` the runs are the chunk list's chunks
+# and each node's sums are those of :func:`chunk_sum`, term for term. (Windows of 64 or 128
+# cut every 32 slots paid no more on an H100, and the cut's integer modulo cost the kernel
+# 10 %: benchmarks/README.md.)
+@wp.func
+def window_sums(t_key: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: Any, window: int, lane: int, threads: int,
+                none_key: int, n_grid: int, dx: float, affine_flip: int, grid_mv: wp.array3d(dtype=wp.vec3),
+                grid_m: wp.array3d(dtype=float), grid_mv_old: wp.array3d(dtype=wp.vec3)):
+    """A block's sums from its staged terms (shared-memory tiles of ``window`` slots: key,
+    ``fx``, ``mv``, ``affine``, ``mC``): the thread ``lane`` of ``threads`` takes the (run
+    start, stencil node) pairs ``lane, lane + threads, ...``; a run is the slots with the
+    start's key (skipped if ``none_key``), summed to node ``n`` in slot order as
+    :func:`chunk_sum` and added to the grid with one atomic per array."""
+    for q in range(lane, window * 27, threads):
+        s = q // 27
+        key = t_key[s]
+        if key == none_key:
+            continue
+        if s > 0:
+            if t_key[s - 1] == key:
+                continue
+        e = s + 1
+        while e < window:
+            if t_key[e] != key:
+                break
+            e += 1
+        o = stencil_offset(q - 27 * s)
+        node = wp.vec3(float(o[0]), float(o[1]), float(o[2]))
+        sum_mv = wp.vec3(0.0)
+        sum_m = float(0.0)
+        sum_old = wp.vec3(0.0)
+        for t in range(s, e):
+            f = t_fx[t]
+            weight = bspline_weight(f[0], o[0]) * bspline_weight(f[1], o[1]) * bspline_weight(f[2], o[2])
+            dpos = (node - f) * dx
+            w4 = t_mv[t]
+            mvp = wp.vec3(w4[0], w4[1], w4[2])
+            sum_mv += weight * (mvp + t_aff[t] * dpos)
+            sum_m += weight * w4[3]
+            if affine_flip == 1:
+                sum_old += weight * (mvp + t_mC[t] * dpos)
+        g = stencil_node(key, o, n_grid)
+        wp.atomic_add(grid_mv, g[0], g[1], g[2], sum_mv)
+        wp.atomic_add(grid_m, g[0], g[1], g[2], sum_m)
+        if affine_flip == 1:
+            wp.atomic_add(grid_mv_old, g[0], g[1], g[2], sum_old)
+
+
+_WINDOW_KERNELS: dict = {}
+
+
+def p2g_windows(window: int):
+    """The P2G-by-windows kernel for windows of ``window`` sorted positions (a tile's size is
+    fixed when the kernel is compiled, so one kernel per size). Launch with
+    ``wp.launch_tiled(..., dim=ceil(count / window), block_dim=window)``; the CPU runs it with
+    one thread a block (the loops stride by the block's size), the same sums."""
+    kernel = _WINDOW_KERNELS.get(("p2g", window))
+    if kernel is not None:
+        return kernel
+
+    def p2g_windows_kernel(
+        order: wp.array(dtype=wp.int32),
+        keys: wp.array(dtype=wp.int32),
+        none_key: int,
+        count: int,
+        n_grid: int,
+        inv_dx: float,
+        affine_flip: int,
+        fx: wp.array(dtype=wp.vec3),
+        mv: wp.array(dtype=wp.vec4),
+        affine: wp.array(dtype=wp.mat33),
+        mC: wp.array(dtype=wp.mat33),
+        grid_mv: wp.array3d(dtype=wp.vec3),
+        grid_m: wp.array3d(dtype=float),
+        grid_mv_old: wp.array3d(dtype=wp.vec3),
+    ):
+        """Block ``b`` stages the terms of the particles ``order[b W + slot]`` (slot
+        ``0 .. W-1``; past ``count``: key ``none_key``) in shared memory and sums them
+        (:func:`window_sums`)."""
+        b, lane = wp.tid()
+        threads = wp.block_dim()
+        s0 = b * wp.static(window)
+        t_key = wp.tile_zeros(shape=wp.static(window), dtype=wp.int32, storage="shared")
+        t_fx = wp.tile_zeros(shape=wp.static(window), dtype=wp.vec3, storage="shared")
+        t_mv = wp.tile_zeros(shape=wp.static(window), dtype=wp.vec4, storage="shared")
+        t_aff = wp.tile_zeros(shape=wp.static(window), dtype=wp.mat33, storage="shared")
+        t_mC = wp.tile_zeros(shape=wp.static(window), dtype=wp.mat33, storage="shared")
+        for slot in range(lane, wp.static(window), threads):
+            key = none_key
+            p = int(0)
+            if s0 + slot < count:
+                p = order[s0 + slot]
+                key = keys[p]
+            wp.tile_scatter_masked(t_key, slot, key, True)
+            wp.tile_scatter_masked(t_fx, slot, fx[p], True)
+            wp.tile_scatter_masked(t_mv, slot, mv[p], True)
+            wp.tile_scatter_masked(t_aff, slot, affine[p], True)
+            if affine_flip == 1:
+                wp.tile_scatter_masked(t_mC, slot, mC[p], True)
+        window_sums(t_key, t_fx, t_mv, t_aff, t_mC, wp.static(window), lane, threads, none_key, n_grid, 1.0 / inv_dx,
+                    affine_flip, grid_mv, grid_m, grid_mv_old)
+
+    kernel = wp.Kernel(p2g_windows_kernel, key=f"p2g_windows_{window}", module=wp.get_module(__name__))
+    _WINDOW_KERNELS["p2g", window] = kernel
+    return kernel
 
 
 # Bitwise-reproducible P2G (``MPMSolver(deterministic=True)``). The chunk sums above are

@@ -398,8 +398,9 @@ class MPMSolver:
     (another state, or a state whose step count was changed, is refused), and nothing else may
     change it between substeps. ``"auto"``: where substeps are graphs and P2G is by cells.
 
-    ``resort_every``, ``cell_chunk``, ``max_chunk_slots``, ``node_line``: the P2G by cells'
-    settings (the class attributes of the same names document them); they set speed only.
+    ``resort_every``, ``cell_chunk``, ``max_chunk_slots``, ``node_line``, ``cell_sums``: the P2G
+    by cells' settings (the class attributes of the same names document them); they set speed
+    only.
 
     ``deterministic``: a GPU rollout the same bit for bit on every run. Float atomics add a
     node's contributions in the order the GPU schedules its threads, so the last bits of a GPU
@@ -428,7 +429,8 @@ class MPMSolver:
     #: every 50th
     resort_every: int = 10
     #: most particles in one chunk of the P2G by cells (a thread sums a chunk's contributions
-    #: to one node; a cell with more is split)
+    #: to one node; a cell with more is split); the size of a window where it sums by windows
+    #: (at most 256 there)
     cell_chunk: int = 32
     #: stencil nodes a thread of the chunk sums sums at once: 1 (a node a thread, 27 threads a
     #: chunk) or 3 (a line of nodes along z, 9 threads a chunk, each particle's terms read once
@@ -440,6 +442,15 @@ class MPMSolver:
     #: cap on the threads of the chunk sums (in chunks; None: one per possible chunk, see
     #: :meth:`_record`); each thread strides over the chunks beyond, so it sets speed only
     max_chunk_slots: int | None = None
+    #: how the P2G by cells sums its chunks: ``"windows"`` (a block of ``cell_chunk`` threads a
+    #: window of as many sorted positions, their terms staged in shared memory, a thread a run
+    #: of one base cell and a stencil node: :func:`~knockgs_core.sim._kernels.p2g_windows`; no
+    #: chunk list) or ``"list"`` (the chunks listed first, then a thread a chunk and a node or a
+    #: node line: ``p2g_cells``). The same sums in the same order, so the same bits wherever the
+    #: atomics arrive in order (the CPU). The bitwise-reproducible P2G sums the list. Paper-scale
+    #: Pillow on an H100: 0.412 against 0.434 ms a substep, Ficus 0.143 against 0.164
+    #: (benchmarks/README.md)
+    cell_sums: str = "windows"
 
     @classmethod
     def auto_p2g(cls, cuda: bool, crowding: float | None) -> str:
@@ -450,7 +461,7 @@ class MPMSolver:
 
     def __init__(self, model: Model, *, p2g: str = "auto", graph: bool | str = "auto", fuse: bool | str = "auto",
                  resort_every: int | None = None, cell_chunk: int | None = None, max_chunk_slots: int | None = None,
-                 node_line: int | None = None, deterministic: bool = False):
+                 node_line: int | None = None, cell_sums: str | None = None, deterministic: bool = False):
         self.model = model
         if deterministic not in (True, False):
             raise InputError("MPMSolver", "deterministic", f"must be True or False, got {deterministic!r}")
@@ -465,6 +476,14 @@ class MPMSolver:
             self.node_line = node_line
         if self.node_line not in (1, 3) or isinstance(self.node_line, bool):
             raise InputError("MPMSolver", "node_line", f"must be 1 or 3, got {self.node_line!r}")
+        if cell_sums is not None:
+            if cell_sums not in ("windows", "list"):
+                raise InputError("MPMSolver", "cell_sums", f"must be 'windows' or 'list', got {cell_sums!r}")
+            if cell_sums == "windows" and deterministic:
+                raise InputError("MPMSolver", "cell_sums", "the bitwise-reproducible P2G sums the chunk list ('list')")
+            self.cell_sums = cell_sums
+        elif deterministic:
+            self.cell_sums = "list"
         p = model.params
         cuda = wp.get_device(model.device).is_cuda
         if graph == "auto":
@@ -601,6 +620,9 @@ class MPMSolver:
                 value = getattr(self, name)
                 if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                     raise InputError("MPMSolver", name, f"must be an integer >= 1, got {value!r}")
+            if self.cell_sums == "windows" and self.cell_chunk > 256:
+                raise InputError("MPMSolver", "cell_chunk", f"sums by windows take at most 256 (a block's threads and "
+                                 f"shared memory), got {self.cell_chunk}; or cell_sums='list'")
             cmds["p2g"] = wp.launch(
                 K.p2g_prepare,
                 dim=m.particle_count,
@@ -621,6 +643,17 @@ class MPMSolver:
                 slots = min(slots, self.max_chunk_slots)
             if self._gather is not None:
                 self._record_gather(state, slots, dims, lo, flip, rec, cmds)
+            elif self.cell_sums == "windows":
+                w = self.cell_chunk
+                cmds["p2g_windows"] = wp.launch_tiled(
+                    K.p2g_windows(w),
+                    dim=-(-m.particle_count // w),
+                    block_dim=w,
+                    inputs=[c.order, c.keys, c.none_key, m.particle_count, p.n_grid, self._inv_dx, flip, c.fx, c.mv,
+                            c.affine, c.mC],
+                    outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
+                    **rec,
+                )
             else:
                 cmds["p2g_cells"] = wp.launch(
                     K.p2g_cells,
@@ -767,11 +800,14 @@ class MPMSolver:
         if not prepared:
             cmds["p2g"].set_param_by_name("probe_on", probe_on)
             cmds["p2g"].launch()
-        if self._cells is not None:  # (sort by base cell,) list the chunks in sorted order, sum
+        if self._cells is not None:  # (sort by base cell,) then sum the chunks, by windows or listed
             c = self._cells
             if sort:
                 cmds["p2g_sort_keys"].launch()
                 wp.utils.radix_sort_pairs(c.sort_keys, c.order, m.particle_count, end_bit=c.end_bit)
+        if "p2g_windows" in cmds:
+            cmds["p2g_windows"].launch()
+        elif self._cells is not None:
             cmds["p2g_chunk_starts"].launch()
             wp.utils.array_scan(c.start, c.index, inclusive=False)
             cmds["p2g_chunk_list"].launch()
