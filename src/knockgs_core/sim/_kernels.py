@@ -435,7 +435,8 @@ def p2g(
 # agree), and one thread
 # per chunk and stencil node sums the chunk's contributions, reading the terms through the
 # order (``p2g_cells``): 27 atomics per chunk instead of 27 per particle. The same sums, in
-# another order (float rounding differs from the scatter's).
+# another order (float rounding differs from the scatter's). By default the chunks are summed by
+# windows instead of listed (:func:`p2g_windows`, below the chunk sums).
 
 
 @wp.func
