@@ -50,7 +50,7 @@ def main() -> None:
     ap.add_argument("--line", type=int, nargs="+", choices=[1, 3], default=[None],
                     help="stencil nodes a thread of the chunk sums sums at once (MPMSolver.node_line; default: the "
                          "solver's), each profiled")
-    ap.add_argument("--sums", nargs="+", choices=["windows", "list"], default=[None],
+    ap.add_argument("--sums", nargs="+", choices=["auto", "windows", "list"], default=[None],
                     help="how the P2G by cells sums its chunks (MPMSolver.cell_sums; default: the solver's), each "
                          "profiled")
     ap.add_argument("--deterministic", nargs="+", choices=["on", "off"], default=["off"],

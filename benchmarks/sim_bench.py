@@ -128,7 +128,7 @@ def main() -> None:
     ap.add_argument("--line", nargs="+", type=int, choices=[1, 3], default=[None],
                     help="stencil nodes a thread of the chunk sums sums at once (MPMSolver.node_line; default: the "
                          "solver's), each measured")
-    ap.add_argument("--sums", nargs="+", choices=["windows", "list"], default=[None],
+    ap.add_argument("--sums", nargs="+", choices=["auto", "windows", "list"], default=[None],
                     help="how the P2G by cells sums its chunks (MPMSolver.cell_sums; default: the solver's), each "
                          "measured")
     ap.add_argument("--cold", action="store_true", help="also measure a cold compile")

@@ -564,13 +564,14 @@ def test_p2g_by_windows_gives_the_chunk_lists_sums_bit_for_bit(rng, transfer):
     assert state.grid_m.numpy().sum() == pytest.approx(model.mass_host.astype(np.float64).sum(), rel=1e-5)
     # the reproducible P2G sums the list; the option and the window's size are checked
     assert MPMSolver(model, deterministic=True).cell_sums == "list"
-    assert MPMSolver(model, p2g="cells").cell_sums == "windows"
+    # auto: by windows under affine FLIP (faster there on an H100), listed under APIC
+    assert MPMSolver(model, p2g="cells").cell_sums == ("windows" if transfer == "affine_flip" else "list")
     with pytest.raises(InputError, match="cell_sums"):
         MPMSolver(model, p2g="cells", deterministic=True, cell_sums="windows")
     with pytest.raises(InputError, match="cell_sums"):
         MPMSolver(model, p2g="cells", cell_sums="rows")
     with pytest.raises(InputError, match="cell_chunk"):
-        MPMSolver(model, p2g="cells", cell_chunk=300).step(make_state(model, X))
+        MPMSolver(model, p2g="cells", cell_chunk=300, cell_sums="windows").step(make_state(model, X))
     model, state, _ = pushed_shell(params, X, 3, p2g="cells", cell_chunk=300, cell_sums="list")  # the list takes any
 
 

@@ -447,10 +447,12 @@ class MPMSolver:
     #: of one base cell and a stencil node: :func:`~knockgs_core.sim._kernels.p2g_windows`; no
     #: chunk list) or ``"list"`` (the chunks listed first, then a thread a chunk and a node or a
     #: node line: ``p2g_cells``). The same sums in the same order, so the same bits wherever the
-    #: atomics arrive in order (the CPU). The bitwise-reproducible P2G sums the list. Paper-scale
-    #: Pillow on an H100: 0.412 against 0.434 ms a substep, Ficus 0.143 against 0.164
-    #: (benchmarks/README.md)
-    cell_sums: str = "windows"
+    #: atomics arrive in order (the CPU). ``"auto"``: by windows under the affine-FLIP transfer,
+    #: listed under APIC and in the bitwise-reproducible P2G. Measured on an H100
+    #: (benchmarks/README.md), affine FLIP: paper-scale Pillow 0.412 against 0.435 ms a substep,
+    #: Ficus 0.142 against 0.158-0.163, the 681k block 0.429 against 0.448; APIC, the block:
+    #: 0.377 against 0.349
+    cell_sums: str = "auto"
 
     @classmethod
     def auto_p2g(cls, cuda: bool, crowding: float | None) -> str:
@@ -477,13 +479,13 @@ class MPMSolver:
         if self.node_line not in (1, 3) or isinstance(self.node_line, bool):
             raise InputError("MPMSolver", "node_line", f"must be 1 or 3, got {self.node_line!r}")
         if cell_sums is not None:
-            if cell_sums not in ("windows", "list"):
-                raise InputError("MPMSolver", "cell_sums", f"must be 'windows' or 'list', got {cell_sums!r}")
-            if cell_sums == "windows" and deterministic:
-                raise InputError("MPMSolver", "cell_sums", "the bitwise-reproducible P2G sums the chunk list ('list')")
             self.cell_sums = cell_sums
-        elif deterministic:
-            self.cell_sums = "list"
+        if self.cell_sums not in ("auto", "windows", "list"):
+            raise InputError("MPMSolver", "cell_sums", f"must be 'auto', 'windows' or 'list', got {self.cell_sums!r}")
+        if self.cell_sums == "windows" and deterministic:
+            raise InputError("MPMSolver", "cell_sums", "the bitwise-reproducible P2G sums the chunk list ('list')")
+        if self.cell_sums == "auto":
+            self.cell_sums = "windows" if model.params.transfer == "affine_flip" and not deterministic else "list"
         p = model.params
         cuda = wp.get_device(model.device).is_cuda
         if graph == "auto":
