@@ -757,7 +757,7 @@ def p2g_windows(window: int):
     fixed when the kernel is compiled, so one kernel per size). Launch with
     ``wp.launch_tiled(..., dim=ceil(count / window), block_dim=window)``; the CPU runs it with
     one thread a block (the loops stride by the block's size), the same sums."""
-    kernel = _WINDOW_KERNELS.get(("p2g", window))
+    kernel = _WINDOW_KERNELS.get(window)
     if kernel is not None:
         return kernel
 
@@ -804,7 +804,7 @@ def p2g_windows(window: int):
                     affine_flip, grid_mv, grid_m, grid_mv_old)
 
     kernel = wp.Kernel(p2g_windows_kernel, key=f"p2g_windows_{window}", module=wp.get_module(__name__))
-    _WINDOW_KERNELS["p2g", window] = kernel
+    _WINDOW_KERNELS[window] = kernel
     return kernel
 
 
