@@ -694,17 +694,17 @@ def p2g_cells(
         c += stride
 
 
-# P2G by windows (``MPMSolver(cell_sums="windows")``, W = ``cell_chunk``): the chunk sums above stage nothing: each of a
-# chunk's threads reads the chunk's particles one after the other through the sort's order, a
-# chain of dependent global loads, and the chunk list costs three launches a substep. Here one
-# block of ``W`` threads takes the ``W`` sorted positions ``b W .. b W + W - 1``: its threads
-# put those particles' terms in shared memory together, then each thread sums one run of
-# equal keys (a window is cut where the key changes, as the chunk list cuts a chunk, and at its
-# ends) to one stencil node from shared memory and adds the sum with one atomic
-# (:func:`window_sums`). With ``W = MPMSolver.cell_chunk`` the runs are the chunk list's chunks
-# and each node's sums are those of :func:`chunk_sum`, term for term. (Windows of 64 or 128
-# cut every 32 slots paid no more on an H100, and the cut's integer modulo cost the kernel
-# 10 %: benchmarks/README.md.)
+# P2G by windows (``MPMSolver(cell_sums="windows")``, W = ``cell_chunk``): the chunk sums above
+# stage nothing: each of a chunk's threads reads the chunk's particles one after the other
+# through the sort's order, a chain of dependent global loads, and the chunk list costs three
+# launches a substep. Here one block of ``W`` threads takes the ``W`` sorted positions
+# ``b W .. b W + W - 1``: its threads put those particles' terms in shared memory together,
+# then each thread sums one run of equal keys (a window is cut where the key changes, as the
+# chunk list cuts a chunk, and at its ends) to one stencil node from shared memory and adds the
+# sum with one atomic (:func:`window_sums`). With ``W = MPMSolver.cell_chunk`` the runs are the
+# chunk list's chunks and each node's sums are those of :func:`chunk_sum`, term for term.
+# (Windows of 64 or 128 cut every 32 slots paid no more on an H100, and the cut's integer
+# modulo cost the kernel 10 %: benchmarks/README.md.)
 @wp.func
 def window_sums(t_key: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: Any, window: int, lane: int, threads: int,
                 none_key: int, n_grid: int, dx: float, affine_flip: int, grid_mv: wp.array3d(dtype=wp.vec3),
