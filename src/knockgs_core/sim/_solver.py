@@ -450,8 +450,8 @@ class MPMSolver:
     #: atomics arrive in order (the CPU). ``"auto"``: by windows under the affine-FLIP transfer,
     #: listed under APIC and in the bitwise-reproducible P2G. Measured on an H100
     #: (benchmarks/README.md), affine FLIP: paper-scale Pillow 0.412 against 0.435 ms a substep,
-    #: Ficus 0.142 against 0.158-0.163, the 681k block 0.429 against 0.448; APIC, the block:
-    #: 0.377 against 0.349
+    #: Ficus 0.142 against 0.158-0.163, Vasedeck 0.068 against 0.079, the 681k block 0.429
+    #: against 0.448; APIC, the block: 0.377 against 0.349
     cell_sums: str = "auto"
 
     @classmethod
