@@ -550,29 +550,41 @@ def stencil_node(key: int, o: wp.vec3i, n_grid: int) -> wp.vec3i:
 
 
 @wp.func
+def node_term(f: wp.vec3, q: wp.vec4, A: wp.mat33, M: wp.mat33, i: int, j: int, k: int, dx: float, affine_flip: int):
+    """One particle's contribution to the stencil node ``(i, j, k)`` of its base cell, from its
+    P2G terms (position in the cell ``f`` [cells], momentum and mass ``q``, affine matrices
+    ``A`` and ``M``): momentum [kg m/s], mass [kg], and the stress-free momentum (affine FLIP
+    only, else 0). Every P2G by cells sums these, so its variants agree term for term. The
+    weights come by selects (:func:`bspline_weight`): the node is the caller's, not a
+    constant."""
+    weight = bspline_weight(f[0], i) * bspline_weight(f[1], j) * bspline_weight(f[2], k)
+    dpos = (wp.vec3(float(i), float(j), float(k)) - f) * dx
+    mvp = wp.vec3(q[0], q[1], q[2])
+    old = wp.vec3(0.0)
+    if affine_flip == 1:
+        old = weight * (mvp + M * dpos)
+    return weight * (mvp + A * dpos), weight * q[3], old
+
+
+@wp.func
 def chunk_sum(s: int, e: int, i: int, j: int, k: int, dx: float, affine_flip: int, order: wp.array(dtype=wp.int32),
               fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: wp.array(dtype=wp.mat33),
               mC: wp.array(dtype=wp.mat33)):
-    """The contributions of the particles at sorted positions ``s .. e-1`` (one chunk, one
-    base cell) to the stencil node ``(i, j, k)`` of that cell, summed in sorted order:
-    momentum [kg m/s], mass [kg], and the stress-free momentum (affine FLIP only, else 0).
-    The weights come by selects (:func:`bspline_weight`): the node is the caller's, not a
-    constant."""
-    node = wp.vec3(float(i), float(j), float(k))
+    """The contributions (:func:`node_term`) of the particles at sorted positions ``s .. e-1``
+    (one chunk, one base cell) to the stencil node ``(i, j, k)`` of that cell, summed in sorted
+    order."""
     sum_mv = wp.vec3(0.0)
     sum_m = float(0.0)
     sum_old = wp.vec3(0.0)
     for t in range(s, e):
         p = order[t]
-        f = fx[p]
-        weight = bspline_weight(f[0], i) * bspline_weight(f[1], j) * bspline_weight(f[2], k)
-        dpos = (node - f) * dx
-        q = mv[p]
-        mvp = wp.vec3(q[0], q[1], q[2])
-        sum_mv += weight * (mvp + affine[p] * dpos)
-        sum_m += weight * q[3]
+        M = wp.mat33(0.0)
         if affine_flip == 1:
-            sum_old += weight * (mvp + mC[p] * dpos)
+            M = mC[p]
+        d_mv, d_m, d_old = node_term(fx[p], mv[p], affine[p], M, i, j, k, dx, affine_flip)
+        sum_mv += d_mv
+        sum_m += d_m
+        sum_old += d_old
     return sum_mv, sum_m, sum_old
 
 
@@ -581,12 +593,9 @@ def chunk_line_sum(s: int, e: int, i: int, j: int, dx: float, affine_flip: int, 
                    fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: wp.array(dtype=wp.mat33),
                    mC: wp.array(dtype=wp.mat33)):
     """:func:`chunk_sum` for the line of three stencil nodes ``(i, j, 0..2)`` at once: each
-    particle's terms are read once for three nodes instead of once per node. Per node the same
-    arithmetic in the same order, so the same bits. Returns the momenta of nodes k = 0, 1, 2
-    [kg m/s], their masses as a vec3 [kg] and their stress-free momenta (affine FLIP only)."""
-    n0 = wp.vec3(float(i), float(j), 0.0)
-    n1 = wp.vec3(float(i), float(j), 1.0)
-    n2 = wp.vec3(float(i), float(j), 2.0)
+    particle's terms are read once for three nodes. Per node the same arithmetic in the same
+    order, so the same bits. Returns the momenta of nodes k = 0, 1, 2 [kg m/s], their masses as
+    a vec3 [kg] and their stress-free momenta (affine FLIP only)."""
     mv0 = wp.vec3(0.0)
     mv1 = wp.vec3(0.0)
     mv2 = wp.vec3(0.0)
@@ -599,27 +608,23 @@ def chunk_line_sum(s: int, e: int, i: int, j: int, dx: float, affine_flip: int, 
     for t in range(s, e):
         p = order[t]
         f = fx[p]
-        wij = bspline_weight(f[0], i) * bspline_weight(f[1], j)
-        w0 = wij * bspline_weight(f[2], 0)
-        w1 = wij * bspline_weight(f[2], 1)
-        w2 = wij * bspline_weight(f[2], 2)
-        d0 = (n0 - f) * dx
-        d1 = (n1 - f) * dx
-        d2 = (n2 - f) * dx
         q = mv[p]
-        mvp = wp.vec3(q[0], q[1], q[2])
         A = affine[p]
-        mv0 += w0 * (mvp + A * d0)
-        mv1 += w1 * (mvp + A * d1)
-        mv2 += w2 * (mvp + A * d2)
-        m0 += w0 * q[3]
-        m1 += w1 * q[3]
-        m2 += w2 * q[3]
+        M = wp.mat33(0.0)
         if affine_flip == 1:
             M = mC[p]
-            old0 += w0 * (mvp + M * d0)
-            old1 += w1 * (mvp + M * d1)
-            old2 += w2 * (mvp + M * d2)
+        d_mv, d_m, d_old = node_term(f, q, A, M, i, j, 0, dx, affine_flip)
+        mv0 += d_mv
+        m0 += d_m
+        old0 += d_old
+        d_mv, d_m, d_old = node_term(f, q, A, M, i, j, 1, dx, affine_flip)
+        mv1 += d_mv
+        m1 += d_m
+        old1 += d_old
+        d_mv, d_m, d_old = node_term(f, q, A, M, i, j, 2, dx, affine_flip)
+        mv2 += d_mv
+        m2 += d_m
+        old2 += d_old
     return mv0, mv1, mv2, wp.vec3(m0, m1, m2), old0, old1, old2
 
 
@@ -712,8 +717,8 @@ def window_sums(t_key: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: Any, window:
     """A block's sums from its staged terms (shared-memory tiles of ``window`` slots: key,
     ``fx``, ``mv``, ``affine``, ``mC``): the thread ``lane`` of ``threads`` takes the (run
     start, stencil node) pairs ``lane, lane + threads, ...``; a run is the slots with the
-    start's key (skipped if ``none_key``), summed to node ``n`` in slot order as
-    :func:`chunk_sum` and added to the grid with one atomic per array."""
+    start's key (skipped if ``none_key``), its :func:`node_term` summed to node ``n`` in slot
+    order as :func:`chunk_sum` sums them, and added to the grid with one atomic per array."""
     for q in range(lane, window * 27, threads):
         s = q // 27
         key = t_key[s]
@@ -728,20 +733,14 @@ def window_sums(t_key: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: Any, window:
                 break
             e += 1
         o = stencil_offset(q - 27 * s)
-        node = wp.vec3(float(o[0]), float(o[1]), float(o[2]))
         sum_mv = wp.vec3(0.0)
         sum_m = float(0.0)
         sum_old = wp.vec3(0.0)
         for t in range(s, e):
-            f = t_fx[t]
-            weight = bspline_weight(f[0], o[0]) * bspline_weight(f[1], o[1]) * bspline_weight(f[2], o[2])
-            dpos = (node - f) * dx
-            w4 = t_mv[t]
-            mvp = wp.vec3(w4[0], w4[1], w4[2])
-            sum_mv += weight * (mvp + t_aff[t] * dpos)
-            sum_m += weight * w4[3]
-            if affine_flip == 1:
-                sum_old += weight * (mvp + t_mC[t] * dpos)
+            d_mv, d_m, d_old = node_term(t_fx[t], t_mv[t], t_aff[t], t_mC[t], o[0], o[1], o[2], dx, affine_flip)
+            sum_mv += d_mv
+            sum_m += d_m
+            sum_old += d_old
         g = stencil_node(key, o, n_grid)
         wp.atomic_add(grid_mv, g[0], g[1], g[2], sum_mv)
         wp.atomic_add(grid_m, g[0], g[1], g[2], sum_m)
