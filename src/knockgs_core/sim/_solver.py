@@ -439,8 +439,8 @@ class MPMSolver:
     #: Paper-scale Pillow on an H100: ``p2g_cells`` 0.199 ms with lines against 0.258 ms
     #: (benchmarks/README.md)
     node_line: int = 3
-    #: cap on the threads of the chunk sums (in chunks; None: one per possible chunk, see
-    #: :meth:`_record`); each thread strides over the chunks beyond, so it sets speed only
+    #: cap on the threads of the listed chunk sums (in chunks; None: one per possible chunk, see
+    #: :meth:`_chunk_slots`); each thread strides over the chunks beyond, so it sets speed only
     max_chunk_slots: int | None = None
     #: how the P2G by cells sums its chunks: ``"windows"`` (a block of ``cell_chunk`` threads a
     #: window of as many sorted positions, their terms staged in shared memory, a thread a run
@@ -638,13 +638,8 @@ class MPMSolver:
                                                  inputs=[c.keys, c.order, self.cell_chunk], outputs=[c.start], **rec)
             cmds["p2g_chunk_list"] = wp.launch(K.p2g_chunk_list, dim=m.particle_count,
                                                inputs=[c.start, c.index, m.particle_count], outputs=[c.chunks, c.n_chunks], **rec)
-            # chunk slots: at most one chunk per cell of the active box plus one per cell_chunk
-            # particles (the kernel strides over any beyond, so the bound is for speed, not correctness)
-            slots = max(1, min(m.particle_count, math.prod(dims) + m.particle_count // self.cell_chunk + 1))
-            if self.max_chunk_slots:
-                slots = min(slots, self.max_chunk_slots)
             if self._gather is not None:
-                self._record_gather(state, slots, dims, lo, flip, rec, cmds)
+                self._record_gather(state, self._chunk_slots(dims), dims, lo, flip, rec, cmds)
             elif self.cell_sums == "windows":
                 w = self.cell_chunk
                 cmds["p2g_windows"] = wp.launch_tiled(
@@ -657,6 +652,7 @@ class MPMSolver:
                     **rec,
                 )
             else:
+                slots = self._chunk_slots(dims)
                 cmds["p2g_cells"] = wp.launch(
                     K.p2g_cells,
                     dim=(slots, 27 // self.node_line),
@@ -716,6 +712,17 @@ class MPMSolver:
         self._cmds_key = (id(state), self._lo, self._hi)
         self._graphs = {}  # graphs of the launches recorded before
         self._box = (lo, dims)  # the active box as the effects' grid hooks take it
+
+    def _chunk_slots(self, dims: tuple[int, int, int]) -> int:
+        """Threads (chunk slots) of the listed chunk sums over the active box ``dims``: at most
+        one chunk per cell of the box plus one per ``cell_chunk`` particles, capped by
+        ``max_chunk_slots`` (each thread strides over any chunks beyond, so the bound is for
+        speed, not correctness)."""
+        n = self.model.particle_count
+        slots = max(1, min(n, math.prod(dims) + n // self.cell_chunk + 1))
+        if self.max_chunk_slots:
+            slots = min(slots, self.max_chunk_slots)
+        return slots
 
     def _record_gather(self, state: State, slots: int, dims: tuple[int, int, int], lo, flip: int, rec: dict,
                        cmds: dict) -> None:
