@@ -160,36 +160,36 @@ def main() -> None:
     ap.add_argument("--timers", nargs="+", choices=["off", "on"], default=["off"],
                     help="the reference's synchronizing per-kernel timers, each measured")
     args = ap.parse_args()
-    workdir = tempfile.TemporaryDirectory()
-    ref, wp = load_reference(args.physgaussian, Path(workdir.name))
-    wp.init()
-    print(f"# device {wp.get_device(args.device).name if args.device != 'cpu' else 'cpu'} ({args.device}), "
-          f"Warp {wp.__version__}")
-    print("| particles | n_grid | solver | ms/substep | reference (timers off) / this |")
-    print("|---:|---:|---|---:|---:|")
-    for case in args.cases:
-        n, g = (int(v) for v in case.split(":"))
-        X = block(n, g, grid_lim=GRID_LIM, ppc=PPC)
-        vol, v0 = probe_velocity(X, g, args.device)
-        base = None
-        notes = []
-        for timers in args.timers:
-            r = run_reference(ref, wp, X, vol, v0, g, args.steps, args.repeats, args.device, timers == "on")
-            if timers == "off":
-                base = r["ms_per_substep"]
-            ratio = "" if base is None else f"{base / r['ms_per_substep']:.2f}"
-            print(f"| {len(X):,} | {g} | PhysGaussian (timers {timers}) | {r['ms_per_substep']:.3f} | {ratio} |",
-                  flush=True)
-            notes.append(f"PhysGaussian (timers {timers}): mean velocity {r['mean_v'][0]:.6e} m/s in x after "
-                         f"{20 + args.steps * args.repeats} substeps, started at {v0[0]:.6e} (momentum is conserved)")
-        for transfer in ("affine_flip", "apic"):
-            for order in ("lattice", "cell"):
-                r = run_case(n, g, args.steps, args.repeats, args.device, transfer=transfer, order=order, ppc=PPC)
+    with tempfile.TemporaryDirectory() as workdir:  # the reference's modules, removed at the end
+        ref, wp = load_reference(args.physgaussian, Path(workdir))
+        wp.init()
+        print(f"# device {wp.get_device(args.device).name if args.device != 'cpu' else 'cpu'} ({args.device}), "
+              f"Warp {wp.__version__}")
+        print("| particles | n_grid | solver | ms/substep | reference (timers off) / this |")
+        print("|---:|---:|---|---:|---:|")
+        for case in args.cases:
+            n, g = (int(v) for v in case.split(":"))
+            X = block(n, g, grid_lim=GRID_LIM, ppc=PPC)
+            vol, v0 = probe_velocity(X, g, args.device)
+            base = None
+            notes = []
+            for timers in args.timers:
+                r = run_reference(ref, wp, X, vol, v0, g, args.steps, args.repeats, args.device, timers == "on")
+                if timers == "off":
+                    base = r["ms_per_substep"]
                 ratio = "" if base is None else f"{base / r['ms_per_substep']:.2f}"
-                print(f"| {r['particles']:,} | {g} | ours, {transfer}, {order} order, P2G {r['p2g']} | "
-                      f"{r['ms_per_substep']:.3f} | {ratio} |", flush=True)
-        for note in notes:
-            print(note)
+                print(f"| {len(X):,} | {g} | PhysGaussian (timers {timers}) | {r['ms_per_substep']:.3f} | {ratio} |",
+                      flush=True)
+                notes.append(f"PhysGaussian (timers {timers}): mean velocity {r['mean_v'][0]:.6e} m/s in x after "
+                             f"{20 + args.steps * args.repeats} substeps, started at {v0[0]:.6e} (momentum is conserved)")
+            for transfer in ("affine_flip", "apic"):
+                for order in ("lattice", "cell"):
+                    r = run_case(n, g, args.steps, args.repeats, args.device, transfer=transfer, order=order, ppc=PPC)
+                    ratio = "" if base is None else f"{base / r['ms_per_substep']:.2f}"
+                    print(f"| {r['particles']:,} | {g} | ours, {transfer}, {order} order, P2G {r['p2g']} | "
+                          f"{r['ms_per_substep']:.3f} | {ratio} |", flush=True)
+            for note in notes:
+                print(note)
 
 
 if __name__ == "__main__":

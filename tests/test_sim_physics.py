@@ -548,6 +548,9 @@ def test_p2g_by_windows_gives_the_chunk_lists_sums_bit_for_bit(rng, transfer):
             model, state, solver = pushed_shell(params, X, 40, p2g="cells", graph=graph, fuse=graph, resort_every=3,
                                                 cell_chunk=5, cell_sums=sums)
             assert solver.cell_sums == sums and ("p2g_windows" in solver._cmds) == (sums == "windows")
+            # the windows record no chunk list and hold no list arrays
+            assert ("p2g_chunk_list" in solver._cmds) == (sums == "list")
+            assert len(solver._cells.chunks) == (len(X) if sums == "list" else 1)
             out[graph, sums] = [a.numpy().copy() for a in (state.particle_u, state.particle_F, state.particle_v,
                                                            state.grid_mv, state.grid_m)]
         for a, b in zip(out[graph, "list"], out[graph, "windows"]):
@@ -555,11 +558,12 @@ def test_p2g_by_windows_gives_the_chunk_lists_sums_bit_for_bit(rng, transfer):
     u = out[False, "list"][0]
     assert np.abs(u).max() > 1e-3  # the body moved
     scale = np.sqrt((u ** 2).sum(-1).mean())
+    cpu_blocks = wp.config.enable_cpu_blocks
     wp.config.enable_cpu_blocks = True
     try:
         model, state, _ = pushed_shell(params, X, 40, p2g="cells", resort_every=3, cell_chunk=5, cell_sums="windows")
     finally:
-        wp.config.enable_cpu_blocks = False
+        wp.config.enable_cpu_blocks = cpu_blocks
     assert np.sqrt(((state.particle_u.numpy() - u) ** 2).sum(-1).mean()) < 1e-5 * scale
     assert state.grid_m.numpy().sum() == pytest.approx(model.mass_host.astype(np.float64).sum(), rel=1e-5)
     # the reproducible P2G sums the list; the option and the window's size are checked

@@ -316,8 +316,12 @@ class _CellScratch:
     n_chunks: wp.array
 
     @classmethod
-    def make(cls, model: Model) -> _CellScratch:
+    def make(cls, model: Model, *, listed: bool = True) -> _CellScratch:
+        """The scratch for ``model``; the chunk list's arrays (``start``, ``index``, ``chunks``)
+        only where the chunks are ``listed`` (placeholders of one entry where they are summed by
+        windows)."""
         n, dev, g = model.particle_count, model.device, model.params.n_grid
+        n_list = n if listed else 1
         none_key = g * g * g
         n_old = n if model.params.transfer == "affine_flip" else 1
 
@@ -327,8 +331,8 @@ class _CellScratch:
         order = wp.array(np.arange(2 * n, dtype=np.int32), dtype=wp.int32, device=dev)
         return cls(fx=zeros(wp.vec3), mv=zeros(wp.vec4), affine=zeros(wp.mat33), mC=zeros(wp.mat33, n_old), keys=zeros(wp.int32),
                    sort_keys=zeros(wp.int32, 2 * n), order=order, none_key=none_key,
-                   end_bit=max(1, int(none_key).bit_length()), start=zeros(wp.int32), index=zeros(wp.int32),
-                   chunks=zeros(wp.int32), n_chunks=zeros(wp.int32, 1))
+                   end_bit=max(1, int(none_key).bit_length()), start=zeros(wp.int32, n_list),
+                   index=zeros(wp.int32, n_list), chunks=zeros(wp.int32, n_list), n_chunks=zeros(wp.int32, 1))
 
 
 class _GatherScratch:
@@ -518,7 +522,7 @@ class MPMSolver:
                              "and particle translations")
         self.fuse = bool(fuse)
         self._prepared: tuple[int, int] | None = None  # (state, step) whose P2G terms the last G2P computed
-        self._cells = _CellScratch.make(model) if p2g == "cells" else None
+        self._cells = _CellScratch.make(model, listed=self.cell_sums == "list") if p2g == "cells" else None
         self._gather = _GatherScratch(model) if self.deterministic else None
         self._sorted_at: int | None = None  # the step of the last sort by cells
         self._inv_dx = 1.0 / p.dx
@@ -634,10 +638,11 @@ class MPMSolver:
             )
             cmds["p2g_sort_keys"] = wp.launch(K.p2g_sort_keys, dim=m.particle_count, inputs=[c.keys],
                                               outputs=[c.sort_keys, c.order], **rec)
-            cmds["p2g_chunk_starts"] = wp.launch(K.p2g_chunk_starts, dim=m.particle_count,
-                                                 inputs=[c.keys, c.order, self.cell_chunk], outputs=[c.start], **rec)
-            cmds["p2g_chunk_list"] = wp.launch(K.p2g_chunk_list, dim=m.particle_count,
-                                               inputs=[c.start, c.index, m.particle_count], outputs=[c.chunks, c.n_chunks], **rec)
+            if self.cell_sums == "list":  # the chunks listed in sorted order (the windows need no list)
+                cmds["p2g_chunk_starts"] = wp.launch(K.p2g_chunk_starts, dim=m.particle_count,
+                                                     inputs=[c.keys, c.order, self.cell_chunk], outputs=[c.start], **rec)
+                cmds["p2g_chunk_list"] = wp.launch(K.p2g_chunk_list, dim=m.particle_count, inputs=[c.start, c.index,
+                                                   m.particle_count], outputs=[c.chunks, c.n_chunks], **rec)
             if self._gather is not None:
                 self._record_gather(state, self._chunk_slots(dims), dims, lo, flip, rec, cmds)
             elif self.cell_sums == "windows":
