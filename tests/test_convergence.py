@@ -129,7 +129,7 @@ def _energy(model, state) -> float:
     """Kinetic plus fixed-corotated elastic energy [J]: psi = mu |F - R|^2 + lam / 2 (J - 1)^2."""
     m = model.mass_host.astype(np.float64)
     v = state.particle_v.numpy().astype(np.float64)
-    F = state.particle_F.numpy().astype(np.float64)
+    F = state.deformation_gradients()
     U, S, Vt = np.linalg.svd(F)
     R = U @ Vt
     J = np.linalg.det(F)

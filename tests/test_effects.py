@@ -224,11 +224,16 @@ def test_von_mises_return_mapping_matches_numpy(rng):
     mu = rng.uniform(50.0, 150.0, n)
     yield_stress = 8.0
     wp.init()
-    Fw = wp.array(F.astype(np.float32).astype(np.float64), dtype=wp.mat33d, device="cpu")  # F is float64 in the solver
+    from knockgs_core.sim._solver import matrices, matrix_pitch
+
+    # F is float64 in the solver, stored component by component: (9, n rounded up to 32)
+    rows = np.zeros((9, matrix_pitch(n)))
+    rows[:, :n] = F.astype(np.float32).astype(np.float64).reshape(n, 9).T
+    Fw = wp.array(rows, dtype=wp.float64, device="cpu")
     plastic = wp.zeros(n, dtype=float, device="cpu")
     mu_w = wp.array(mu.astype(np.float32), dtype=float, device="cpu")
     wp.launch(von_mises_return, dim=n, inputs=[mu_w, yield_stress], outputs=[Fw, plastic], device="cpu")
-    out = Fw.numpy().astype(np.float64)
+    out = matrices(Fw, n)
     U, s, Vt = np.linalg.svd(F)
     e = np.log(s)
     dev = e - e.mean(1, keepdims=True)

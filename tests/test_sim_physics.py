@@ -47,7 +47,7 @@ def test_free_body_momentum_and_rigid_motion(rng, transfer):
     # rigid: every particle translated by v0 * t, no deformation
     x1 = state.positions()
     np.testing.assert_allclose(x1 - X, np.tile(v0 * 0.2, (len(X), 1)), atol=2e-5)
-    F = state.particle_F.numpy()
+    F = state.deformation_gradients()
     np.testing.assert_allclose(F, np.tile(np.eye(3), (len(X), 1, 1)), atol=1e-5)
 
 
@@ -727,8 +727,10 @@ def test_the_initial_state_is_at_rest_in_its_reference_shape():
     v = rng.normal(size=(257, 3)).astype(np.float32)
     for velocities, expected in ((None, np.zeros_like(v)), (v, v)):
         s = make_state(model, x, velocities)
-        F = s.particle_F.numpy()
+        F = s.deformation_gradients()
         assert F.dtype == np.float64 and np.array_equal(F, np.broadcast_to(np.eye(3), (257, 3, 3)))
+        # stored component by component, (9, 257 rounded up to 32): the padding columns stay zero
+        assert s.particle_F.shape == s.particle_C.shape == (9, 288) and not s.particle_F.numpy()[:, 257:].any()
         assert np.array_equal(s.particle_rot.numpy(), np.broadcast_to(np.float32([0, 0, 0, 1]), (257, 4)))
         assert np.array_equal(s.particle_x0.numpy(), x) and not s.particle_u.numpy().any()
-        assert not s.particle_C.numpy().any() and np.array_equal(s.particle_v.numpy(), expected)
+        assert not s.affine_velocities().any() and np.array_equal(s.particle_v.numpy(), expected)

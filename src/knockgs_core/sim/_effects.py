@@ -123,7 +123,7 @@ def _log_strain(s: float) -> float:
 def von_mises_return(
     mu: wp.array(dtype=float),
     yield_stress: float,
-    F: wp.array(dtype=wp.mat33d),
+    F: wp.array2d(dtype=wp.float64),
     plastic: wp.array(dtype=float),
 ):
     """Von Mises return mapping on the elastic deformation gradient (PhysGaussian's).
@@ -138,7 +138,7 @@ def von_mises_return(
     U = wp.mat33()
     s = wp.vec3()
     V = wp.mat33()
-    wp.svd3(K.mat33_to_f32(F[p]), U, s, V)
+    wp.svd3(K.mat33_to_f32(K.mat33d_at(F, p)), U, s, V)
     e = wp.vec3(_log_strain(s[0]), _log_strain(s[1]), _log_strain(s[2]))
     mean = (e[0] + e[1] + e[2]) / 3.0
     dev = e - wp.vec3(mean)
@@ -147,7 +147,7 @@ def von_mises_return(
     if norm > limit:
         e = wp.vec3(mean) + dev * (limit / norm)
         S = wp.mat33(wp.exp(e[0]), 0.0, 0.0, 0.0, wp.exp(e[1]), 0.0, 0.0, 0.0, wp.exp(e[2]))
-        F[p] = K.mat33_to_f64(U * S * wp.transpose(V))
+        K.mat33d_put(F, p, K.mat33_to_f64(U * S * wp.transpose(V)))
         plastic[p] = plastic[p] + (norm - limit)
 
 

@@ -58,6 +58,40 @@ def mat33_to_f32(A: wp.mat33d) -> wp.mat33:
                     float(A[2, 0]), float(A[2, 1]), float(A[2, 2]))
 
 
+# Per-particle 3x3 matrices (C, F, the P2G terms' affine matrices) are stored component by
+# component: a (9, pitch) array holds particle p's matrix in column p, component k = 3 i + j
+# at row k (pitch: the particle count rounded up to 32, so every row starts aligned). A warp's
+# 32 threads then read one component of 32 particles from one stretch of memory; as one
+# 36- or 72-byte record a particle, each component's read touched 32 sectors and a block's
+# records outgrew the L1 cache (benchmarks/README.md, "the matrices' layout").
+@wp.func
+def mat33_at(A: wp.array2d(dtype=float), p: int) -> wp.mat33:
+    """Particle ``p``'s matrix of a (9, pitch) float32 array."""
+    return wp.mat33(A[0, p], A[1, p], A[2, p], A[3, p], A[4, p], A[5, p], A[6, p], A[7, p], A[8, p])
+
+
+@wp.func
+def mat33_put(A: wp.array2d(dtype=float), p: int, M: wp.mat33):
+    """Store particle ``p``'s matrix ``M`` in a (9, pitch) float32 array."""
+    for i in range(3):
+        for j in range(3):
+            A[3 * i + j, p] = M[i, j]
+
+
+@wp.func
+def mat33d_at(A: wp.array2d(dtype=wp.float64), p: int) -> wp.mat33d:
+    """Particle ``p``'s matrix of a (9, pitch) float64 array."""
+    return wp.mat33d(A[0, p], A[1, p], A[2, p], A[3, p], A[4, p], A[5, p], A[6, p], A[7, p], A[8, p])
+
+
+@wp.func
+def mat33d_put(A: wp.array2d(dtype=wp.float64), p: int, M: wp.mat33d):
+    """Store particle ``p``'s matrix ``M`` in a (9, pitch) float64 array."""
+    for i in range(3):
+        for j in range(3):
+            A[3 * i + j, p] = M[i, j]
+
+
 @wp.func
 def bspline_weights(fx: wp.vec3) -> wp.mat33:
     """Quadratic B-spline weights; row ``k`` holds the weight of stencil node ``k`` per axis.
@@ -151,11 +185,11 @@ def kelvin_voigt_kirchhoff(L: wp.mat33, J: float, mu: float, lam: float, retarda
 # grid kernels (launched over the active box)
 # --------------------------------------------------------------------------------------
 @wp.kernel
-def state_rest(F: wp.array(dtype=wp.mat33d), rot: wp.array(dtype=wp.quat)):
+def state_rest(F: wp.array2d(dtype=wp.float64), rot: wp.array(dtype=wp.quat)):
     """A particle at rest in its reference shape: ``F = I`` and its rotation the identity
     (the initial state, set on the device: no host array, no copy)."""
     p = wp.tid()
-    F[p] = wp.identity(n=3, dtype=wp.float64)
+    mat33d_put(F, p, wp.identity(n=3, dtype=wp.float64))
     rot[p] = wp.quat_identity()
 
 
@@ -336,8 +370,8 @@ def p2g_terms(vp: wp.vec3, Cp: wp.mat33, Fd: wp.mat33d, q0: wp.quat, m: float, v
 @wp.func
 def p2g_particle(
     p: int,
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33d),
+    C: wp.array2d(dtype=float),
+    F: wp.array2d(dtype=wp.float64),
     mass: wp.array(dtype=float),
     vol: wp.array(dtype=float),
     mu: wp.array(dtype=float),
@@ -360,7 +394,8 @@ def p2g_particle(
     if probe_on == 1 and probe_mask[p] != 0:
         vp = vp + probe_force * (dt / m)
         v[p] = vp
-    q, affine, mC = p2g_terms(vp, C[p], F[p], rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters, retardation)
+    q, affine, mC = p2g_terms(vp, mat33_at(C, p), mat33d_at(F, p), rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt,
+                              polar_iters, retardation)
     rot[p] = q
     return vp, affine, mC
 
@@ -369,8 +404,8 @@ def p2g_particle(
 def p2g(
     x0: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33d),
+    C: wp.array2d(dtype=float),
+    F: wp.array2d(dtype=wp.float64),
     mass: wp.array(dtype=float),
     vol: wp.array(dtype=float),
     mu: wp.array(dtype=float),
@@ -442,7 +477,7 @@ def p2g(
 @wp.func
 def p2g_store(p: int, gx: wp.vec3, vp: wp.vec3, aff: wp.mat33, mCp: wp.mat33, m: float, lo: wp.vec3i, hi: wp.vec3i,
               n_grid: int, none_key: int, affine_flip: int, fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4),
-              affine: wp.array(dtype=wp.mat33), mC: wp.array(dtype=wp.mat33), keys: wp.array(dtype=wp.int32),
+              affine: wp.array2d(dtype=float), mC: wp.array2d(dtype=float), keys: wp.array(dtype=wp.int32),
               overrun: wp.array(dtype=wp.int32)):
     """Store particle ``p``'s P2G terms at grid position ``gx`` [cells] (see :func:`p2g_prepare`)."""
     base = stencil_base(gx)
@@ -451,9 +486,9 @@ def p2g_store(p: int, gx: wp.vec3, vp: wp.vec3, aff: wp.mat33, mCp: wp.mat33, m:
         fx[p] = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
         mvp = m * vp
         mv[p] = wp.vec4(mvp[0], mvp[1], mvp[2], m)
-        affine[p] = aff
+        mat33_put(affine, p, aff)
         if affine_flip == 1:
-            mC[p] = mCp
+            mat33_put(mC, p, mCp)
     else:
         wp.atomic_add(overrun, 0, 1)
         keys[p] = none_key
@@ -463,8 +498,8 @@ def p2g_store(p: int, gx: wp.vec3, vp: wp.vec3, aff: wp.mat33, mCp: wp.mat33, m:
 def p2g_prepare(
     x0: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33d),
+    C: wp.array2d(dtype=float),
+    F: wp.array2d(dtype=wp.float64),
     mass: wp.array(dtype=float),
     vol: wp.array(dtype=float),
     mu: wp.array(dtype=float),
@@ -485,8 +520,8 @@ def p2g_prepare(
     rot: wp.array(dtype=wp.quat),
     fx: wp.array(dtype=wp.vec3),
     mv: wp.array(dtype=wp.vec4),
-    affine: wp.array(dtype=wp.mat33),
-    mC: wp.array(dtype=wp.mat33),
+    affine: wp.array2d(dtype=float),
+    mC: wp.array2d(dtype=float),
     keys: wp.array(dtype=wp.int32),
     overrun: wp.array(dtype=wp.int32),
 ):
@@ -568,8 +603,8 @@ def node_term(f: wp.vec3, q: wp.vec4, A: wp.mat33, M: wp.mat33, i: int, j: int, 
 
 @wp.func
 def chunk_sum(s: int, e: int, i: int, j: int, k: int, dx: float, affine_flip: int, order: wp.array(dtype=wp.int32),
-              fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: wp.array(dtype=wp.mat33),
-              mC: wp.array(dtype=wp.mat33)):
+              fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: wp.array2d(dtype=float),
+              mC: wp.array2d(dtype=float)):
     """The contributions (:func:`node_term`) of the particles at sorted positions ``s .. e-1``
     (one chunk, one base cell) to the stencil node ``(i, j, k)`` of that cell, summed in sorted
     order."""
@@ -580,8 +615,8 @@ def chunk_sum(s: int, e: int, i: int, j: int, k: int, dx: float, affine_flip: in
         p = order[t]
         M = wp.mat33(0.0)
         if affine_flip == 1:
-            M = mC[p]
-        d_mv, d_m, d_old = node_term(fx[p], mv[p], affine[p], M, i, j, k, dx, affine_flip)
+            M = mat33_at(mC, p)
+        d_mv, d_m, d_old = node_term(fx[p], mv[p], mat33_at(affine, p), M, i, j, k, dx, affine_flip)
         sum_mv += d_mv
         sum_m += d_m
         sum_old += d_old
@@ -590,8 +625,8 @@ def chunk_sum(s: int, e: int, i: int, j: int, k: int, dx: float, affine_flip: in
 
 @wp.func
 def chunk_line_sum(s: int, e: int, i: int, j: int, dx: float, affine_flip: int, order: wp.array(dtype=wp.int32),
-                   fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: wp.array(dtype=wp.mat33),
-                   mC: wp.array(dtype=wp.mat33)):
+                   fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: wp.array2d(dtype=float),
+                   mC: wp.array2d(dtype=float)):
     """:func:`chunk_sum` for the line of three stencil nodes ``(i, j, 0..2)`` at once: each
     particle's terms are read once for three nodes. Per node the same arithmetic in the same
     order, so the same bits. Returns the momenta of nodes k = 0, 1, 2 [kg m/s], their masses as
@@ -609,10 +644,10 @@ def chunk_line_sum(s: int, e: int, i: int, j: int, dx: float, affine_flip: int, 
         p = order[t]
         f = fx[p]
         q = mv[p]
-        A = affine[p]
+        A = mat33_at(affine, p)
         M = wp.mat33(0.0)
         if affine_flip == 1:
-            M = mC[p]
+            M = mat33_at(mC, p)
         d_mv, d_m, d_old = node_term(f, q, A, M, i, j, 0, dx, affine_flip)
         mv0 += d_mv
         m0 += d_m
@@ -652,8 +687,8 @@ def p2g_cells(
     affine_flip: int,
     fx: wp.array(dtype=wp.vec3),
     mv: wp.array(dtype=wp.vec4),
-    affine: wp.array(dtype=wp.mat33),
-    mC: wp.array(dtype=wp.mat33),
+    affine: wp.array2d(dtype=float),
+    mC: wp.array2d(dtype=float),
     grid_mv: wp.array3d(dtype=wp.vec3),
     grid_m: wp.array3d(dtype=float),
     grid_mv_old: wp.array3d(dtype=wp.vec3),
@@ -770,8 +805,8 @@ def p2g_windows(window: int):
         affine_flip: int,
         fx: wp.array(dtype=wp.vec3),
         mv: wp.array(dtype=wp.vec4),
-        affine: wp.array(dtype=wp.mat33),
-        mC: wp.array(dtype=wp.mat33),
+        affine: wp.array2d(dtype=float),
+        mC: wp.array2d(dtype=float),
         grid_mv: wp.array3d(dtype=wp.vec3),
         grid_m: wp.array3d(dtype=float),
         grid_mv_old: wp.array3d(dtype=wp.vec3),
@@ -796,9 +831,9 @@ def p2g_windows(window: int):
             wp.tile_scatter_masked(t_key, slot, key, True)
             wp.tile_scatter_masked(t_fx, slot, fx[p], True)
             wp.tile_scatter_masked(t_mv, slot, mv[p], True)
-            wp.tile_scatter_masked(t_aff, slot, affine[p], True)
+            wp.tile_scatter_masked(t_aff, slot, mat33_at(affine, p), True)
             if affine_flip == 1:
-                wp.tile_scatter_masked(t_mC, slot, mC[p], True)
+                wp.tile_scatter_masked(t_mC, slot, mat33_at(mC, p), True)
         window_sums(t_key, t_fx, t_mv, t_aff, t_mC, wp.static(window), lane, threads, none_key, n_grid, 1.0 / inv_dx,
                     affine_flip, grid_mv, grid_m, grid_mv_old)
 
@@ -830,8 +865,8 @@ def p2g_chunk_sums(
     affine_flip: int,
     fx: wp.array(dtype=wp.vec3),
     mv: wp.array(dtype=wp.vec4),
-    affine: wp.array(dtype=wp.mat33),
-    mC: wp.array(dtype=wp.mat33),
+    affine: wp.array2d(dtype=float),
+    mC: wp.array2d(dtype=float),
     sums_mv: wp.array(dtype=wp.vec3),
     sums_m: wp.array(dtype=float),
     sums_old: wp.array(dtype=wp.vec3),
@@ -990,8 +1025,8 @@ def g2p_particle(
     grid_v_old: wp.array3d(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33d),
+    C: wp.array2d(dtype=float),
+    F: wp.array2d(dtype=wp.float64),
     overrun: wp.array(dtype=wp.int32),
 ):
     """Particle ``p``'s G2P (see :func:`g2p`), written back; returns whether its stencil lay
@@ -1001,7 +1036,7 @@ def g2p_particle(
     base = stencil_base(gx)
     if not stencil_inside(base, lo, hi):
         wp.atomic_add(overrun, 0, 1)
-        return False, up, v[p], C[p], F[p]
+        return False, up, v[p], mat33_at(C, p), mat33d_at(F, p)
     fx = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     w = bspline_weights(fx)
     new_v = wp.vec3(0.0)
@@ -1024,17 +1059,17 @@ def g2p_particle(
     if held:  # a prescribed motion: v and C take it exactly, under either transfer
         new_v = trans_velocity
         new_C = wp.mat33(0.0)
-    Fp = (wp.identity(n=3, dtype=wp.float64) + wp.float64(dt) * mat33_to_f64(new_C)) * F[p]
-    F[p] = Fp
+    Fp = (wp.identity(n=3, dtype=wp.float64) + wp.float64(dt) * mat33_to_f64(new_C)) * mat33d_at(F, p)
+    mat33d_put(F, p, Fp)
     up = up + dt * new_v
     u[p] = up
     vp = new_v
     Cp = new_C
     if affine_flip == 1 and not held:
         vp = flip_weight * (v[p] + dv) + (1.0 - flip_weight) * new_v
-        Cp = flip_weight * (C[p] + dC) + (1.0 - flip_weight) * new_C
+        Cp = flip_weight * (mat33_at(C, p) + dC) + (1.0 - flip_weight) * new_C
     v[p] = vp
-    C[p] = Cp
+    mat33_put(C, p, Cp)
     return True, up, vp, Cp, Fp
 
 
@@ -1054,8 +1089,8 @@ def g2p(
     grid_v_old: wp.array3d(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33d),
+    C: wp.array2d(dtype=float),
+    F: wp.array2d(dtype=wp.float64),
     overrun: wp.array(dtype=wp.int32),
 ):
     """Gather: new velocity and affine matrix (APIC, or with ``affine_flip = 1`` the affine
@@ -1098,13 +1133,13 @@ def g2p_prepare(
     none_key: int,
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33d),
+    C: wp.array2d(dtype=float),
+    F: wp.array2d(dtype=wp.float64),
     rot: wp.array(dtype=wp.quat),
     fx: wp.array(dtype=wp.vec3),
     mv: wp.array(dtype=wp.vec4),
-    affine: wp.array(dtype=wp.mat33),
-    mC: wp.array(dtype=wp.mat33),
+    affine: wp.array2d(dtype=float),
+    mC: wp.array2d(dtype=float),
     keys: wp.array(dtype=wp.int32),
     overrun: wp.array(dtype=wp.int32),
 ):
@@ -1138,10 +1173,10 @@ def gather_positions(x0: wp.array(dtype=wp.vec3), u: wp.array(dtype=wp.vec3), in
 
 
 @wp.kernel
-def gather_F(F: wp.array(dtype=wp.mat33d), index: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.mat33)):
+def gather_F(F: wp.array2d(dtype=wp.float64), index: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.mat33)):
     """Export row ``i``: the deformation gradient of particle ``index[i]``, in float32."""
     i = wp.tid()
-    out[i] = mat33_to_f32(F[index[i]])
+    out[i] = mat33_to_f32(mat33d_at(F, index[i]))
 
 
 @wp.kernel
@@ -1149,7 +1184,7 @@ def particle_stats(
     x0: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33d),
+    F: wp.array2d(dtype=wp.float64),
     inv_dx: float,
     out_f: wp.array(dtype=float),
     out_i: wp.array(dtype=wp.int32),
@@ -1159,7 +1194,7 @@ def particle_stats(
     p = wp.tid()
     xp = x0[p] + u[p]
     vp = v[p]
-    Fp = mat33_to_f32(F[p])
+    Fp = mat33_to_f32(mat33d_at(F, p))
     s = xp[0] + xp[1] + xp[2] + vp[0] + vp[1] + vp[2]
     for a in range(3):
         for b in range(3):

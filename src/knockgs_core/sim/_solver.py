@@ -110,9 +110,12 @@ class State:
 
     particle_x0 rest positions [m] (particle_count, 3) and particle_u displacements [m]
     (positions are x0 + u: small displacements keep their float32 precision); particle_v
-    [m/s]; particle_F deformation gradient (particle_count, 3, 3) in float64 (it accumulates
-    ``I + dt C`` every substep: in float32 the rounding of a strain of ~1e-3 random-walks into
-    a floor on the dt convergence); particle_C APIC affine velocity [1/s]; particle_rot
+    [m/s]; particle_F deformation gradient in float64 (it accumulates ``I + dt C`` every
+    substep: in float32 the rounding of a strain of ~1e-3 random-walks into a floor on the dt
+    convergence); particle_C APIC affine velocity [1/s]; both stored component by component,
+    (9, :func:`matrix_pitch`) with particle p's component ``3 i + j`` at ``[3 i + j, p]``
+    (:meth:`deformation_gradients`, :meth:`affine_velocities` give them as (particle_count, 3,
+    3)); particle_rot
     warm-start rotation of F's polar decomposition (quaternion xyzw); grid_mv grid momentum
     [kg m/s], then velocity [m/s] (n_grid, n_grid, n_grid) of vec3; grid_m grid mass [kg]
     (n_grid, n_grid, n_grid); grid_mv_old (affine-FLIP transfer only) the grid momentum
@@ -135,6 +138,26 @@ class State:
     def positions(self) -> np.ndarray:
         """Current particle positions x0 + u [m], (particle_count, 3) float64."""
         return self.particle_x0.numpy().astype(np.float64) + self.particle_u.numpy().astype(np.float64)
+
+    def deformation_gradients(self) -> np.ndarray:
+        """The particles' deformation gradients, (particle_count, 3, 3) float64."""
+        return matrices(self.particle_F, len(self.particle_x0))
+
+    def affine_velocities(self) -> np.ndarray:
+        """The particles' affine velocity matrices C [1/s], (particle_count, 3, 3) float32."""
+        return matrices(self.particle_C, len(self.particle_x0))
+
+
+def matrix_pitch(n: int) -> int:
+    """Columns of a per-particle matrix array for ``n`` particles: ``n`` rounded up to 32, so
+    each of its 9 rows starts 128-byte aligned on the GPU (unaligned rows measured 1.5x slower
+    to stream on an H100: benchmarks/README.md)."""
+    return max(32, -(-n // 32) * 32)
+
+
+def matrices(rows: wp.array, n: int) -> np.ndarray:
+    """A (9, pitch) per-particle matrix array as (n, 3, 3) on the host."""
+    return np.ascontiguousarray(rows.numpy()[:, :n].T.reshape(n, 3, 3))
 
 
 @dataclass
@@ -274,7 +297,7 @@ def make_state(model: Model, positions: np.ndarray, velocities: np.ndarray | Non
         v = wp.zeros(n, dtype=wp.vec3, device=dev)
     else:
         v = wp.array(np.ascontiguousarray(velocities, dtype=np.float32), dtype=wp.vec3, device=dev)
-    F = wp.empty(n, dtype=wp.mat33d, device=dev)
+    F = wp.zeros((9, matrix_pitch(n)), dtype=wp.float64, device=dev)
     rot = wp.empty(n, dtype=wp.quat, device=dev)
     wp.launch(K.state_rest, dim=n, outputs=[F, rot], device=dev)  # F = I, rotations the identity
     return State(
@@ -282,7 +305,7 @@ def make_state(model: Model, positions: np.ndarray, velocities: np.ndarray | Non
         particle_u=wp.zeros(n, dtype=wp.vec3, device=dev),
         particle_v=v,
         particle_F=F,
-        particle_C=wp.zeros(n, dtype=wp.mat33, device=dev),
+        particle_C=wp.zeros((9, matrix_pitch(n)), dtype=float, device=dev),
         particle_rot=rot,
         grid_mv=wp.zeros((g, g, g), dtype=wp.vec3, device=dev),
         grid_m=wp.zeros((g, g, g), dtype=float, device=dev),
@@ -294,7 +317,8 @@ def make_state(model: Model, positions: np.ndarray, velocities: np.ndarray | Non
 class _CellScratch:
     """Scratch of the P2G by cells (``MPMSolver(p2g="cells")``): per particle, in the
     particles' order, the position in its base cell ``fx`` [cells], momentum and mass ``mv``,
-    the affine matrices ``affine`` and ``mC`` (affine FLIP only) and the base cell's ``keys``;
+    the affine matrices ``affine`` and ``mC`` (affine FLIP only; (9, :func:`matrix_pitch`),
+    component by component as ``State.particle_C``) and the base cell's ``keys``;
     the radix sort's ``sort_keys`` and ``order`` (twice the particle count, as the sort needs;
     ``order[:n]`` is a permutation at all times: the identity until the first sort), ``none_key``
     (a key above every cell's) and ``end_bit`` (the bits the sort looks at); over sorted
@@ -329,7 +353,9 @@ class _CellScratch:
             return wp.zeros(size, dtype=dtype, device=dev)
 
         order = wp.array(np.arange(2 * n, dtype=np.int32), dtype=wp.int32, device=dev)
-        return cls(fx=zeros(wp.vec3), mv=zeros(wp.vec4), affine=zeros(wp.mat33), mC=zeros(wp.mat33, n_old), keys=zeros(wp.int32),
+        pitch = matrix_pitch(n)
+        return cls(fx=zeros(wp.vec3), mv=zeros(wp.vec4), affine=zeros(float, (9, pitch)),
+                   mC=zeros(float, (9, pitch if n_old == n else 1)), keys=zeros(wp.int32),
                    sort_keys=zeros(wp.int32, 2 * n), order=order, none_key=none_key,
                    end_bit=max(1, int(none_key).bit_length()), start=zeros(wp.int32, n_list),
                    index=zeros(wp.int32, n_list), chunks=zeros(wp.int32, n_list), n_chunks=zeros(wp.int32, 1))
@@ -902,7 +928,7 @@ class _Exporter:
         if self.index is None:
             X[frame] = state.positions()
             if F is not None:
-                F[frame] = state.particle_F.numpy()[: self.n_F].astype(np.float32)
+                F[frame] = state.deformation_gradients()[: self.n_F].astype(np.float32)
             return
         dev = self.x.device
         wp.launch(K.gather_positions, dim=len(self.x), inputs=[state.particle_x0, state.particle_u, self.index],
