@@ -27,6 +27,7 @@ register cap, ``--repeats`` times, and compares the displacements.
 import argparse
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -114,8 +115,8 @@ def make_kernel(regs, mode):
         nodes: int,
         u: wp.array(dtype=wp.vec3),
         v: wp.array(dtype=wp.vec3),
-        C: wp.array2d(dtype=float),
-        F: wp.array2d(dtype=wp.float64),
+        C: Any,
+        F: Any,
         rot: wp.array(dtype=wp.quat),
         overrun: wp.array(dtype=wp.int32),
         grid_mv: wp.array3d(dtype=wp.vec3),

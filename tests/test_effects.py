@@ -216,20 +216,27 @@ def test_gravity_effect_is_held_by_a_sticky_support():
     assert 0 < sag[-1] < 0.02 and abs(sag[-1] - sag[-3]) < 0.01
 
 
-def test_von_mises_return_mapping_matches_numpy(rng):
-    """The kernel caps the deviatoric Hencky strain at yield / (2 mu) and keeps the volume."""
+@pytest.mark.parametrize("layout", ["records", "components"])
+def test_von_mises_return_mapping_matches_numpy(rng, layout):
+    """The kernel caps the deviatoric Hencky strain at yield / (2 mu) and keeps the volume, in
+    either layout of the solver's matrices (the CPU's records, the GPU's components)."""
     n = 200
     F = np.eye(3) + 0.15 * rng.standard_normal((n, 3, 3))
     F[np.linalg.det(F) < 0.2] = np.eye(3)
     mu = rng.uniform(50.0, 150.0, n)
     yield_stress = 8.0
     wp.init()
-    from knockgs_core.sim._solver import matrices, matrix_pitch
+    from knockgs_core.sim._solver import matrices, matrix_array
 
-    # F is float64 in the solver, stored component by component: (9, n rounded up to 32)
-    rows = np.zeros((9, matrix_pitch(n)))
-    rows[:, :n] = F.astype(np.float32).astype(np.float64).reshape(n, 9).T
-    Fw = wp.array(rows, dtype=wp.float64, device="cpu")
+    # F is float64 in the solver
+    Fw = matrix_array(n, wp.float64, "cpu", layout=layout)
+    F32 = F.astype(np.float32).astype(np.float64)
+    if layout == "records":
+        Fw.assign(F32)
+    else:
+        rows = np.zeros(Fw.shape)
+        rows[:, :n] = F32.reshape(n, 9).T
+        Fw.assign(rows)
     plastic = wp.zeros(n, dtype=float, device="cpu")
     mu_w = wp.array(mu.astype(np.float32), dtype=float, device="cpu")
     wp.launch(von_mises_return, dim=n, inputs=[mu_w, yield_stress], outputs=[Fw, plastic], device="cpu")

@@ -10,7 +10,8 @@ import pytest
 import warp as wp
 
 from knockgs_core.errors import InputError, SimulationError
-from knockgs_core.sim import Box, DomainWalls, FixedCuboid, MPMSolver, Probe, SimParams, build_model, make_state, simulate
+from knockgs_core.sim import (Box, DomainWalls, FixedCuboid, MPMSolver, Probe, SimParams, VonMisesPlasticity, build_model,
+                              make_state, simulate)
 
 
 def block(lo, hi, spacing, jitter=0.0, rng=None):
@@ -447,13 +448,15 @@ def test_fused_substeps_are_the_unfused_bit_for_bit(rng, transfer):
         MPMSolver(model, p2g="scatter", fuse=True)
 
 
-def pushed_shell(params, X, steps: int, **solver_options):
+def pushed_shell(params, X, steps: int, *, matrix_layout: str = "auto", **solver_options):
     """Step the shell scene's particles ``X`` for ``steps`` substeps under a strong push on one
     end (particles change cells, cells empty), with the guard every ``params.guard_every``
-    substeps; the solver takes ``solver_options``. Returns (model, state, solver)."""
+    substeps; the model stores its matrices in ``matrix_layout``, the solver takes
+    ``solver_options``. Returns (model, state, solver)."""
     probe = Probe("p", (0.0, 2.0, 0.0), box=Box(center=(1.15, 1.0, 0.85), half_size=(0.06, 0.25, 0.2)), n_steps=4,
                   dt_ref=5e-4)
     model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, probe=probe, device="cpu")
+    model.matrix_layout = matrix_layout
     state = make_state(model, X)
     solver = MPMSolver(model, **solver_options)
     solver.check(state)
@@ -462,6 +465,41 @@ def pushed_shell(params, X, steps: int, **solver_options):
         if state.step % params.guard_every == 0:
             solver.check(state)
     return model, state, solver
+
+
+@pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
+def test_matrix_layouts_give_the_same_bits(rng, transfer):
+    # The per-particle matrices (F, C, the P2G terms' affine matrices) are records on the CPU
+    # and component by component on a GPU; the kernels are generic in the layout. Replayed on
+    # the CPU, the components give the records' u, F, C, v and grid bit for bit, through every
+    # P2G the GPU uses (scatter, the list, the windows with graphs and fused G2P, the
+    # reproducible sums) and von Mises plasticity's return mapping on F.
+    params, X = shell_scene(rng, transfer, shell=3000, guard_every=10)
+    plastic = dataclasses.replace(params, effects=(VonMisesPlasticity(yield_stress=30.0),))
+    variants = {"scatter": (params, dict(p2g="scatter")),
+                "list": (params, dict(p2g="cells", cell_sums="list", resort_every=3, cell_chunk=5)),
+                "windows": (params, dict(p2g="cells", cell_sums="windows", graph=True, fuse=True, resort_every=3,
+                                         cell_chunk=5)),
+                "reproducible": (params, dict(p2g="cells", deterministic=True, graph=True, resort_every=3)),
+                "plastic": (plastic, dict(p2g="cells", cell_sums="windows", resort_every=3))}
+    out = {}
+    for name, (p, options) in variants.items():
+        for layout in ("records", "components"):
+            model, state, solver = pushed_shell(p, X, 30, matrix_layout=layout, **options)
+            F_shape = (len(X),) if layout == "records" else (9, -(-len(X) // 32) * 32)  # rounded up to 32
+            assert state.particle_F.shape == state.particle_C.shape == F_shape
+            if options["p2g"] == "cells" and not options.get("deterministic"):
+                assert solver._cells.affine.shape == F_shape
+            out[name, layout] = [state.particle_u.numpy(), state.deformation_gradients(), state.affine_velocities(),
+                                 state.particle_v.numpy(), state.grid_mv.numpy(), state.grid_m.numpy()]
+        for a, b in zip(out[name, "records"], out[name, "components"]):
+            assert np.array_equal(a, b), name
+    u = out["scatter", "records"][0]
+    assert np.abs(u).max() > 1e-3  # the body moved
+    # plasticity acted (so its F went through the return mapping in both layouts)
+    assert np.abs(out["plastic", "records"][1] - out["windows", "records"][1]).max() > 1e-3
+    with pytest.raises(ValueError, match="layout"):
+        pushed_shell(params, X, 1, matrix_layout="rows")
 
 
 @pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
@@ -725,12 +763,15 @@ def test_the_initial_state_is_at_rest_in_its_reference_shape():
     x = rng.uniform(0.5, 1.5, size=(257, 3)).astype(np.float32)
     model = build_model(x, E=1e4, nu=0.3, rho=100.0, params=SimParams(n_grid=16, grid_lim=2.0, dt=1e-4), device="cpu")
     v = rng.normal(size=(257, 3)).astype(np.float32)
-    for velocities, expected in ((None, np.zeros_like(v)), (v, v)):
+    for layout, velocities, expected in (("auto", None, np.zeros_like(v)), ("auto", v, v), ("components", v, v)):
+        model.matrix_layout = layout
         s = make_state(model, x, velocities)
         F = s.deformation_gradients()
         assert F.dtype == np.float64 and np.array_equal(F, np.broadcast_to(np.eye(3), (257, 3, 3)))
-        # stored component by component, (9, 257 rounded up to 32): the padding columns stay zero
-        assert s.particle_F.shape == s.particle_C.shape == (9, 288) and not s.particle_F.numpy()[:, 257:].any()
+        if layout == "auto":  # on the CPU one record a particle
+            assert s.particle_F.shape == s.particle_C.shape == (257,) and s.particle_F.dtype == wp.mat33d
+        else:  # component by component, (9, 257 rounded up to 32): the padding columns stay zero
+            assert s.particle_F.shape == s.particle_C.shape == (9, 288) and not s.particle_F.numpy()[:, 257:].any()
         assert np.array_equal(s.particle_rot.numpy(), np.broadcast_to(np.float32([0, 0, 0, 1]), (257, 4)))
         assert np.array_equal(s.particle_x0.numpy(), x) and not s.particle_u.numpy().any()
         assert not s.affine_velocities().any() and np.array_equal(s.particle_v.numpy(), expected)

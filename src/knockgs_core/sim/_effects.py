@@ -26,7 +26,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import warp as wp
@@ -123,7 +123,7 @@ def _log_strain(s: float) -> float:
 def von_mises_return(
     mu: wp.array(dtype=float),
     yield_stress: float,
-    F: wp.array2d(dtype=wp.float64),
+    F: Any,
     plastic: wp.array(dtype=float),
 ):
     """Von Mises return mapping on the elastic deformation gradient (PhysGaussian's).

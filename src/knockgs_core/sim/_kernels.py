@@ -58,35 +58,63 @@ def mat33_to_f32(A: wp.mat33d) -> wp.mat33:
                     float(A[2, 0]), float(A[2, 1]), float(A[2, 2]))
 
 
-# Per-particle 3x3 matrices (C, F, the P2G terms' affine matrices) are stored component by
-# component: a (9, pitch) array holds particle p's matrix in column p, component k = 3 i + j
-# at row k (pitch: the particle count rounded up to 32, so every row starts aligned). A warp's
-# 32 threads then read one component of 32 particles from one stretch of memory; as one
-# 36- or 72-byte record a particle, each component's read touched 32 sectors and a block's
-# records outgrew the L1 cache (benchmarks/README.md, "the matrices' layout").
+# Per-particle 3x3 matrices (C, F, the P2G terms' affine matrices) come in two layouts
+# (_solver.matrix_array), and the kernels that read or write them are generic in their array
+# type (``Any``): Warp builds one overload per layout, and these functions, overloaded per array
+# type, load and store a particle's matrix. On a GPU component by component: a (9, pitch) array
+# holds particle p's component k = 3 i + j at [k, p] (pitch: the particle count rounded up to
+# 32, so every row starts aligned), and a warp's 32 threads read one component of 32 particles
+# from one stretch of memory (as one 36- or 72-byte record a particle, each component's read
+# touched 32 sectors and a block's records outgrew the L1 cache: benchmarks/README.md, "the
+# matrices' layout"). On the CPU as records, an (n,) array of matrices: one load a matrix
+# (component by component, or as strided records, measured 5-9 % slower there).
 @wp.func
-def mat33_at(A: wp.array2d(dtype=float), p: int) -> wp.mat33:
-    """Particle ``p``'s matrix of a (9, pitch) float32 array."""
+def mat33_at(A: wp.array(dtype=wp.mat33), p: int) -> wp.mat33:
+    """Particle ``p``'s matrix of a float32 array of records."""
+    return A[p]
+
+
+@wp.func
+def mat33_put(A: wp.array(dtype=wp.mat33), p: int, M: wp.mat33):
+    """Store particle ``p``'s matrix ``M`` in a float32 array of records."""
+    A[p] = M
+
+
+@wp.func
+def mat33d_at(A: wp.array(dtype=wp.mat33d), p: int) -> wp.mat33d:
+    """Particle ``p``'s matrix of a float64 array of records."""
+    return A[p]
+
+
+@wp.func
+def mat33d_put(A: wp.array(dtype=wp.mat33d), p: int, M: wp.mat33d):
+    """Store particle ``p``'s matrix ``M`` in a float64 array of records."""
+    A[p] = M
+
+
+@wp.func
+def mat33_at(A: wp.array2d(dtype=float), p: int) -> wp.mat33:  # noqa: F811  (an overload)
+    """Particle ``p``'s matrix of a (9, columns) float32 array."""
     return wp.mat33(A[0, p], A[1, p], A[2, p], A[3, p], A[4, p], A[5, p], A[6, p], A[7, p], A[8, p])
 
 
 @wp.func
-def mat33_put(A: wp.array2d(dtype=float), p: int, M: wp.mat33):
-    """Store particle ``p``'s matrix ``M`` in a (9, pitch) float32 array."""
+def mat33_put(A: wp.array2d(dtype=float), p: int, M: wp.mat33):  # noqa: F811  (an overload)
+    """Store particle ``p``'s matrix ``M`` in a (9, columns) float32 array."""
     for i in range(3):
         for j in range(3):
             A[3 * i + j, p] = M[i, j]
 
 
 @wp.func
-def mat33d_at(A: wp.array2d(dtype=wp.float64), p: int) -> wp.mat33d:
-    """Particle ``p``'s matrix of a (9, pitch) float64 array."""
+def mat33d_at(A: wp.array2d(dtype=wp.float64), p: int) -> wp.mat33d:  # noqa: F811  (an overload)
+    """Particle ``p``'s matrix of a (9, columns) float64 array."""
     return wp.mat33d(A[0, p], A[1, p], A[2, p], A[3, p], A[4, p], A[5, p], A[6, p], A[7, p], A[8, p])
 
 
 @wp.func
-def mat33d_put(A: wp.array2d(dtype=wp.float64), p: int, M: wp.mat33d):
-    """Store particle ``p``'s matrix ``M`` in a (9, pitch) float64 array."""
+def mat33d_put(A: wp.array2d(dtype=wp.float64), p: int, M: wp.mat33d):  # noqa: F811  (an overload)
+    """Store particle ``p``'s matrix ``M`` in a (9, columns) float64 array."""
     for i in range(3):
         for j in range(3):
             A[3 * i + j, p] = M[i, j]
@@ -185,7 +213,7 @@ def kelvin_voigt_kirchhoff(L: wp.mat33, J: float, mu: float, lam: float, retarda
 # grid kernels (launched over the active box)
 # --------------------------------------------------------------------------------------
 @wp.kernel
-def state_rest(F: wp.array2d(dtype=wp.float64), rot: wp.array(dtype=wp.quat)):
+def state_rest(F: Any, rot: wp.array(dtype=wp.quat)):
     """A particle at rest in its reference shape: ``F = I`` and its rotation the identity
     (the initial state, set on the device: no host array, no copy)."""
     p = wp.tid()
@@ -370,8 +398,8 @@ def p2g_terms(vp: wp.vec3, Cp: wp.mat33, Fd: wp.mat33d, q0: wp.quat, m: float, v
 @wp.func
 def p2g_particle(
     p: int,
-    C: wp.array2d(dtype=float),
-    F: wp.array2d(dtype=wp.float64),
+    C: Any,
+    F: Any,
     mass: wp.array(dtype=float),
     vol: wp.array(dtype=float),
     mu: wp.array(dtype=float),
@@ -404,8 +432,8 @@ def p2g_particle(
 def p2g(
     x0: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
-    C: wp.array2d(dtype=float),
-    F: wp.array2d(dtype=wp.float64),
+    C: Any,
+    F: Any,
     mass: wp.array(dtype=float),
     vol: wp.array(dtype=float),
     mu: wp.array(dtype=float),
@@ -477,7 +505,7 @@ def p2g(
 @wp.func
 def p2g_store(p: int, gx: wp.vec3, vp: wp.vec3, aff: wp.mat33, mCp: wp.mat33, m: float, lo: wp.vec3i, hi: wp.vec3i,
               n_grid: int, none_key: int, affine_flip: int, fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4),
-              affine: wp.array2d(dtype=float), mC: wp.array2d(dtype=float), keys: wp.array(dtype=wp.int32),
+              affine: Any, mC: Any, keys: wp.array(dtype=wp.int32),
               overrun: wp.array(dtype=wp.int32)):
     """Store particle ``p``'s P2G terms at grid position ``gx`` [cells] (see :func:`p2g_prepare`)."""
     base = stencil_base(gx)
@@ -498,8 +526,8 @@ def p2g_store(p: int, gx: wp.vec3, vp: wp.vec3, aff: wp.mat33, mCp: wp.mat33, m:
 def p2g_prepare(
     x0: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
-    C: wp.array2d(dtype=float),
-    F: wp.array2d(dtype=wp.float64),
+    C: Any,
+    F: Any,
     mass: wp.array(dtype=float),
     vol: wp.array(dtype=float),
     mu: wp.array(dtype=float),
@@ -520,8 +548,8 @@ def p2g_prepare(
     rot: wp.array(dtype=wp.quat),
     fx: wp.array(dtype=wp.vec3),
     mv: wp.array(dtype=wp.vec4),
-    affine: wp.array2d(dtype=float),
-    mC: wp.array2d(dtype=float),
+    affine: Any,
+    mC: Any,
     keys: wp.array(dtype=wp.int32),
     overrun: wp.array(dtype=wp.int32),
 ):
@@ -603,8 +631,8 @@ def node_term(f: wp.vec3, q: wp.vec4, A: wp.mat33, M: wp.mat33, i: int, j: int, 
 
 @wp.func
 def chunk_sum(s: int, e: int, i: int, j: int, k: int, dx: float, affine_flip: int, order: wp.array(dtype=wp.int32),
-              fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: wp.array2d(dtype=float),
-              mC: wp.array2d(dtype=float)):
+              fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: Any,
+              mC: Any):
     """The contributions (:func:`node_term`) of the particles at sorted positions ``s .. e-1``
     (one chunk, one base cell) to the stencil node ``(i, j, k)`` of that cell, summed in sorted
     order."""
@@ -625,8 +653,8 @@ def chunk_sum(s: int, e: int, i: int, j: int, k: int, dx: float, affine_flip: in
 
 @wp.func
 def chunk_line_sum(s: int, e: int, i: int, j: int, dx: float, affine_flip: int, order: wp.array(dtype=wp.int32),
-                   fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: wp.array2d(dtype=float),
-                   mC: wp.array2d(dtype=float)):
+                   fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: Any,
+                   mC: Any):
     """:func:`chunk_sum` for the line of three stencil nodes ``(i, j, 0..2)`` at once: each
     particle's terms are read once for three nodes. Per node the same arithmetic in the same
     order, so the same bits. Returns the momenta of nodes k = 0, 1, 2 [kg m/s], their masses as
@@ -687,8 +715,8 @@ def p2g_cells(
     affine_flip: int,
     fx: wp.array(dtype=wp.vec3),
     mv: wp.array(dtype=wp.vec4),
-    affine: wp.array2d(dtype=float),
-    mC: wp.array2d(dtype=float),
+    affine: Any,
+    mC: Any,
     grid_mv: wp.array3d(dtype=wp.vec3),
     grid_m: wp.array3d(dtype=float),
     grid_mv_old: wp.array3d(dtype=wp.vec3),
@@ -746,27 +774,21 @@ def p2g_cells(
 # (Windows of 64 or 128 cut every 32 slots paid no more on an H100, and the cut's integer
 # modulo cost the kernel 10 %: benchmarks/README.md.)
 @wp.func
-def window_sums(t_key: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: Any, window: int, lane: int, threads: int,
-                none_key: int, n_grid: int, dx: float, affine_flip: int, grid_mv: wp.array3d(dtype=wp.vec3),
+def window_sums(t_key: Any, t_end: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: Any, window: int, lane: int,
+                threads: int, n_grid: int, dx: float, affine_flip: int, grid_mv: wp.array3d(dtype=wp.vec3),
                 grid_m: wp.array3d(dtype=float), grid_mv_old: wp.array3d(dtype=wp.vec3)):
-    """A block's sums from its staged terms (shared-memory tiles of ``window`` slots: key,
-    ``fx``, ``mv``, ``affine``, ``mC``): the thread ``lane`` of ``threads`` takes the (run
-    start, stencil node) pairs ``lane, lane + threads, ...``; a run is the slots with the
-    start's key (skipped if ``none_key``), its :func:`node_term` summed to node ``n`` in slot
-    order as :func:`chunk_sum` sums them, and added to the grid with one atomic per array."""
+    """A block's sums from its staged terms (shared-memory tiles of ``window`` slots: key, run
+    end (:func:`window_run_end`), ``fx``, ``mv``, ``affine``, ``mC``): the thread ``lane`` of
+    ``threads`` takes the (run start, stencil node) pairs ``lane, lane + threads, ...``; a run is
+    the slots ``s .. t_end[s] - 1`` (slots that start no run hold 0), its :func:`node_term`
+    summed to node ``n`` in slot order as :func:`chunk_sum` sums them, and added to the grid with
+    one atomic per array."""
     for q in range(lane, window * 27, threads):
         s = q // 27
-        key = t_key[s]
-        if key == none_key:
+        e = t_end[s]
+        if e == 0:
             continue
-        if s > 0:
-            if t_key[s - 1] == key:
-                continue
-        e = s + 1
-        while e < window:
-            if t_key[e] != key:
-                break
-            e += 1
+        key = t_key[s]
         o = stencil_offset(q - 27 * s)
         sum_mv = wp.vec3(0.0)
         sum_m = float(0.0)
@@ -781,6 +803,25 @@ def window_sums(t_key: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: Any, window:
         wp.atomic_add(grid_m, g[0], g[1], g[2], sum_m)
         if affine_flip == 1:
             wp.atomic_add(grid_mv_old, g[0], g[1], g[2], sum_old)
+
+
+@wp.func
+def window_run_end(t_key: Any, s: int, window: int, none_key: int) -> int:
+    """The end (one past the last slot) of the run of equal keys that starts at slot ``s`` of a
+    window's staged keys, or 0 where no run starts there (the slot before holds the same key,
+    or the slot is empty: ``none_key``). Found once per slot, not once per stencil node."""
+    key = t_key[s]
+    if key == none_key:
+        return 0
+    if s > 0:
+        if t_key[s - 1] == key:
+            return 0
+    e = s + 1
+    while e < window:
+        if t_key[e] != key:
+            break
+        e += 1
+    return e
 
 
 _WINDOW_KERNELS: dict = {}
@@ -805,8 +846,8 @@ def p2g_windows(window: int):
         affine_flip: int,
         fx: wp.array(dtype=wp.vec3),
         mv: wp.array(dtype=wp.vec4),
-        affine: wp.array2d(dtype=float),
-        mC: wp.array2d(dtype=float),
+        affine: Any,
+        mC: Any,
         grid_mv: wp.array3d(dtype=wp.vec3),
         grid_m: wp.array3d(dtype=float),
         grid_mv_old: wp.array3d(dtype=wp.vec3),
@@ -834,7 +875,10 @@ def p2g_windows(window: int):
             wp.tile_scatter_masked(t_aff, slot, mat33_at(affine, p), True)
             if affine_flip == 1:
                 wp.tile_scatter_masked(t_mC, slot, mat33_at(mC, p), True)
-        window_sums(t_key, t_fx, t_mv, t_aff, t_mC, wp.static(window), lane, threads, none_key, n_grid, 1.0 / inv_dx,
+        t_end = wp.tile_zeros(shape=wp.static(window), dtype=wp.int32, storage="shared")
+        for slot in range(lane, wp.static(window), threads):
+            wp.tile_scatter_masked(t_end, slot, window_run_end(t_key, slot, wp.static(window), none_key), True)
+        window_sums(t_key, t_end, t_fx, t_mv, t_aff, t_mC, wp.static(window), lane, threads, n_grid, 1.0 / inv_dx,
                     affine_flip, grid_mv, grid_m, grid_mv_old)
 
     kernel = wp.Kernel(p2g_windows_kernel, key=f"p2g_windows_{window}", module=wp.get_module(__name__))
@@ -865,8 +909,8 @@ def p2g_chunk_sums(
     affine_flip: int,
     fx: wp.array(dtype=wp.vec3),
     mv: wp.array(dtype=wp.vec4),
-    affine: wp.array2d(dtype=float),
-    mC: wp.array2d(dtype=float),
+    affine: Any,
+    mC: Any,
     sums_mv: wp.array(dtype=wp.vec3),
     sums_m: wp.array(dtype=float),
     sums_old: wp.array(dtype=wp.vec3),
@@ -1025,8 +1069,8 @@ def g2p_particle(
     grid_v_old: wp.array3d(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    C: wp.array2d(dtype=float),
-    F: wp.array2d(dtype=wp.float64),
+    C: Any,
+    F: Any,
     overrun: wp.array(dtype=wp.int32),
 ):
     """Particle ``p``'s G2P (see :func:`g2p`), written back; returns whether its stencil lay
@@ -1089,8 +1133,8 @@ def g2p(
     grid_v_old: wp.array3d(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    C: wp.array2d(dtype=float),
-    F: wp.array2d(dtype=wp.float64),
+    C: Any,
+    F: Any,
     overrun: wp.array(dtype=wp.int32),
 ):
     """Gather: new velocity and affine matrix (APIC, or with ``affine_flip = 1`` the affine
@@ -1133,13 +1177,13 @@ def g2p_prepare(
     none_key: int,
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    C: wp.array2d(dtype=float),
-    F: wp.array2d(dtype=wp.float64),
+    C: Any,
+    F: Any,
     rot: wp.array(dtype=wp.quat),
     fx: wp.array(dtype=wp.vec3),
     mv: wp.array(dtype=wp.vec4),
-    affine: wp.array2d(dtype=float),
-    mC: wp.array2d(dtype=float),
+    affine: Any,
+    mC: Any,
     keys: wp.array(dtype=wp.int32),
     overrun: wp.array(dtype=wp.int32),
 ):
@@ -1173,7 +1217,7 @@ def gather_positions(x0: wp.array(dtype=wp.vec3), u: wp.array(dtype=wp.vec3), in
 
 
 @wp.kernel
-def gather_F(F: wp.array2d(dtype=wp.float64), index: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.mat33)):
+def gather_F(F: Any, index: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.mat33)):
     """Export row ``i``: the deformation gradient of particle ``index[i]``, in float32."""
     i = wp.tid()
     out[i] = mat33_to_f32(mat33d_at(F, index[i]))
@@ -1184,7 +1228,7 @@ def particle_stats(
     x0: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    F: wp.array2d(dtype=wp.float64),
+    F: Any,
     inv_dx: float,
     out_f: wp.array(dtype=float),
     out_i: wp.array(dtype=wp.int32),

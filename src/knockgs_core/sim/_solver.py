@@ -73,7 +73,9 @@ class Model:
     :class:`ParticleTranslation` with its particle mask (at most one is active at a time).
     Host copies: ``mass_host`` particle masses [kg] (particle_count,) float32 and
     ``particle_x0_host`` rest positions [m] (particle_count, 3) float32, from which regions
-    are selected at t = 0 (effects' ``setup``).
+    are selected at t = 0 (effects' ``setup``). ``matrix_layout``: how the states and scratch
+    made for this model store the per-particle matrices (:func:`matrix_array`; a storage
+    choice, the same values).
     """
 
     params: SimParams
@@ -92,6 +94,7 @@ class Model:
     mass_host: np.ndarray | None = None
     max_wave_speed: float = 0.0
     particle_x0_host: np.ndarray | None = None
+    matrix_layout: str = "auto"
 
     @property
     def total_probe_force(self) -> tuple[float, float, float]:
@@ -112,10 +115,10 @@ class State:
     (positions are x0 + u: small displacements keep their float32 precision); particle_v
     [m/s]; particle_F deformation gradient in float64 (it accumulates ``I + dt C`` every
     substep: in float32 the rounding of a strain of ~1e-3 random-walks into a floor on the dt
-    convergence); particle_C APIC affine velocity [1/s]; both stored component by component,
-    (9, :func:`matrix_pitch`) with particle p's component ``3 i + j`` at ``[3 i + j, p]``
-    (:meth:`deformation_gradients`, :meth:`affine_velocities` give them as (particle_count, 3,
-    3)); particle_rot
+    convergence); particle_C APIC affine velocity [1/s]; both laid out as the model says
+    (:func:`matrix_array`: records on the CPU, components on a GPU;
+    :meth:`deformation_gradients`, :meth:`affine_velocities` give them as (particle_count, 3,
+    3) in either); particle_rot
     warm-start rotation of F's polar decomposition (quaternion xyzw); grid_mv grid momentum
     [kg m/s], then velocity [m/s] (n_grid, n_grid, n_grid) of vec3; grid_m grid mass [kg]
     (n_grid, n_grid, n_grid); grid_mv_old (affine-FLIP transfer only) the grid momentum
@@ -155,9 +158,35 @@ def matrix_pitch(n: int) -> int:
     return max(32, -(-n // 32) * 32)
 
 
-def matrices(rows: wp.array, n: int) -> np.ndarray:
-    """A (9, pitch) per-particle matrix array as (n, 3, 3) on the host."""
-    return np.ascontiguousarray(rows.numpy()[:, :n].T.reshape(n, 3, 3))
+def matrix_array(n: int, dtype, device, *, layout: str = "auto") -> wp.array:
+    """A zeroed per-particle 3x3 matrix array for ``n`` particles, of float32 (``dtype=float``)
+    or float64 (``wp.float64``) components (the kernels read and write it through
+    :func:`_kernels.mat33_at` and its kin, overloaded per layout).
+
+    ``layout``: ``"components"``, component by component, shape (9, :func:`matrix_pitch`) with
+    particle p's component ``3 i + j`` at ``[3 i + j, p]``: a GPU warp's threads read one
+    component of 32 particles from one stretch of memory (on an H100 the Pillow's substep 1.06x
+    faster than records); ``"records"``, shape (n,) of ``mat33``/``mat33d``: each particle's
+    matrix in one piece (on the 2-core CPU 5-12 % faster than components); ``"auto"``:
+    components on a GPU, records on the CPU (benchmarks/README.md, "A layout per device"). The
+    values, and on the CPU the bits, are the same in both.
+    """
+    dev = wp.get_device(device)
+    if layout == "auto":
+        layout = "components" if dev.is_cuda else "records"
+    if layout == "components":
+        return wp.zeros((9, matrix_pitch(n)), dtype=dtype, device=dev)
+    if layout == "records":
+        return wp.zeros(max(n, 1), dtype=wp.mat33d if dtype is wp.float64 else wp.mat33, device=dev)
+    raise ValueError(f"matrix layout {layout!r}: expected 'auto', 'components' or 'records'")
+
+
+def matrices(a: wp.array, n: int) -> np.ndarray:
+    """A per-particle matrix array of :func:`matrix_array` (either layout) as (n, 3, 3) on the
+    host."""
+    if a.ndim == 1:
+        return a.numpy()[:n].copy()
+    return np.ascontiguousarray(a.numpy()[:, :n].T.reshape(n, 3, 3))
 
 
 @dataclass
@@ -297,7 +326,7 @@ def make_state(model: Model, positions: np.ndarray, velocities: np.ndarray | Non
         v = wp.zeros(n, dtype=wp.vec3, device=dev)
     else:
         v = wp.array(np.ascontiguousarray(velocities, dtype=np.float32), dtype=wp.vec3, device=dev)
-    F = wp.zeros((9, matrix_pitch(n)), dtype=wp.float64, device=dev)
+    F = matrix_array(n, wp.float64, dev, layout=model.matrix_layout)
     rot = wp.empty(n, dtype=wp.quat, device=dev)
     wp.launch(K.state_rest, dim=n, outputs=[F, rot], device=dev)  # F = I, rotations the identity
     return State(
@@ -305,7 +334,7 @@ def make_state(model: Model, positions: np.ndarray, velocities: np.ndarray | Non
         particle_u=wp.zeros(n, dtype=wp.vec3, device=dev),
         particle_v=v,
         particle_F=F,
-        particle_C=wp.zeros((9, matrix_pitch(n)), dtype=float, device=dev),
+        particle_C=matrix_array(n, float, dev, layout=model.matrix_layout),
         particle_rot=rot,
         grid_mv=wp.zeros((g, g, g), dtype=wp.vec3, device=dev),
         grid_m=wp.zeros((g, g, g), dtype=float, device=dev),
@@ -317,8 +346,8 @@ def make_state(model: Model, positions: np.ndarray, velocities: np.ndarray | Non
 class _CellScratch:
     """Scratch of the P2G by cells (``MPMSolver(p2g="cells")``): per particle, in the
     particles' order, the position in its base cell ``fx`` [cells], momentum and mass ``mv``,
-    the affine matrices ``affine`` and ``mC`` (affine FLIP only; (9, :func:`matrix_pitch`),
-    component by component as ``State.particle_C``) and the base cell's ``keys``;
+    the affine matrices ``affine`` and ``mC`` (affine FLIP only; :func:`matrix_array`, laid out
+    as the model says) and the base cell's ``keys``;
     the radix sort's ``sort_keys`` and ``order`` (twice the particle count, as the sort needs;
     ``order[:n]`` is a permutation at all times: the identity until the first sort), ``none_key``
     (a key above every cell's) and ``end_bit`` (the bits the sort looks at); over sorted
@@ -353,9 +382,8 @@ class _CellScratch:
             return wp.zeros(size, dtype=dtype, device=dev)
 
         order = wp.array(np.arange(2 * n, dtype=np.int32), dtype=wp.int32, device=dev)
-        pitch = matrix_pitch(n)
-        return cls(fx=zeros(wp.vec3), mv=zeros(wp.vec4), affine=zeros(float, (9, pitch)),
-                   mC=zeros(float, (9, pitch if n_old == n else 1)), keys=zeros(wp.int32),
+        return cls(fx=zeros(wp.vec3), mv=zeros(wp.vec4), affine=matrix_array(n, float, dev, layout=model.matrix_layout),
+                   mC=matrix_array(n_old, float, dev, layout=model.matrix_layout), keys=zeros(wp.int32),
                    sort_keys=zeros(wp.int32, 2 * n), order=order, none_key=none_key,
                    end_bit=max(1, int(none_key).bit_length()), start=zeros(wp.int32, n_list),
                    index=zeros(wp.int32, n_list), chunks=zeros(wp.int32, n_list), n_chunks=zeros(wp.int32, 1))
