@@ -35,8 +35,11 @@ wp.set_module_options({"enable_backward": False})
 #: the chunk sums; CUDA ``__maxnreg__``, ignored on the CPU): more threads resident per SM
 #: to hide their memory latency, at the cost of a few spills. Paper-scale Pillow on an H100
 #: (benchmarks/README.md): a substep as a graph 0.435 ms capped at 96 against 0.466 ms uncapped
-#: (``g2p`` 140 registers, 0.232 against 0.155 ms); caps of 128, 80, 72 and 64 paid less
-CUDA_MAX_REGISTERS = 96
+#: (``g2p`` 140 registers, 0.232 against 0.155 ms); caps of 128, 80, 72 and 64 paid less.
+#: With the matrices component by component (matrix_array) and the windows' run ends found once,
+#: 80 pays most: 0.371 against 0.381 ms a substep at 96 (the list 0.394 against 0.404, the
+#: Ficus 0.131 against 0.137); 72 and 88 paid less than 96
+CUDA_MAX_REGISTERS = 80
 
 
 # --------------------------------------------------------------------------------------
