@@ -70,7 +70,7 @@ def mat33_to_f32(A: wp.mat33d) -> wp.mat33:
 # from one stretch of memory (as one 36- or 72-byte record a particle, each component's read
 # touched 32 sectors and a block's records outgrew the L1 cache: benchmarks/README.md, "the
 # matrices' layout"). On the CPU as records, an (n,) array of matrices: one load a matrix
-# (component by component, or as strided records, measured 5-9 % slower there).
+# (component by component, or as strided records, measured 3-12 % slower there).
 @wp.func
 def mat33_at(A: wp.array(dtype=wp.mat33), p: int) -> wp.mat33:
     """Particle ``p``'s matrix of a float32 array of records."""
