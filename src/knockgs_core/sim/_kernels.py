@@ -506,10 +506,9 @@ def p2g(
 
 
 @wp.func
-def p2g_store(p: int, gx: wp.vec3, vp: wp.vec3, aff: wp.mat33, mCp: wp.mat33, m: float, lo: wp.vec3i, hi: wp.vec3i,
-              n_grid: int, none_key: int, affine_flip: int, fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4),
-              affine: Any, mC: Any, keys: wp.array(dtype=wp.int32),
-              overrun: wp.array(dtype=wp.int32)):
+def p2g_store(p: int, gx: wp.vec3, vp: wp.vec3, aff: wp.mat33, m: float, lo: wp.vec3i, hi: wp.vec3i, n_grid: int,
+              none_key: int, fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: Any,
+              keys: wp.array(dtype=wp.int32), overrun: wp.array(dtype=wp.int32)):
     """Store particle ``p``'s P2G terms at grid position ``gx`` [cells] (see :func:`p2g_prepare`)."""
     base = stencil_base(gx)
     if stencil_inside(base, lo, hi):
@@ -518,8 +517,6 @@ def p2g_store(p: int, gx: wp.vec3, vp: wp.vec3, aff: wp.mat33, mCp: wp.mat33, m:
         mvp = m * vp
         mv[p] = wp.vec4(mvp[0], mvp[1], mvp[2], m)
         mat33_put(affine, p, aff)
-        if affine_flip == 1:
-            mat33_put(mC, p, mCp)
     else:
         wp.atomic_add(overrun, 0, 1)
         keys[p] = none_key
@@ -546,26 +543,24 @@ def p2g_prepare(
     hi: wp.vec3i,
     n_grid: int,
     none_key: int,
-    affine_flip: int,
     v: wp.array(dtype=wp.vec3),
     rot: wp.array(dtype=wp.quat),
     fx: wp.array(dtype=wp.vec3),
     mv: wp.array(dtype=wp.vec4),
     affine: Any,
-    mC: Any,
     keys: wp.array(dtype=wp.int32),
     overrun: wp.array(dtype=wp.int32),
 ):
     """The per-particle half of :func:`p2g` (:func:`p2g_particle`), in the particles' order:
     the position in the base cell ``fx`` [cells], the momentum and mass ``mv`` ([xyz], [w]),
-    the affine matrices (``affine``: stress and APIC terms; ``mC``: APIC term alone, affine
-    FLIP only) and the sort key ``keys``: the base cell's index, or ``none_key`` (above every
-    cell's) outside the active box."""
+    the affine matrix of stress and APIC terms ``affine`` and the sort key ``keys``: the base
+    cell's index, or ``none_key`` (above every cell's) outside the active box. The APIC term
+    alone, ``m C`` (affine FLIP), is not stored: the sums form it from ``C``, which stays as it
+    is until G2P, and ``m`` (:func:`apic_term`), the same product."""
     p = wp.tid()
     vp, aff, mCp = p2g_particle(p, C, F, mass, vol, mu, lam, probe_mask, probe_force, probe_on, inv_dx, dt, polar_iters,
                                 retardation, v, rot)
-    p2g_store(p, (x0[p] + u[p]) * inv_dx, vp, aff, mCp, mass[p], lo, hi, n_grid, none_key, affine_flip,
-              fx, mv, affine, mC, keys, overrun)
+    p2g_store(p, (x0[p] + u[p]) * inv_dx, vp, aff, mass[p], lo, hi, n_grid, none_key, fx, mv, affine, keys, overrun)
 
 
 @wp.kernel
@@ -616,6 +611,15 @@ def stencil_node(key: int, o: wp.vec3i, n_grid: int) -> wp.vec3i:
 
 
 @wp.func
+def apic_term(q: wp.vec4, C: Any, p: int) -> wp.mat33:
+    """Particle ``p``'s APIC term ``m C`` [kg/s] of the affine-FLIP transfer, from its stored
+    momentum and mass ``q`` (mass in ``q[3]``) and affine velocity ``C``: the product
+    :func:`p2g_terms` forms, bit for bit, formed where it is summed instead of stored (a 36-byte
+    write and read a particle and substep saved)."""
+    return q[3] * mat33_at(C, p)
+
+
+@wp.func
 def node_term(f: wp.vec3, q: wp.vec4, A: wp.mat33, M: wp.mat33, i: int, j: int, k: int, dx: float, affine_flip: int):
     """One particle's contribution to the stencil node ``(i, j, k)`` of its base cell, from its
     P2G terms (position in the cell ``f`` [cells], momentum and mass ``q``, affine matrices
@@ -634,8 +638,7 @@ def node_term(f: wp.vec3, q: wp.vec4, A: wp.mat33, M: wp.mat33, i: int, j: int, 
 
 @wp.func
 def chunk_sum(s: int, e: int, i: int, j: int, k: int, dx: float, affine_flip: int, order: wp.array(dtype=wp.int32),
-              fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: Any,
-              mC: Any):
+              fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: Any, C: Any):
     """The contributions (:func:`node_term`) of the particles at sorted positions ``s .. e-1``
     (one chunk, one base cell) to the stencil node ``(i, j, k)`` of that cell, summed in sorted
     order."""
@@ -644,10 +647,11 @@ def chunk_sum(s: int, e: int, i: int, j: int, k: int, dx: float, affine_flip: in
     sum_old = wp.vec3(0.0)
     for t in range(s, e):
         p = order[t]
+        q = mv[p]
         M = wp.mat33(0.0)
         if affine_flip == 1:
-            M = mat33_at(mC, p)
-        d_mv, d_m, d_old = node_term(fx[p], mv[p], mat33_at(affine, p), M, i, j, k, dx, affine_flip)
+            M = apic_term(q, C, p)
+        d_mv, d_m, d_old = node_term(fx[p], q, mat33_at(affine, p), M, i, j, k, dx, affine_flip)
         sum_mv += d_mv
         sum_m += d_m
         sum_old += d_old
@@ -656,8 +660,7 @@ def chunk_sum(s: int, e: int, i: int, j: int, k: int, dx: float, affine_flip: in
 
 @wp.func
 def chunk_line_sum(s: int, e: int, i: int, j: int, dx: float, affine_flip: int, order: wp.array(dtype=wp.int32),
-                   fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: Any,
-                   mC: Any):
+                   fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: Any, C: Any):
     """:func:`chunk_sum` for the line of three stencil nodes ``(i, j, 0..2)`` at once: each
     particle's terms are read once for three nodes. Per node the same arithmetic in the same
     order, so the same bits. Returns the momenta of nodes k = 0, 1, 2 [kg m/s], their masses as
@@ -678,7 +681,7 @@ def chunk_line_sum(s: int, e: int, i: int, j: int, dx: float, affine_flip: int, 
         A = mat33_at(affine, p)
         M = wp.mat33(0.0)
         if affine_flip == 1:
-            M = mat33_at(mC, p)
+            M = apic_term(q, C, p)
         d_mv, d_m, d_old = node_term(f, q, A, M, i, j, 0, dx, affine_flip)
         mv0 += d_mv
         m0 += d_m
@@ -719,7 +722,7 @@ def p2g_cells(
     fx: wp.array(dtype=wp.vec3),
     mv: wp.array(dtype=wp.vec4),
     affine: Any,
-    mC: Any,
+    C: Any,
     grid_mv: wp.array3d(dtype=wp.vec3),
     grid_m: wp.array3d(dtype=float),
     grid_mv_old: wp.array3d(dtype=wp.vec3),
@@ -745,7 +748,7 @@ def p2g_cells(
         e = chunk_end(c, total, count, chunks)
         g = stencil_node(key, o, n_grid)
         if line == 3:
-            mv0, mv1, mv2, m3, old0, old1, old2 = chunk_line_sum(s, e, o[0], o[1], dx, affine_flip, order, fx, mv, affine, mC)
+            mv0, mv1, mv2, m3, old0, old1, old2 = chunk_line_sum(s, e, o[0], o[1], dx, affine_flip, order, fx, mv, affine, C)
             wp.atomic_add(grid_mv, g[0], g[1], g[2], mv0)
             wp.atomic_add(grid_mv, g[0], g[1], g[2] + 1, mv1)
             wp.atomic_add(grid_mv, g[0], g[1], g[2] + 2, mv2)
@@ -757,7 +760,7 @@ def p2g_cells(
                 wp.atomic_add(grid_mv_old, g[0], g[1], g[2] + 1, old1)
                 wp.atomic_add(grid_mv_old, g[0], g[1], g[2] + 2, old2)
         else:
-            sum_mv, sum_m, sum_old = chunk_sum(s, e, o[0], o[1], o[2], dx, affine_flip, order, fx, mv, affine, mC)
+            sum_mv, sum_m, sum_old = chunk_sum(s, e, o[0], o[1], o[2], dx, affine_flip, order, fx, mv, affine, C)
             wp.atomic_add(grid_mv, g[0], g[1], g[2], sum_mv)
             wp.atomic_add(grid_m, g[0], g[1], g[2], sum_m)
             if affine_flip == 1:
@@ -850,7 +853,7 @@ def p2g_windows(window: int):
         fx: wp.array(dtype=wp.vec3),
         mv: wp.array(dtype=wp.vec4),
         affine: Any,
-        mC: Any,
+        C: Any,
         grid_mv: wp.array3d(dtype=wp.vec3),
         grid_m: wp.array3d(dtype=float),
         grid_mv_old: wp.array3d(dtype=wp.vec3),
@@ -872,12 +875,13 @@ def p2g_windows(window: int):
             if s0 + slot < count:
                 p = order[s0 + slot]
                 key = keys[p]
+            q = mv[p]
             wp.tile_scatter_masked(t_key, slot, key, True)
             wp.tile_scatter_masked(t_fx, slot, fx[p], True)
-            wp.tile_scatter_masked(t_mv, slot, mv[p], True)
+            wp.tile_scatter_masked(t_mv, slot, q, True)
             wp.tile_scatter_masked(t_aff, slot, mat33_at(affine, p), True)
             if affine_flip == 1:
-                wp.tile_scatter_masked(t_mC, slot, mat33_at(mC, p), True)
+                wp.tile_scatter_masked(t_mC, slot, apic_term(q, C, p), True)
         t_end = wp.tile_zeros(shape=wp.static(window), dtype=wp.int32, storage="shared")
         for slot in range(lane, wp.static(window), threads):
             wp.tile_scatter_masked(t_end, slot, window_run_end(t_key, slot, wp.static(window), none_key), True)
@@ -913,7 +917,7 @@ def p2g_chunk_sums(
     fx: wp.array(dtype=wp.vec3),
     mv: wp.array(dtype=wp.vec4),
     affine: Any,
-    mC: Any,
+    C: Any,
     sums_mv: wp.array(dtype=wp.vec3),
     sums_m: wp.array(dtype=float),
     sums_old: wp.array(dtype=wp.vec3),
@@ -937,7 +941,7 @@ def p2g_chunk_sums(
             r = 27 * c + n
             if line == 3:
                 mv0, mv1, mv2, m3, old0, old1, old2 = chunk_line_sum(s, e, o[0], o[1], dx, affine_flip, order, fx, mv,
-                                                                     affine, mC)
+                                                                     affine, C)
                 sums_mv[r] = mv0
                 sums_mv[r + 1] = mv1
                 sums_mv[r + 2] = mv2
@@ -949,7 +953,7 @@ def p2g_chunk_sums(
                     sums_old[r + 1] = old1
                     sums_old[r + 2] = old2
             else:
-                sum_mv, sum_m, sum_old = chunk_sum(s, e, o[0], o[1], o[2], dx, affine_flip, order, fx, mv, affine, mC)
+                sum_mv, sum_m, sum_old = chunk_sum(s, e, o[0], o[1], o[2], dx, affine_flip, order, fx, mv, affine, C)
                 sums_mv[r] = sum_mv
                 sums_m[r] = sum_m
                 if affine_flip == 1:
@@ -1186,7 +1190,6 @@ def g2p_prepare(
     fx: wp.array(dtype=wp.vec3),
     mv: wp.array(dtype=wp.vec4),
     affine: Any,
-    mC: Any,
     keys: wp.array(dtype=wp.int32),
     overrun: wp.array(dtype=wp.int32),
 ):
@@ -1204,8 +1207,7 @@ def g2p_prepare(
             v[p] = vp
         q, aff, mCp = p2g_terms(vp, Cp, Fp, rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters, retardation)
         rot[p] = q
-        p2g_store(p, (x0[p] + up) * inv_dx, vp, aff, mCp, m, lo, hi, n_grid, none_key, affine_flip,
-                  fx, mv, affine, mC, keys, overrun)
+        p2g_store(p, (x0[p] + up) * inv_dx, vp, aff, m, lo, hi, n_grid, none_key, fx, mv, affine, keys, overrun)
     else:
         keys[p] = none_key
 
