@@ -506,16 +506,14 @@ def p2g(
 
 
 @wp.func
-def p2g_store(p: int, gx: wp.vec3, vp: wp.vec3, aff: wp.mat33, m: float, lo: wp.vec3i, hi: wp.vec3i, n_grid: int,
-              none_key: int, fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: Any,
-              keys: wp.array(dtype=wp.int32), overrun: wp.array(dtype=wp.int32)):
+def p2g_store(p: int, gx: wp.vec3, aff: wp.mat33, lo: wp.vec3i, hi: wp.vec3i, n_grid: int, none_key: int,
+              fx: wp.array(dtype=wp.vec3), affine: Any, keys: wp.array(dtype=wp.int32),
+              overrun: wp.array(dtype=wp.int32)):
     """Store particle ``p``'s P2G terms at grid position ``gx`` [cells] (see :func:`p2g_prepare`)."""
     base = stencil_base(gx)
     if stencil_inside(base, lo, hi):
         keys[p] = (base[0] * n_grid + base[1]) * n_grid + base[2]
         fx[p] = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-        mvp = m * vp
-        mv[p] = wp.vec4(mvp[0], mvp[1], mvp[2], m)
         mat33_put(affine, p, aff)
     else:
         wp.atomic_add(overrun, 0, 1)
@@ -546,21 +544,21 @@ def p2g_prepare(
     v: wp.array(dtype=wp.vec3),
     rot: wp.array(dtype=wp.quat),
     fx: wp.array(dtype=wp.vec3),
-    mv: wp.array(dtype=wp.vec4),
     affine: Any,
     keys: wp.array(dtype=wp.int32),
     overrun: wp.array(dtype=wp.int32),
 ):
     """The per-particle half of :func:`p2g` (:func:`p2g_particle`), in the particles' order:
-    the position in the base cell ``fx`` [cells], the momentum and mass ``mv`` ([xyz], [w]),
-    the affine matrix of stress and APIC terms ``affine`` and the sort key ``keys``: the base
-    cell's index, or ``none_key`` (above every cell's) outside the active box. The APIC term
-    alone, ``m C`` (affine FLIP), is not stored: the sums form it from ``C``, which stays as it
-    is until G2P, and ``m`` (:func:`apic_term`), the same product."""
+    the position in the base cell ``fx`` [cells], the affine matrix of stress and APIC terms
+    ``affine`` and the sort key ``keys``: the base cell's index, or ``none_key`` (above every
+    cell's) outside the active box; the probe's impulse goes into ``v``. The momentum and mass
+    and affine FLIP's APIC term alone, ``m C``, are not stored: the sums form them from the
+    state's ``v`` and ``C`` and the model's mass (:func:`momentum_mass`, :func:`apic_term`),
+    which stay as they are until G2P: the same products."""
     p = wp.tid()
     vp, aff, mCp = p2g_particle(p, C, F, mass, vol, mu, lam, probe_mask, probe_force, probe_on, inv_dx, dt, polar_iters,
                                 retardation, v, rot)
-    p2g_store(p, (x0[p] + u[p]) * inv_dx, vp, aff, mass[p], lo, hi, n_grid, none_key, fx, mv, affine, keys, overrun)
+    p2g_store(p, (x0[p] + u[p]) * inv_dx, aff, lo, hi, n_grid, none_key, fx, affine, keys, overrun)
 
 
 @wp.kernel
@@ -611,6 +609,17 @@ def stencil_node(key: int, o: wp.vec3i, n_grid: int) -> wp.vec3i:
 
 
 @wp.func
+def momentum_mass(v: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), p: int) -> wp.vec4:
+    """Particle ``p``'s momentum [kg m/s] ([xyz]) and mass [kg] ([w]) for P2G, from the state's
+    velocity (which holds this substep's probe impulse once the per-particle P2G half has run)
+    and the model's mass: the product :func:`p2g_particle` forms, bit for bit, formed where it
+    is summed instead of stored (a 16-byte write a particle and substep saved)."""
+    m = mass[p]
+    mvp = m * v[p]
+    return wp.vec4(mvp[0], mvp[1], mvp[2], m)
+
+
+@wp.func
 def apic_term(q: wp.vec4, C: Any, p: int) -> wp.mat33:
     """Particle ``p``'s APIC term ``m C`` [kg/s] of the affine-FLIP transfer, from its stored
     momentum and mass ``q`` (mass in ``q[3]``) and affine velocity ``C``: the product
@@ -638,7 +647,8 @@ def node_term(f: wp.vec3, q: wp.vec4, A: wp.mat33, M: wp.mat33, i: int, j: int, 
 
 @wp.func
 def chunk_sum(s: int, e: int, i: int, j: int, k: int, dx: float, affine_flip: int, order: wp.array(dtype=wp.int32),
-              fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: Any, C: Any):
+              fx: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), affine: Any,
+              C: Any):
     """The contributions (:func:`node_term`) of the particles at sorted positions ``s .. e-1``
     (one chunk, one base cell) to the stencil node ``(i, j, k)`` of that cell, summed in sorted
     order."""
@@ -647,7 +657,7 @@ def chunk_sum(s: int, e: int, i: int, j: int, k: int, dx: float, affine_flip: in
     sum_old = wp.vec3(0.0)
     for t in range(s, e):
         p = order[t]
-        q = mv[p]
+        q = momentum_mass(v, mass, p)
         M = wp.mat33(0.0)
         if affine_flip == 1:
             M = apic_term(q, C, p)
@@ -660,7 +670,8 @@ def chunk_sum(s: int, e: int, i: int, j: int, k: int, dx: float, affine_flip: in
 
 @wp.func
 def chunk_line_sum(s: int, e: int, i: int, j: int, dx: float, affine_flip: int, order: wp.array(dtype=wp.int32),
-                   fx: wp.array(dtype=wp.vec3), mv: wp.array(dtype=wp.vec4), affine: Any, C: Any):
+                   fx: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), affine: Any,
+                   C: Any):
     """:func:`chunk_sum` for the line of three stencil nodes ``(i, j, 0..2)`` at once: each
     particle's terms are read once for three nodes. Per node the same arithmetic in the same
     order, so the same bits. Returns the momenta of nodes k = 0, 1, 2 [kg m/s], their masses as
@@ -677,7 +688,7 @@ def chunk_line_sum(s: int, e: int, i: int, j: int, dx: float, affine_flip: int, 
     for t in range(s, e):
         p = order[t]
         f = fx[p]
-        q = mv[p]
+        q = momentum_mass(v, mass, p)
         A = mat33_at(affine, p)
         M = wp.mat33(0.0)
         if affine_flip == 1:
@@ -720,7 +731,8 @@ def p2g_cells(
     inv_dx: float,
     affine_flip: int,
     fx: wp.array(dtype=wp.vec3),
-    mv: wp.array(dtype=wp.vec4),
+    v: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
     affine: Any,
     C: Any,
     grid_mv: wp.array3d(dtype=wp.vec3),
@@ -748,7 +760,7 @@ def p2g_cells(
         e = chunk_end(c, total, count, chunks)
         g = stencil_node(key, o, n_grid)
         if line == 3:
-            mv0, mv1, mv2, m3, old0, old1, old2 = chunk_line_sum(s, e, o[0], o[1], dx, affine_flip, order, fx, mv, affine, C)
+            mv0, mv1, mv2, m3, old0, old1, old2 = chunk_line_sum(s, e, o[0], o[1], dx, affine_flip, order, fx, v, mass, affine, C)
             wp.atomic_add(grid_mv, g[0], g[1], g[2], mv0)
             wp.atomic_add(grid_mv, g[0], g[1], g[2] + 1, mv1)
             wp.atomic_add(grid_mv, g[0], g[1], g[2] + 2, mv2)
@@ -760,7 +772,7 @@ def p2g_cells(
                 wp.atomic_add(grid_mv_old, g[0], g[1], g[2] + 1, old1)
                 wp.atomic_add(grid_mv_old, g[0], g[1], g[2] + 2, old2)
         else:
-            sum_mv, sum_m, sum_old = chunk_sum(s, e, o[0], o[1], o[2], dx, affine_flip, order, fx, mv, affine, C)
+            sum_mv, sum_m, sum_old = chunk_sum(s, e, o[0], o[1], o[2], dx, affine_flip, order, fx, v, mass, affine, C)
             wp.atomic_add(grid_mv, g[0], g[1], g[2], sum_mv)
             wp.atomic_add(grid_m, g[0], g[1], g[2], sum_m)
             if affine_flip == 1:
@@ -784,7 +796,7 @@ def window_sums(t_key: Any, t_end: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: 
                 threads: int, n_grid: int, dx: float, affine_flip: int, grid_mv: wp.array3d(dtype=wp.vec3),
                 grid_m: wp.array3d(dtype=float), grid_mv_old: wp.array3d(dtype=wp.vec3)):
     """A block's sums from its staged terms (shared-memory tiles of ``window`` slots: key, run
-    end (:func:`window_run_end`), ``fx``, ``mv``, ``affine``, ``mC``): the thread ``lane`` of
+    end (:func:`window_run_end`), ``fx``, momentum and mass, ``affine``, ``m C``): the thread ``lane`` of
     ``threads`` takes the (run start, stencil node) pairs ``lane, lane + threads, ...``; a run is
     the slots ``s .. t_end[s] - 1`` (slots that start no run hold 0), its :func:`node_term`
     summed to node ``n`` in slot order as :func:`chunk_sum` sums them, and added to the grid with
@@ -851,7 +863,8 @@ def p2g_windows(window: int):
         inv_dx: float,
         affine_flip: int,
         fx: wp.array(dtype=wp.vec3),
-        mv: wp.array(dtype=wp.vec4),
+        v: wp.array(dtype=wp.vec3),
+        mass: wp.array(dtype=float),
         affine: Any,
         C: Any,
         grid_mv: wp.array3d(dtype=wp.vec3),
@@ -875,7 +888,7 @@ def p2g_windows(window: int):
             if s0 + slot < count:
                 p = order[s0 + slot]
                 key = keys[p]
-            q = mv[p]
+            q = momentum_mass(v, mass, p)
             wp.tile_scatter_masked(t_key, slot, key, True)
             wp.tile_scatter_masked(t_fx, slot, fx[p], True)
             wp.tile_scatter_masked(t_mv, slot, q, True)
@@ -915,7 +928,8 @@ def p2g_chunk_sums(
     inv_dx: float,
     affine_flip: int,
     fx: wp.array(dtype=wp.vec3),
-    mv: wp.array(dtype=wp.vec4),
+    v: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
     affine: Any,
     C: Any,
     sums_mv: wp.array(dtype=wp.vec3),
@@ -940,8 +954,8 @@ def p2g_chunk_sums(
             e = chunk_end(c, total, count, chunks)
             r = 27 * c + n
             if line == 3:
-                mv0, mv1, mv2, m3, old0, old1, old2 = chunk_line_sum(s, e, o[0], o[1], dx, affine_flip, order, fx, mv,
-                                                                     affine, C)
+                mv0, mv1, mv2, m3, old0, old1, old2 = chunk_line_sum(s, e, o[0], o[1], dx, affine_flip, order, fx, v,
+                                                                     mass, affine, C)
                 sums_mv[r] = mv0
                 sums_mv[r + 1] = mv1
                 sums_mv[r + 2] = mv2
@@ -953,7 +967,7 @@ def p2g_chunk_sums(
                     sums_old[r + 1] = old1
                     sums_old[r + 2] = old2
             else:
-                sum_mv, sum_m, sum_old = chunk_sum(s, e, o[0], o[1], o[2], dx, affine_flip, order, fx, mv, affine, C)
+                sum_mv, sum_m, sum_old = chunk_sum(s, e, o[0], o[1], o[2], dx, affine_flip, order, fx, v, mass, affine, C)
                 sums_mv[r] = sum_mv
                 sums_m[r] = sum_m
                 if affine_flip == 1:
@@ -1188,7 +1202,6 @@ def g2p_prepare(
     F: Any,
     rot: wp.array(dtype=wp.quat),
     fx: wp.array(dtype=wp.vec3),
-    mv: wp.array(dtype=wp.vec4),
     affine: Any,
     keys: wp.array(dtype=wp.int32),
     overrun: wp.array(dtype=wp.int32),
@@ -1207,7 +1220,7 @@ def g2p_prepare(
             v[p] = vp
         q, aff, mCp = p2g_terms(vp, Cp, Fp, rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters, retardation)
         rot[p] = q
-        p2g_store(p, (x0[p] + up) * inv_dx, vp, aff, m, lo, hi, n_grid, none_key, fx, mv, affine, keys, overrun)
+        p2g_store(p, (x0[p] + up) * inv_dx, aff, lo, hi, n_grid, none_key, fx, affine, keys, overrun)
     else:
         keys[p] = none_key
 

@@ -345,10 +345,10 @@ def make_state(model: Model, positions: np.ndarray, velocities: np.ndarray | Non
 @dataclass
 class _CellScratch:
     """Scratch of the P2G by cells (``MPMSolver(p2g="cells")``): per particle, in the
-    particles' order, the position in its base cell ``fx`` [cells], momentum and mass ``mv``,
-    the affine matrix of stress and APIC terms ``affine`` (:func:`matrix_array`, laid out as the
-    model says; the APIC term alone, affine FLIP's ``m C``, is formed from the state's ``C``
-    where it is summed) and the base cell's ``keys``;
+    particles' order, the position in its base cell ``fx`` [cells], the affine matrix of stress
+    and APIC terms ``affine`` (:func:`matrix_array`, laid out as the model says; the momentum and
+    mass and affine FLIP's APIC term alone ``m C`` are formed from the state's ``v`` and ``C``
+    where they are summed) and the base cell's ``keys``;
     the radix sort's ``sort_keys`` and ``order`` (twice the particle count, as the sort needs;
     ``order[:n]`` is a permutation at all times: the identity until the first sort), ``none_key``
     (a key above every cell's) and ``end_bit`` (the bits the sort looks at); over sorted
@@ -356,7 +356,6 @@ class _CellScratch:
     ``chunks`` and its length ``n_chunks`` [1]."""
 
     fx: wp.array
-    mv: wp.array
     affine: wp.array
     keys: wp.array
     sort_keys: wp.array
@@ -381,7 +380,7 @@ class _CellScratch:
             return wp.zeros(size, dtype=dtype, device=dev)
 
         order = wp.array(np.arange(2 * n, dtype=np.int32), dtype=wp.int32, device=dev)
-        return cls(fx=zeros(wp.vec3), mv=zeros(wp.vec4), affine=matrix_array(n, float, dev, layout=model.matrix_layout),
+        return cls(fx=zeros(wp.vec3), affine=matrix_array(n, float, dev, layout=model.matrix_layout),
                    keys=zeros(wp.int32),
                    sort_keys=zeros(wp.int32, 2 * n), order=order, none_key=none_key,
                    end_bit=max(1, int(none_key).bit_length()), start=zeros(wp.int32, n_list),
@@ -686,7 +685,7 @@ class MPMSolver:
                 K.p2g_prepare,
                 dim=m.particle_count,
                 inputs=[*particle_args, p.n_grid, c.none_key],
-                outputs=[state.particle_v, state.particle_rot, c.fx, c.mv, c.affine, c.keys, self._overrun],
+                outputs=[state.particle_v, state.particle_rot, c.fx, c.affine, c.keys, self._overrun],
                 **rec,
             )
             cmds["p2g_sort_keys"] = wp.launch(K.p2g_sort_keys, dim=m.particle_count, inputs=[c.keys],
@@ -704,8 +703,8 @@ class MPMSolver:
                     K.p2g_windows(w),
                     dim=-(-m.particle_count // w),
                     block_dim=w,
-                    inputs=[c.order, c.keys, c.none_key, m.particle_count, p.n_grid, self._inv_dx, flip, c.fx, c.mv,
-                            c.affine, state.particle_C],
+                    inputs=[c.order, c.keys, c.none_key, m.particle_count, p.n_grid, self._inv_dx, flip, c.fx,
+                            state.particle_v, m.particle_mass, c.affine, state.particle_C],
                     outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
                     **rec,
                 )
@@ -715,7 +714,7 @@ class MPMSolver:
                     K.p2g_cells,
                     dim=(slots, 27 // self.node_line),
                     inputs=[c.chunks, c.n_chunks, slots, self.node_line, c.keys, c.order, c.none_key, m.particle_count, p.n_grid,
-                            self._inv_dx, flip, c.fx, c.mv, c.affine, state.particle_C],
+                            self._inv_dx, flip, c.fx, state.particle_v, m.particle_mass, c.affine, state.particle_C],
                     outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
                     **rec,
                 )
@@ -763,7 +762,7 @@ class MPMSolver:
                         m.particle_lam, m.probe_mask, wp.vec3(*m.probe_force), 0, self.polar_iters, self.retardation,
                         p.n_grid, c.none_key],
                 outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, state.particle_rot,
-                         c.fx, c.mv, c.affine, c.keys, self._overrun],
+                         c.fx, c.affine, c.keys, self._overrun],
                 **rec,
             )
         self._cmds = cmds
@@ -794,7 +793,7 @@ class MPMSolver:
             K.p2g_chunk_sums,
             dim=(slots, 27 // self.node_line),
             inputs=[c.chunks, c.n_chunks, slots, self.node_line, c.keys, c.order, c.none_key, m.particle_count, s.capacity,
-                    self._inv_dx, flip, c.fx, c.mv, c.affine, state.particle_C],
+                    self._inv_dx, flip, c.fx, state.particle_v, m.particle_mass, c.affine, state.particle_C],
             outputs=[s.sums_mv, s.sums_m, s.sums_old, s.overflow],
             **rec,
         )
