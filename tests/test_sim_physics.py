@@ -502,6 +502,30 @@ def test_matrix_layouts_give_the_same_bits(rng, transfer):
         pushed_shell(params, X, 1, matrix_layout="rows")
 
 
+def test_no_kernel_is_made_at_a_launch(rng):
+    # The kernels generic in the matrices' layout have both overloads declared with the module,
+    # and the windows' kernel of the default size is made with it: rollouts through the scatter,
+    # the windows, F's export gathered on the device, the guard's statistics and von Mises
+    # plasticity, in either layout, add no kernel, so Warp never builds the module again in the
+    # middle of a rollout (an overload first made at a launch did: 20 s on a fresh GPU machine).
+    from knockgs_core.sim import _effects, _kernels, simulate_many
+
+    modules = [wp.get_module(_kernels.__name__), wp.get_module(_effects.__name__)]
+    before = [m.hash_module() for m in modules]
+    params, X = shell_scene(rng, "affine_flip", shell=1500, guard_every=10)
+    plastic = dataclasses.replace(params, effects=(VonMisesPlasticity(yield_stress=30.0),))
+    for layout in ("records", "components"):
+        for p, options in ((params, dict(p2g="scatter")), (params, dict(p2g="cells", cell_sums="windows")),
+                           (params, dict(p2g="cells", cell_sums="list")), (plastic, dict(p2g="cells"))):
+            pushed_shell(p, X, 12, matrix_layout=layout, **options)
+        model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=plastic, device="cpu")
+        model.matrix_layout = layout
+        r = simulate_many([(model, make_state(model, X))], frame_dt=2 * params.dt, n_frames=3, export_F=100,
+                          export_index=rng.permutation(len(X)).astype(np.int32))[0]
+        assert r.F.shape == (3, 100, 3, 3)
+    assert [m.hash_module() for m in modules] == before
+
+
 @pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
 def test_reproducible_p2g_gives_the_same_bits_in_any_thread_order(rng, transfer):
     # The P2G by cells adds each chunk's sums to the grid with float atomics, in the order the

@@ -123,6 +123,25 @@ def mat33d_put(A: wp.array2d(dtype=wp.float64), p: int, M: wp.mat33d):  # noqa: 
             A[3 * i + j, p] = M[i, j]
 
 
+#: the per-particle matrix arrays of each layout (_solver.matrix_array): (float32, float64)
+MATRIX_ARRAYS = {
+    "records": (wp.array(dtype=wp.mat33), wp.array(dtype=wp.mat33d)),
+    "components": (wp.array2d(dtype=float), wp.array2d(dtype=wp.float64)),
+}
+
+
+def overload_per_layout(kernel: wp.Kernel, *, f32: tuple[str, ...] = (), f64: tuple[str, ...] = ()) -> wp.Kernel:
+    """Declare ``kernel``'s overload for each matrix layout: its arguments named in ``f32``
+    (float32 matrices) and ``f64`` (float64) take that layout's array type. Declared when the
+    module is defined, so every overload is built with it in one go: an overload first made at
+    a launch changes the module, and Warp builds the whole module again (on a fresh GPU machine
+    a paper-scale rollout exporting F took 20.3 s instead of ~4, its first gather of F
+    rebuilding the module)."""
+    for a32, a64 in MATRIX_ARRAYS.values():
+        wp.overload(kernel, {**dict.fromkeys(f32, a32), **dict.fromkeys(f64, a64)})
+    return kernel
+
+
 @wp.func
 def bspline_weights(fx: wp.vec3) -> wp.mat33:
     """Quadratic B-spline weights; row ``k`` holds the weight of stencil node ``k`` per axis.
@@ -901,7 +920,8 @@ def p2g_windows(window: int):
         window_sums(t_key, t_end, t_fx, t_mv, t_aff, t_mC, wp.static(window), lane, threads, n_grid, 1.0 / inv_dx,
                     affine_flip, grid_mv, grid_m, grid_mv_old)
 
-    kernel = wp.Kernel(p2g_windows_kernel, key=f"p2g_windows_{window}", module=wp.get_module(__name__))
+    kernel = overload_per_layout(wp.Kernel(p2g_windows_kernel, key=f"p2g_windows_{window}", module=wp.get_module(__name__)),
+                                 f32=("affine", "C"))
     _WINDOW_KERNELS[window] = kernel
     return kernel
 
@@ -1270,3 +1290,16 @@ def particle_stats(
         c = int(wp.floor(xp[a] * inv_dx))
         wp.atomic_min(out_i, 1 + a, c)
         wp.atomic_max(out_i, 4 + a, c)
+
+
+# the kernels generic in the matrices' layout, with their overloads (see overload_per_layout;
+# the windows' kernel gets its own where it is made)
+overload_per_layout(state_rest, f64=("F",))
+overload_per_layout(p2g, f32=("C",), f64=("F",))
+overload_per_layout(p2g_prepare, f32=("C", "affine"), f64=("F",))
+overload_per_layout(p2g_cells, f32=("affine", "C"))
+overload_per_layout(p2g_chunk_sums, f32=("affine", "C"))
+overload_per_layout(g2p, f32=("C",), f64=("F",))
+overload_per_layout(g2p_prepare, f32=("C", "affine"), f64=("F",))
+overload_per_layout(gather_F, f64=("F",))
+overload_per_layout(particle_stats, f64=("F",))

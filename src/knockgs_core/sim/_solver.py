@@ -915,6 +915,11 @@ class MPMSolver:
         return (self.model.mass_host.astype(np.float64)[:, None] * v).sum(axis=0)
 
 
+# the windows' kernel of the default size, made with the module (as the overloads: a kernel
+# first made when a solver records its launches would make Warp build the module again)
+K.p2g_windows(MPMSolver.cell_chunk)
+
+
 def simulate(
     model: Model,
     state: State,
