@@ -640,10 +640,10 @@ def momentum_mass(v: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), p: in
 
 @wp.func
 def apic_term(q: wp.vec4, C: Any, p: int) -> wp.mat33:
-    """Particle ``p``'s APIC term ``m C`` [kg/s] of the affine-FLIP transfer, from its stored
-    momentum and mass ``q`` (mass in ``q[3]``) and affine velocity ``C``: the product
-    :func:`p2g_terms` forms, bit for bit, formed where it is summed instead of stored (a 36-byte
-    write and read a particle and substep saved)."""
+    """Particle ``p``'s APIC term ``m C`` [kg/s] of the affine-FLIP transfer, from its momentum
+    and mass ``q`` (:func:`momentum_mass`; mass in ``q[3]``) and the state's affine velocity
+    ``C``: the product :func:`p2g_terms` forms, bit for bit, formed where it is summed instead
+    of stored (a 36-byte write a particle and substep saved)."""
     return q[3] * mat33_at(C, p)
 
 

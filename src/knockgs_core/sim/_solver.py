@@ -174,11 +174,11 @@ def matrix_array(n: int, dtype, device, *, layout: str = "auto") -> wp.array:
     dev = wp.get_device(device)
     if layout == "auto":
         layout = "components" if dev.is_cuda else "records"
-    if layout == "components":
-        return wp.zeros((9, matrix_pitch(n)), dtype=dtype, device=dev)
-    if layout == "records":
-        return wp.zeros(max(n, 1), dtype=wp.mat33d if dtype is wp.float64 else wp.mat33, device=dev)
-    raise ValueError(f"matrix layout {layout!r}: expected 'auto', 'components' or 'records'")
+    if layout not in K.MATRIX_ARRAYS:
+        raise InputError("Model", "matrix_layout", f"must be 'auto' or one of {sorted(K.MATRIX_ARRAYS)}, got {layout!r}")
+    kind = K.MATRIX_ARRAYS[layout][dtype is wp.float64]  # the array type the kernels take
+    shape = max(n, 1) if kind.ndim == 1 else (9, matrix_pitch(n))
+    return wp.zeros(shape, dtype=kind.dtype, device=dev)
 
 
 def matrices(a: wp.array, n: int) -> np.ndarray:
