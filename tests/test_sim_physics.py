@@ -505,9 +505,10 @@ def test_matrix_layouts_give_the_same_bits(rng, transfer):
 def test_no_kernel_is_made_at_a_launch(rng):
     # The kernels generic in the matrices' layout have both overloads declared with the module,
     # and the windows' kernel of the default size is made with it: rollouts through the scatter,
-    # the windows, F's export gathered on the device, the guard's statistics and von Mises
-    # plasticity, in either layout, add no kernel, so Warp never builds the module again in the
-    # middle of a rollout (an overload first made at a launch did: 20 s on a fresh GPU machine).
+    # the windows, the list, the fused G2P, the reproducible P2G, F's export gathered on the
+    # device, the guard's statistics and von Mises plasticity, in either layout, add no kernel,
+    # so Warp never builds the module again in the middle of a rollout (an overload first made
+    # at a launch did: 20 s on a fresh GPU machine).
     from knockgs_core.sim import _effects, _kernels, simulate_many
 
     modules = [wp.get_module(_kernels.__name__), wp.get_module(_effects.__name__)]
@@ -516,7 +517,9 @@ def test_no_kernel_is_made_at_a_launch(rng):
     plastic = dataclasses.replace(params, effects=(VonMisesPlasticity(yield_stress=30.0),))
     for layout in ("records", "components"):
         for p, options in ((params, dict(p2g="scatter")), (params, dict(p2g="cells", cell_sums="windows")),
-                           (params, dict(p2g="cells", cell_sums="list")), (plastic, dict(p2g="cells"))):
+                           (params, dict(p2g="cells", cell_sums="list")), (plastic, dict(p2g="cells")),
+                           (params, dict(p2g="cells", graph=True, fuse=True)),
+                           (params, dict(p2g="cells", deterministic=True))):
             pushed_shell(p, X, 12, matrix_layout=layout, **options)
         model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=plastic, device="cpu")
         model.matrix_layout = layout
