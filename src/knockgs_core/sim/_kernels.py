@@ -656,6 +656,14 @@ def node_term(f: wp.vec3, q: wp.vec4, A: wp.mat33, M: wp.mat33, i: int, j: int, 
     weights come by selects (:func:`bspline_weight`): the node is the caller's, not a
     constant."""
     weight = bspline_weight(f[0], i) * bspline_weight(f[1], j) * bspline_weight(f[2], k)
+    return weighted_node_term(weight, f, q, A, M, i, j, k, dx, affine_flip)
+
+
+@wp.func
+def weighted_node_term(weight: float, f: wp.vec3, q: wp.vec4, A: wp.mat33, M: wp.mat33, i: int, j: int, k: int,
+                       dx: float, affine_flip: int):
+    """:func:`node_term` with the particle's weight at the node given (the product of its
+    B-spline weights along x, y and z, in that order): the same arithmetic."""
     dpos = (wp.vec3(float(i), float(j), float(k)) - f) * dx
     mvp = wp.vec3(q[0], q[1], q[2])
     old = wp.vec3(0.0)
@@ -811,11 +819,12 @@ def p2g_cells(
 # (Windows of 64 or 128 cut every 32 slots paid no more on an H100, and the cut's integer
 # modulo cost the kernel 10 %: benchmarks/README.md.)
 @wp.func
-def window_sums(t_key: Any, t_end: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: Any, window: int, lane: int,
+def window_sums(t_key: Any, t_end: Any, t_w: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: Any, window: int, lane: int,
                 threads: int, n_grid: int, dx: float, affine_flip: int, grid_mv: wp.array3d(dtype=wp.vec3),
                 grid_m: wp.array3d(dtype=float), grid_mv_old: wp.array3d(dtype=wp.vec3)):
     """A block's sums from its staged terms (shared-memory tiles of ``window`` slots: key, run
-    end (:func:`window_run_end`), ``fx``, momentum and mass, ``affine``, ``m C``): the thread ``lane`` of
+    end (:func:`window_run_end`), the weights ``t_w[slot, 3 axis + node]``, ``fx``, momentum and mass,
+    ``affine``, ``m C``): the thread ``lane`` of
     ``threads`` takes the (run start, stencil node) pairs ``lane, lane + threads, ...``; a run is
     the slots ``s .. t_end[s] - 1`` (slots that start no run hold 0), its :func:`node_term`
     summed to node ``n`` in slot order as :func:`chunk_sum` sums them, and added to the grid with
@@ -831,7 +840,9 @@ def window_sums(t_key: Any, t_end: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: 
         sum_m = float(0.0)
         sum_old = wp.vec3(0.0)
         for t in range(s, e):
-            d_mv, d_m, d_old = node_term(t_fx[t], t_mv[t], t_aff[t], t_mC[t], o[0], o[1], o[2], dx, affine_flip)
+            weight = t_w[t, o[0]] * t_w[t, 3 + o[1]] * t_w[t, 6 + o[2]]
+            d_mv, d_m, d_old = weighted_node_term(weight, t_fx[t], t_mv[t], t_aff[t], t_mC[t], o[0], o[1], o[2], dx,
+                                                  affine_flip)
             sum_mv += d_mv
             sum_m += d_m
             sum_old += d_old
@@ -864,12 +875,14 @@ def window_run_end(t_key: Any, s: int, window: int, none_key: int) -> int:
 _WINDOW_KERNELS: dict = {}
 
 
-def p2g_windows(window: int):
-    """The P2G-by-windows kernel for windows of ``window`` sorted positions (a tile's size is
-    fixed when the kernel is compiled, so one kernel per size). Launch with
+def p2g_windows(window: int, affine_flip: int):
+    """The P2G-by-windows kernel for windows of ``window`` sorted positions under the transfer
+    ``affine_flip`` (1: affine FLIP, 0: APIC). A tile's size is fixed when the kernel is
+    compiled, and the transfer is made a constant of the kernel (its branches in the inner
+    loop compiled away), so one kernel per size and transfer. Launch with
     ``wp.launch_tiled(..., dim=ceil(count / window), block_dim=window)``; the CPU runs it with
     one thread a block (the loops stride by the block's size), the same sums."""
-    kernel = _WINDOW_KERNELS.get(window)
+    kernel = _WINDOW_KERNELS.get((window, affine_flip))
     if kernel is not None:
         return kernel
 
@@ -880,7 +893,6 @@ def p2g_windows(window: int):
         count: int,
         n_grid: int,
         inv_dx: float,
-        affine_flip: int,
         fx: wp.array(dtype=wp.vec3),
         v: wp.array(dtype=wp.vec3),
         mass: wp.array(dtype=float),
@@ -891,12 +903,14 @@ def p2g_windows(window: int):
         grid_mv_old: wp.array3d(dtype=wp.vec3),
     ):
         """Block ``b`` stages the terms of the particles ``order[b W + slot]`` (slot
-        ``0 .. W-1``; past ``count``: key ``none_key``) in shared memory and sums them
+        ``0 .. W-1``; past ``count``: key ``none_key``) in shared memory, the B-spline weights
+        of each (the node's weight is then three loads and two products), and sums them
         (:func:`window_sums`)."""
         b, lane = wp.tid()
         threads = wp.block_dim()
         s0 = b * wp.static(window)
         t_key = wp.tile_zeros(shape=wp.static(window), dtype=wp.int32, storage="shared")
+        t_w = wp.tile_zeros(shape=(wp.static(window), 9), dtype=float, storage="shared")
         t_fx = wp.tile_zeros(shape=wp.static(window), dtype=wp.vec3, storage="shared")
         t_mv = wp.tile_zeros(shape=wp.static(window), dtype=wp.vec4, storage="shared")
         t_aff = wp.tile_zeros(shape=wp.static(window), dtype=wp.mat33, storage="shared")
@@ -908,21 +922,27 @@ def p2g_windows(window: int):
                 p = order[s0 + slot]
                 key = keys[p]
             q = momentum_mass(v, mass, p)
+            f = fx[p]
+            W = bspline_weights(f)
             wp.tile_scatter_masked(t_key, slot, key, True)
-            wp.tile_scatter_masked(t_fx, slot, fx[p], True)
+            for a in range(3):
+                for n in range(3):
+                    wp.tile_scatter_masked(t_w, slot, 3 * a + n, W[n, a], True)
+            wp.tile_scatter_masked(t_fx, slot, f, True)
             wp.tile_scatter_masked(t_mv, slot, q, True)
             wp.tile_scatter_masked(t_aff, slot, mat33_at(affine, p), True)
-            if affine_flip == 1:
+            if wp.static(affine_flip == 1):
                 wp.tile_scatter_masked(t_mC, slot, apic_term(q, C, p), True)
         t_end = wp.tile_zeros(shape=wp.static(window), dtype=wp.int32, storage="shared")
         for slot in range(lane, wp.static(window), threads):
             wp.tile_scatter_masked(t_end, slot, window_run_end(t_key, slot, wp.static(window), none_key), True)
-        window_sums(t_key, t_end, t_fx, t_mv, t_aff, t_mC, wp.static(window), lane, threads, n_grid, 1.0 / inv_dx,
-                    affine_flip, grid_mv, grid_m, grid_mv_old)
+        window_sums(t_key, t_end, t_w, t_fx, t_mv, t_aff, t_mC, wp.static(window), lane, threads, n_grid, 1.0 / inv_dx,
+                    wp.static(affine_flip), grid_mv, grid_m, grid_mv_old)
 
-    kernel = overload_per_layout(wp.Kernel(p2g_windows_kernel, key=f"p2g_windows_{window}", module=wp.get_module(__name__)),
+    name = f"p2g_windows_{window}_{'affine_flip' if affine_flip == 1 else 'apic'}"
+    kernel = overload_per_layout(wp.Kernel(p2g_windows_kernel, key=name, module=wp.get_module(__name__)),
                                  f32=("affine", "C"))
-    _WINDOW_KERNELS[window] = kernel
+    _WINDOW_KERNELS[window, affine_flip] = kernel
     return kernel
 
 

@@ -700,10 +700,10 @@ class MPMSolver:
             elif self.cell_sums == "windows":
                 w = self.cell_chunk
                 cmds["p2g_windows"] = wp.launch_tiled(
-                    K.p2g_windows(w),
+                    K.p2g_windows(w, flip),
                     dim=-(-m.particle_count // w),
                     block_dim=w,
-                    inputs=[c.order, c.keys, c.none_key, m.particle_count, p.n_grid, self._inv_dx, flip, c.fx,
+                    inputs=[c.order, c.keys, c.none_key, m.particle_count, p.n_grid, self._inv_dx, c.fx,
                             state.particle_v, m.particle_mass, c.affine, state.particle_C],
                     outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
                     **rec,
@@ -915,9 +915,11 @@ class MPMSolver:
         return (self.model.mass_host.astype(np.float64)[:, None] * v).sum(axis=0)
 
 
-# the windows' kernel of the default size, made with the module (as the overloads: a kernel
-# first made when a solver records its launches would make Warp build the module again)
-K.p2g_windows(MPMSolver.cell_chunk)
+# the windows' kernels of the default size (both transfers), made with the module (as the
+# overloads: a kernel first made when a solver records its launches would make Warp build the
+# module again)
+for _flip in (0, 1):
+    K.p2g_windows(MPMSolver.cell_chunk, _flip)
 
 
 def simulate(
