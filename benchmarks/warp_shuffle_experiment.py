@@ -88,7 +88,7 @@ def segment_sum(x: float, span: int, top: int) -> float: ...
 
 def make_kernel(regs, mode):
     def g2p2g_warp(
-        grid_v: wp.array3d(dtype=wp.vec3),
+        grid_v: wp.array(dtype=wp.vec3),
         inv_dx: float,
         dt: float,
         trans_mask: wp.array(dtype=wp.int32),
@@ -99,7 +99,7 @@ def make_kernel(regs, mode):
         x0: wp.array(dtype=wp.vec3),
         affine_flip: int,
         flip_weight: float,
-        grid_v_old: wp.array3d(dtype=wp.vec3),
+        grid_v_old: wp.array(dtype=wp.vec3),
         mass: wp.array(dtype=float),
         vol: wp.array(dtype=float),
         mu: wp.array(dtype=float),
@@ -132,8 +132,8 @@ def make_kernel(regs, mode):
         mCp = wp.mat33(0.0)
         base = wp.vec3i(0)
         if p < count:
-            ok, up, vp, Cp, Fp = g2p_particle(p, grid_v, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo, hi, x0,
-                                              affine_flip, flip_weight, grid_v_old, u, v, C, F, overrun)
+            ok, up, vp, Cp, Fp = g2p_particle(p, grid_v, n_grid, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo,
+                                              hi, x0, affine_flip, flip_weight, grid_v_old, u, v, C, F, overrun)
             if ok:
                 m = mass[p]
                 if probe_on == 1 and probe_mask[p] != 0:
@@ -331,10 +331,11 @@ def main():
                             bc.friction_coefficient]
                 wp.launch(K.grid_bc_cuboid, dim=dims, inputs=[lo, p.dx, *box_args], outputs=[S["grid_mv"]], device=dev)
         wp.launch(kernel, dim=padded, block_dim=bd,
-                  inputs=[S["grid_mv"], solver._inv_dx, p.dt, zero_mask, wp.vec3(0.0), 0, lo, hi, state.particle_x0, flip,
-                          p.flip_weight, S["grid_mv_old"], model.particle_mass, model.particle_vol, model.particle_mu,
-                          model.particle_lam, model.probe_mask, wp.vec3(*model.probe_force), probe_next, solver.polar_iters,
-                          solver.retardation, g, none_key, n, 27],
+                  inputs=[S["grid_mv"].flatten(), solver._inv_dx, p.dt, zero_mask, wp.vec3(0.0), 0, lo, hi,
+                          state.particle_x0, flip, p.flip_weight, S["grid_mv_old"].flatten(), model.particle_mass,
+                          model.particle_vol, model.particle_mu, model.particle_lam, model.probe_mask,
+                          wp.vec3(*model.probe_force), probe_next, solver.polar_iters, solver.retardation, g, none_key, n,
+                          27],
                   outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, state.particle_rot,
                            overrun, D["grid_mv"], D["grid_m"], D["grid_mv_old"]], device=dev)
 

@@ -1116,7 +1116,8 @@ def p2g_gather(
 @wp.func
 def g2p_particle(
     p: int,
-    grid_v: wp.array3d(dtype=wp.vec3),
+    grid_v: wp.array(dtype=wp.vec3),
+    n_grid: int,
     inv_dx: float,
     dt: float,
     trans_mask: wp.array(dtype=wp.int32),
@@ -1127,7 +1128,7 @@ def g2p_particle(
     x0: wp.array(dtype=wp.vec3),
     affine_flip: int,
     flip_weight: float,
-    grid_v_old: wp.array3d(dtype=wp.vec3),
+    grid_v_old: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     C: Any,
@@ -1135,7 +1136,10 @@ def g2p_particle(
     overrun: wp.array(dtype=wp.int32),
 ):
     """Particle ``p``'s G2P (see :func:`g2p`), written back; returns whether its stencil lay
-    inside the active box and the new displacement, velocity, affine matrix and F."""
+    inside the active box and the new displacement, velocity, affine matrix and F. The node
+    velocities ``grid_v`` and ``grid_v_old`` are read as flat arrays of the (``n_grid``)^3 grid
+    (node ``(i, j, k)`` at ``(i n_grid + j) n_grid + k``): one index a node from the stencil's
+    first, instead of three with their checks."""
     up = u[p]
     gx = (x0[p] + up) * inv_dx
     base = stencil_base(gx)
@@ -1148,16 +1152,18 @@ def g2p_particle(
     new_C = wp.mat33(0.0)
     dv = wp.vec3(0.0)
     dC = wp.mat33(0.0)
+    origin = (base[0] * n_grid + base[1]) * n_grid + base[2]
     for i in range(3):
         for j in range(3):
             for k in range(3):
                 weight = w[i, 0] * w[j, 1] * w[k, 2]
                 dpos = wp.vec3(float(i), float(j), float(k)) - fx
-                gv = grid_v[base[0] + i, base[1] + j, base[2] + k]
+                node = origin + (i * n_grid + j) * n_grid + k
+                gv = grid_v[node]
                 new_v = new_v + weight * gv
                 new_C = new_C + (4.0 * inv_dx * weight) * wp.outer(gv, dpos)
                 if affine_flip == 1:
-                    du = gv - grid_v_old[base[0] + i, base[1] + j, base[2] + k]
+                    du = gv - grid_v_old[node]
                     dv = dv + weight * du
                     dC = dC + (4.0 * inv_dx * weight) * wp.outer(du, dpos)
     held = trans_on == 1 and trans_mask[p] != 0
@@ -1180,7 +1186,8 @@ def g2p_particle(
 
 @wp.kernel(cuda_max_registers=CUDA_MAX_REGISTERS)
 def g2p(
-    grid_v: wp.array3d(dtype=wp.vec3),
+    grid_v: wp.array(dtype=wp.vec3),
+    n_grid: int,
     inv_dx: float,
     dt: float,
     trans_mask: wp.array(dtype=wp.int32),
@@ -1191,15 +1198,16 @@ def g2p(
     x0: wp.array(dtype=wp.vec3),
     affine_flip: int,
     flip_weight: float,
-    grid_v_old: wp.array3d(dtype=wp.vec3),
+    grid_v_old: wp.array(dtype=wp.vec3),
     u: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     C: Any,
     F: Any,
     overrun: wp.array(dtype=wp.int32),
 ):
-    """Gather: new velocity and affine matrix (APIC, or with ``affine_flip = 1`` the affine
-    FLIP update of weight ``flip_weight = exp(-dt / tau)`` with the old node velocities
+    """Gather (node velocities as flat arrays of the ``n_grid``^3 grid): new velocity and
+    affine matrix (APIC, or with ``affine_flip = 1`` the affine FLIP update of weight
+    ``flip_weight = exp(-dt / tau)`` with the old node velocities
     ``grid_v_old`` [m/s]), F <- (I + dt C_pic) F (F in float64), advect with the grid velocity
     ``v_pic``.
 
@@ -1207,13 +1215,13 @@ def g2p(
     displacement keeps sub-ulp motion that ``x += dt v`` in float32 near x = 1 would round
     away (a creep or a freeze of one ulp per substep)."""
     p = wp.tid()
-    g2p_particle(p, grid_v, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo, hi, x0, affine_flip, flip_weight,
-                 grid_v_old, u, v, C, F, overrun)
+    g2p_particle(p, grid_v, n_grid, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo, hi, x0, affine_flip,
+                 flip_weight, grid_v_old, u, v, C, F, overrun)
 
 
 @wp.kernel(cuda_max_registers=CUDA_MAX_REGISTERS)
 def g2p_prepare(
-    grid_v: wp.array3d(dtype=wp.vec3),
+    grid_v: wp.array(dtype=wp.vec3),
     inv_dx: float,
     dt: float,
     trans_mask: wp.array(dtype=wp.int32),
@@ -1224,7 +1232,7 @@ def g2p_prepare(
     x0: wp.array(dtype=wp.vec3),
     affine_flip: int,
     flip_weight: float,
-    grid_v_old: wp.array3d(dtype=wp.vec3),
+    grid_v_old: wp.array(dtype=wp.vec3),
     mass: wp.array(dtype=float),
     vol: wp.array(dtype=float),
     mu: wp.array(dtype=float),
@@ -1251,7 +1259,7 @@ def g2p_prepare(
     next P2G terms instead of being read back. The same arithmetic as the two kernels in
     turn, so the same bits."""
     p = wp.tid()
-    ok, up, vp, Cp, Fp = g2p_particle(p, grid_v, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo, hi, x0,
+    ok, up, vp, Cp, Fp = g2p_particle(p, grid_v, n_grid, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo, hi, x0,
                                       affine_flip, flip_weight, grid_v_old, u, v, C, F, overrun)
     if ok:
         m = mass[p]

@@ -747,8 +747,8 @@ class MPMSolver:
         cmds["g2p"] = wp.launch(
             K.g2p,
             dim=m.particle_count,
-            inputs=[state.grid_mv, self._inv_dx, dt, self._zero_mask, wp.vec3(0.0), 0, lo, hi, state.particle_x0,
-                    flip, p.flip_weight, state.grid_mv_old],
+            inputs=[state.grid_mv.flatten(), p.n_grid, self._inv_dx, dt, self._zero_mask, wp.vec3(0.0), 0, lo, hi,
+                    state.particle_x0, flip, p.flip_weight, state.grid_mv_old.flatten()],
             outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, self._overrun],
             **rec,
         )
@@ -757,10 +757,10 @@ class MPMSolver:
             cmds["g2p_prepare"] = wp.launch(
                 K.g2p_prepare,
                 dim=m.particle_count,
-                inputs=[state.grid_mv, self._inv_dx, dt, self._zero_mask, wp.vec3(0.0), 0, lo, hi, state.particle_x0,
-                        flip, p.flip_weight, state.grid_mv_old, m.particle_mass, m.particle_vol, m.particle_mu,
-                        m.particle_lam, m.probe_mask, wp.vec3(*m.probe_force), 0, self.polar_iters, self.retardation,
-                        p.n_grid, c.none_key],
+                inputs=[state.grid_mv.flatten(), self._inv_dx, dt, self._zero_mask, wp.vec3(0.0), 0, lo, hi,
+                        state.particle_x0, flip, p.flip_weight, state.grid_mv_old.flatten(), m.particle_mass,
+                        m.particle_vol, m.particle_mu, m.particle_lam, m.probe_mask, wp.vec3(*m.probe_force), 0,
+                        self.polar_iters, self.retardation, p.n_grid, c.none_key],
                 outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, state.particle_rot,
                          c.fx, c.affine, c.keys, self._overrun],
                 **rec,
