@@ -64,6 +64,9 @@ def main() -> None:
     ap.add_argument("--max-registers", type=int, default=0,
                     help="cap on the registers per thread of the particle kernels (CUDA __maxnreg__; 0: the "
                          "solver's, _kernels.CUDA_MAX_REGISTERS on its heavy kernels)")
+    ap.add_argument("--polar-step", type=float, nargs="+", default=[None],
+                    help="the polar iterations' step (MPMSolver(polar_step=...); default: the solver's, 1.5 on a GPU), "
+                         "each profiled")
     args = ap.parse_args()
 
     import warp as wp
@@ -104,9 +107,10 @@ def main() -> None:
     ref = getattr(contract, "probe_reference_particles", None)
     model = build_model(ps.positions, E=E, nu=nu, rho=rho, params=contract.sim, volumes=ps.volumes, probe=probe,
                         probe_force_scale=float(ref) / len(ps.positions) if ref else 1.0, device=args.device)
-    runs = [(v, n, r, k, f, d, line, w) for v in args.p2g for n in args.slots for r in args.resort for k in args.chunk
-            for f in args.fuse for d in args.deterministic for line in args.line for w in args.sums]
-    for variant, slots, resort, chunk, fuse, det, line, sums in runs:
+    runs = [(v, n, r, k, f, d, line, w, ps_) for v in args.p2g for n in args.slots for r in args.resort for k in args.chunk
+            for f in args.fuse for d in args.deterministic for line in args.line for w in args.sums
+            for ps_ in args.polar_step]
+    for variant, slots, resort, chunk, fuse, det, line, sums, polar_step in runs:
         state = make_state(model, ps.positions)
         p2g, graph = variant.split("+")[0], variant.endswith("+graph")
         fuse = {"auto": "auto", "on": True, "off": False}[fuse]
@@ -115,7 +119,8 @@ def main() -> None:
         if det == "on" and (p2g != "cells" or sums == "windows"):  # the reproducible P2G sums the list
             continue
         solver = MPMSolver(model, p2g=p2g, graph=graph, fuse=fuse, max_chunk_slots=slots or None, resort_every=resort,
-                           cell_chunk=chunk, node_line=line, cell_sums=sums, deterministic=det == "on")
+                           cell_chunk=chunk, node_line=line, cell_sums=sums, deterministic=det == "on",
+                           **({} if polar_step is None else {"polar_step": polar_step}))
         solver.check(state)
         for _ in range(args.warm):
             solver.step(state)
@@ -138,7 +143,8 @@ def main() -> None:
         print(f"{args.object} {args.profile}, P2G {variant} ({args.order} order, chunk slots {slots or 'all'}, sort every "
               f"{resort} substeps, chunks of {chunk}, node line {solver.node_line}, sums by {solver.cell_sums}, "
               f"G2P fused with the next P2G half: {solver.fuse}, "
-              f"reproducible: {solver.deterministic}, module options {options or 'default'}, "
+              f"reproducible: {solver.deterministic}, polar step {getattr(solver, 'polar_step', 1.0)}, "
+              f"module options {options or 'default'}, "
               f"register cap {args.max_registers or 'none'}): "
               f"{len(ps.positions)} particles, n_grid {contract.sim.n_grid}, "
               f"active box {[h - lo for lo, h in zip(solver._lo, solver._hi)]}, {args.steps} substeps, "

@@ -108,6 +108,7 @@ def make_kernel(regs, mode):
         probe_force: wp.vec3,
         probe_on: int,
         polar_iters: int,
+        polar_step: float,
         retardation: float,
         n_grid: int,
         none_key: int,
@@ -140,7 +141,7 @@ def make_kernel(regs, mode):
                     vp = vp + probe_force * (dt / m)
                     v[p] = vp
                 q, aff, mCp = p2g_terms(vp, Cp, Fp, rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters,
-                                        retardation)
+                                        polar_step, retardation)
                 rot[p] = q
                 gx = (x0[p] + up) * inv_dx
                 base = stencil_base(gx)
@@ -334,8 +335,8 @@ def main():
                   inputs=[S["grid_mv"].flatten(), solver._inv_dx, p.dt, zero_mask, wp.vec3(0.0), 0, lo, hi,
                           state.particle_x0, flip, p.flip_weight, S["grid_mv_old"].flatten(), model.particle_mass,
                           model.particle_vol, model.particle_mu, model.particle_lam, model.probe_mask,
-                          wp.vec3(*model.probe_force), probe_next, solver.polar_iters, solver.retardation, g, none_key, n,
-                          27],
+                          wp.vec3(*model.probe_force), probe_next, solver.polar_iters, solver.polar_step,
+                          solver.retardation, g, none_key, n, 27],
                   outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, state.particle_rot,
                            overrun, D["grid_mv"], D["grid_m"], D["grid_mv_old"]], device=dev)
 
@@ -365,7 +366,7 @@ def main():
         wp.launch(K.p2g, dim=n, inputs=[state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
                                         model.particle_mass, model.particle_vol, model.particle_mu, model.particle_lam,
                                         model.probe_mask, wp.vec3(*model.probe_force), probe(st), solver._inv_dx, p.dt,
-                                        solver.polar_iters, solver.retardation, lo, hi, flip],
+                                        solver.polar_iters, solver.polar_step, solver.retardation, lo, hi, flip],
                   outputs=[state.particle_v, state.particle_rot, state.grid_mv, state.grid_m, state.grid_mv_old, overrun],
                   device=dev)
         # graphs of the two parities

@@ -184,14 +184,21 @@ def stencil_inside(base: wp.vec3i, lo: wp.vec3i, hi: wp.vec3i) -> bool:
 
 
 @wp.func
-def polar_rotation(A: wp.mat33, q0: wp.quat, max_iter: int) -> wp.quat:
+def polar_rotation(A: wp.mat33, q0: wp.quat, max_iter: int, step: float) -> wp.quat:
     """Rotation of the polar decomposition of ``A`` (det A > 0), warm-started from ``q0``.
 
     Mueller et al. 2016, "A Robust Method to Extract the Rotational Part of Deformations":
     rotate ``q`` about the axis that aligns its columns with those of ``A`` until the
-    correction angle is below 1e-7 rad (or ``max_iter`` iterations). No SVD; usually 1-2
-    iterations when warm-started, up to 8 on fast-rotating thin parts: ``max_iter`` must not
-    bind (an unconverged rotation puts a spurious stress into every substep).
+    correction angle is below 1e-7 rad (or ``max_iter`` iterations). No SVD. ``max_iter`` must
+    not bind (an unconverged rotation puts a spurious stress into every substep).
+
+    ``step`` scales the rotation by the correction once it is below 0.1 rad (larger ones are
+    taken whole). Their correction is ``(tr S - S) e / tr S`` for an error ``e`` and the
+    stretch ``S``: two thirds of the error near ``S = I``, so a step of 1 (theirs) removes a
+    third of the error per iteration, and 1.5 nearly all of it (every error component still
+    shrinks for any stretch: the factor stays below 2). Warm-started on the default Pillow,
+    8.1 iterations a particle on average with 1, 2.8 with 1.5, to the same rotation
+    (benchmarks/README.md, "Polar iterations").
     """
     q = q0
     a0 = wp.vec3(A[0, 0], A[1, 0], A[2, 0])
@@ -208,7 +215,10 @@ def polar_rotation(A: wp.mat33, q0: wp.quat, max_iter: int) -> wp.quat:
         angle = wp.length(omega)
         if angle < 1.0e-7:
             break
-        q = wp.normalize(wp.quat_from_axis_angle(omega / angle, angle) * q)
+        scale = float(1.0)
+        if angle < 0.1:
+            scale = step
+        q = wp.normalize(wp.quat_from_axis_angle(omega / angle, scale * angle) * q)
     return q
 
 
@@ -401,14 +411,14 @@ def grid_bc_cuboid(
 # --------------------------------------------------------------------------------------
 @wp.func
 def p2g_terms(vp: wp.vec3, Cp: wp.mat33, Fd: wp.mat33d, q0: wp.quat, m: float, volp: float, mup: float, lamp: float,
-              inv_dx: float, dt: float, polar_iters: int, retardation: float):
+              inv_dx: float, dt: float, polar_iters: int, polar_step: float, retardation: float):
     """A particle's stress and transfer terms from its velocity ``vp`` [m/s], affine matrix
     ``Cp`` [1/s], deformation gradient ``Fd`` (float64) and last rotation ``q0``: the
     warm-started rotation, the affine matrix of the transfer (stress and APIC terms) and its
     APIC term alone (fixed-corotated stress, plus the Kelvin-Voigt viscous stress when
     ``retardation`` [s] > 0)."""
     Fp = mat33_to_f32(Fd)
-    q = polar_rotation(Fp, q0, polar_iters)
+    q = polar_rotation(Fp, q0, polar_iters, polar_step)
     tau = fixed_corotated_kirchhoff(Fp, wp.quat_to_matrix(q), mup, lamp)
     if retardation > 0.0:
         tau = tau + kelvin_voigt_kirchhoff(Cp, wp.determinant(Fp), mup, lamp, retardation)
@@ -432,6 +442,7 @@ def p2g_particle(
     inv_dx: float,
     dt: float,
     polar_iters: int,
+    polar_step: float,
     retardation: float,
     v: wp.array(dtype=wp.vec3),
     rot: wp.array(dtype=wp.quat),
@@ -445,7 +456,7 @@ def p2g_particle(
         vp = vp + probe_force * (dt / m)
         v[p] = vp
     q, affine, mC = p2g_terms(vp, mat33_at(C, p), mat33d_at(F, p), rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt,
-                              polar_iters, retardation)
+                              polar_iters, polar_step, retardation)
     rot[p] = q
     return vp, affine, mC
 
@@ -466,6 +477,7 @@ def p2g(
     inv_dx: float,
     dt: float,
     polar_iters: int,
+    polar_step: float,
     retardation: float,
     lo: wp.vec3i,
     hi: wp.vec3i,
@@ -483,7 +495,7 @@ def p2g(
     p = wp.tid()
     m = mass[p]
     vp, affine, mC = p2g_particle(p, C, F, mass, vol, mu, lam, probe_mask, probe_force, probe_on, inv_dx, dt, polar_iters,
-                                  retardation, v, rot)
+                                  polar_step, retardation, v, rot)
     dx = 1.0 / inv_dx
 
     gx = (x0[p] + u[p]) * inv_dx
@@ -555,6 +567,7 @@ def p2g_prepare(
     inv_dx: float,
     dt: float,
     polar_iters: int,
+    polar_step: float,
     retardation: float,
     lo: wp.vec3i,
     hi: wp.vec3i,
@@ -576,7 +589,7 @@ def p2g_prepare(
     which stay as they are until G2P: the same products."""
     p = wp.tid()
     vp, aff, mCp = p2g_particle(p, C, F, mass, vol, mu, lam, probe_mask, probe_force, probe_on, inv_dx, dt, polar_iters,
-                                retardation, v, rot)
+                                polar_step, retardation, v, rot)
     p2g_store(p, (x0[p] + u[p]) * inv_dx, aff, lo, hi, n_grid, none_key, fx, affine, keys, overrun)
 
 
@@ -819,23 +832,23 @@ def p2g_cells(
 # (Windows of 64 or 128 cut every 32 slots paid no more on an H100, and the cut's integer
 # modulo cost the kernel 10 %: benchmarks/README.md.)
 @wp.func
-def window_sums(t_key: Any, t_end: Any, t_w: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: Any, window: int, lane: int,
-                threads: int, n_grid: int, dx: float, affine_flip: int, grid_mv: wp.array3d(dtype=wp.vec3),
-                grid_m: wp.array3d(dtype=float), grid_mv_old: wp.array3d(dtype=wp.vec3)):
-    """A block's sums from its staged terms (shared-memory tiles of ``window`` slots: key, run
-    end (:func:`window_run_end`), the weights ``t_w[slot, 3 axis + node]``, ``fx``, momentum and mass,
-    ``affine``, ``m C``): the thread ``lane`` of
-    ``threads`` takes the (run start, stencil node) pairs ``lane, lane + threads, ...``; a run is
-    the slots ``s .. t_end[s] - 1`` (slots that start no run hold 0), its :func:`node_term`
-    summed to node ``n`` in slot order as :func:`chunk_sum` sums them, and added to the grid with
-    one atomic per array."""
-    for q in range(lane, window * 27, threads):
-        s = q // 27
+def window_sums(t_key: Any, t_end: Any, t_runs: Any, runs: int, t_w: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: Any,
+                lane: int, threads: int, n_grid: int, dx: float, affine_flip: int, grid_mv: wp.array(dtype=wp.vec3),
+                grid_m: wp.array(dtype=float), grid_mv_old: wp.array(dtype=wp.vec3)):
+    """A block's sums from its staged terms (shared-memory tiles of the window's slots: key, run
+    end (:func:`window_run_end`), the weights ``t_w[slot, 3 axis + node]``, ``fx``, momentum and
+    mass, ``affine``, ``m C``) and its ``runs`` runs' first slots ``t_runs`` (in slot order): the
+    thread ``lane`` of ``threads`` takes the (run, stencil node) pairs ``lane, lane + threads,
+    ...``; a run is the slots ``s .. t_end[s] - 1``, its :func:`node_term` summed to node ``n`` in
+    slot order as :func:`chunk_sum` sums them, and added to the grid (flat arrays of the
+    ``n_grid``^3 nodes; a base cell's key is its node's index) with one atomic per array."""
+    for q in range(lane, runs * 27, threads):
+        r = q // 27
+        s = t_runs[r]
         e = t_end[s]
-        if e == 0:
-            continue
         key = t_key[s]
-        o = stencil_offset(q - 27 * s)
+        n = q - 27 * r
+        o = stencil_offset(n)
         sum_mv = wp.vec3(0.0)
         sum_m = float(0.0)
         sum_old = wp.vec3(0.0)
@@ -846,11 +859,25 @@ def window_sums(t_key: Any, t_end: Any, t_w: Any, t_fx: Any, t_mv: Any, t_aff: A
             sum_mv += d_mv
             sum_m += d_m
             sum_old += d_old
-        g = stencil_node(key, o, n_grid)
-        wp.atomic_add(grid_mv, g[0], g[1], g[2], sum_mv)
-        wp.atomic_add(grid_m, g[0], g[1], g[2], sum_m)
+        node = key + (o[0] * n_grid + o[1]) * n_grid + o[2]
+        wp.atomic_add(grid_mv, node, sum_mv)
+        wp.atomic_add(grid_m, node, sum_m)
         if affine_flip == 1:
-            wp.atomic_add(grid_mv_old, g[0], g[1], g[2], sum_old)
+            wp.atomic_add(grid_mv_old, node, sum_old)
+
+
+@wp.func
+def window_runs_before(t_end: Any, s: int, window: int) -> wp.vec2i:
+    """How many runs start before slot ``s`` of a window (slots whose run end is not 0), and in
+    the whole window."""
+    before = int(0)
+    total = int(0)
+    for t in range(window):
+        if t_end[t] != 0:
+            if t < s:
+                before += 1
+            total += 1
+    return wp.vec2i(before, total)
 
 
 @wp.func
@@ -898,9 +925,9 @@ def p2g_windows(window: int, affine_flip: int):
         mass: wp.array(dtype=float),
         affine: Any,
         C: Any,
-        grid_mv: wp.array3d(dtype=wp.vec3),
-        grid_m: wp.array3d(dtype=float),
-        grid_mv_old: wp.array3d(dtype=wp.vec3),
+        grid_mv: wp.array(dtype=wp.vec3),
+        grid_m: wp.array(dtype=float),
+        grid_mv_old: wp.array(dtype=wp.vec3),
     ):
         """Block ``b`` stages the terms of the particles ``order[b W + slot]`` (slot
         ``0 .. W-1``; past ``count``: key ``none_key``) in shared memory, the B-spline weights
@@ -936,7 +963,14 @@ def p2g_windows(window: int, affine_flip: int):
         t_end = wp.tile_zeros(shape=wp.static(window), dtype=wp.int32, storage="shared")
         for slot in range(lane, wp.static(window), threads):
             wp.tile_scatter_masked(t_end, slot, window_run_end(t_key, slot, wp.static(window), none_key), True)
-        window_sums(t_key, t_end, t_w, t_fx, t_mv, t_aff, t_mC, wp.static(window), lane, threads, n_grid, 1.0 / inv_dx,
+        # the runs' first slots listed in slot order, so the threads share out (run, node) pairs only
+        t_runs = wp.tile_zeros(shape=wp.static(window), dtype=wp.int32, storage="shared")
+        runs = int(0)
+        for slot in range(lane, wp.static(window), threads):
+            ranks = window_runs_before(t_end, slot, wp.static(window))
+            wp.tile_scatter_masked(t_runs, ranks[0], slot, t_end[slot] != 0)
+            runs = ranks[1]
+        window_sums(t_key, t_end, t_runs, runs, t_w, t_fx, t_mv, t_aff, t_mC, lane, threads, n_grid, 1.0 / inv_dx,
                     wp.static(affine_flip), grid_mv, grid_m, grid_mv_old)
 
     name = f"p2g_windows_{window}_{'affine_flip' if affine_flip == 1 else 'apic'}"
@@ -1241,6 +1275,7 @@ def g2p_prepare(
     probe_force: wp.vec3,
     probe_on: int,
     polar_iters: int,
+    polar_step: float,
     retardation: float,
     n_grid: int,
     none_key: int,
@@ -1266,7 +1301,8 @@ def g2p_prepare(
         if probe_on == 1 and probe_mask[p] != 0:
             vp = vp + probe_force * (dt / m)
             v[p] = vp
-        q, aff, mCp = p2g_terms(vp, Cp, Fp, rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters, retardation)
+        q, aff, mCp = p2g_terms(vp, Cp, Fp, rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters, polar_step,
+                                retardation)
         rot[p] = q
         p2g_store(p, (x0[p] + up) * inv_dx, aff, lo, hi, n_grid, none_key, fx, affine, keys, overrun)
     else:

@@ -473,6 +473,12 @@ class MPMSolver:
     #: 4 (the former value) moved its Probe-A response by 9 % and its dt sensitivity from 1.8 % to
     #: 6.5 % per halving (docs/assets.md). tests/test_sim_physics.py checks that it never binds.
     polar_iters = 32
+    #: the polar iterations' step near convergence, a multiple of Mueller et al.'s
+    #: (:func:`~knockgs_core.sim._kernels.polar_rotation`): 1.0 (theirs) or up to 1.9; 1.5
+    #: takes ~3 iterations a particle where 1.0 takes ~8, to the same rotation (within its 1e-7
+    #: rad). ``"auto"``: 1.5 on a GPU, 1.0 on the CPU (whose rollouts, and the tables made from
+    #: them, keep their bits)
+    polar_step: float | str = "auto"
     #: ``p2g="auto"`` on a CUDA device sums by cells from this :func:`cell_crowding` on (particles
     #: sharing a particle's base cell, on average), and scatters below it. Measured on an H100
     #: (benchmarks/README.md): a 681k-particle block at 1 per cell scatters faster (0.92 against
@@ -519,7 +525,8 @@ class MPMSolver:
 
     def __init__(self, model: Model, *, p2g: str = "auto", graph: bool | str = "auto", fuse: bool | str = "auto",
                  resort_every: int | None = None, cell_chunk: int | None = None, max_chunk_slots: int | None = None,
-                 node_line: int | None = None, cell_sums: str | None = None, deterministic: bool = False):
+                 node_line: int | None = None, cell_sums: str | None = None, deterministic: bool = False,
+                 polar_step: float | str | None = None):
         self.model = model
         if deterministic not in (True, False):
             raise InputError("MPMSolver", "deterministic", f"must be True or False, got {deterministic!r}")
@@ -544,6 +551,14 @@ class MPMSolver:
             self.cell_sums = "windows" if model.params.transfer == "affine_flip" and not deterministic else "list"
         p = model.params
         cuda = wp.get_device(model.device).is_cuda
+        if polar_step is not None:
+            self.polar_step = polar_step
+        if self.polar_step == "auto":
+            self.polar_step = 1.5 if cuda else 1.0
+        if isinstance(self.polar_step, bool) or not isinstance(self.polar_step, (int, float)) \
+                or not 1.0 <= self.polar_step <= 1.9:
+            raise InputError("MPMSolver", "polar_step", f"must be 'auto' or a number in [1, 1.9], got {self.polar_step!r}")
+        self.polar_step = float(self.polar_step)
         if graph == "auto":
             graph = cuda and not p.effects and not model.translations
         if graph not in (True, False):
@@ -670,7 +685,7 @@ class MPMSolver:
         # the particle inputs of both P2G variants (``probe_on`` is set per substep)
         particle_args = [state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
                          m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
-                         m.probe_mask, wp.vec3(*m.probe_force), 0, self._inv_dx, dt, self.polar_iters,
+                         m.probe_mask, wp.vec3(*m.probe_force), 0, self._inv_dx, dt, self.polar_iters, self.polar_step,
                          self.retardation, lo, hi]
         if self._cells is not None:
             c = self._cells
@@ -705,7 +720,7 @@ class MPMSolver:
                     block_dim=w,
                     inputs=[c.order, c.keys, c.none_key, m.particle_count, p.n_grid, self._inv_dx, c.fx,
                             state.particle_v, m.particle_mass, c.affine, state.particle_C],
-                    outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
+                    outputs=[state.grid_mv.flatten(), state.grid_m.flatten(), state.grid_mv_old.flatten()],
                     **rec,
                 )
             else:
@@ -760,7 +775,7 @@ class MPMSolver:
                 inputs=[state.grid_mv.flatten(), self._inv_dx, dt, self._zero_mask, wp.vec3(0.0), 0, lo, hi,
                         state.particle_x0, flip, p.flip_weight, state.grid_mv_old.flatten(), m.particle_mass,
                         m.particle_vol, m.particle_mu, m.particle_lam, m.probe_mask, wp.vec3(*m.probe_force), 0,
-                        self.polar_iters, self.retardation, p.n_grid, c.none_key],
+                        self.polar_iters, self.polar_step, self.retardation, p.n_grid, c.none_key],
                 outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, state.particle_rot,
                          c.fx, c.affine, c.keys, self._overrun],
                 **rec,
