@@ -39,7 +39,7 @@ from ._long_format import (POSITION_COLUMNS, _has_field, _meta_field, check_roll
                            theta_tag)
 from ._long_writer import GROUP_ROWS, LONG_COMPRESSION, LongFormatStream, long_encoding, long_table
 from .errors import InputError
-from .sim import Probe, SimResult, build_model, make_state, simulate_many
+from .sim import Probe, SimResult, build_model, make_state, particle_volumes, simulate_many
 
 __all__ = [
     "Rollout",
@@ -226,12 +226,18 @@ def _simulate_rollouts(contract, runs, *, particles, device, export_F, probe, pr
     (frame_dt, n_frames), = exports
     t0 = time.perf_counter()
     models = []
+    # one rest-position array for the batch's models, and its per-cell volumes counted once (each
+    # model would count them again): the same arrays, so the same bits
+    positions = np.ascontiguousarray(particles.positions, dtype=np.float32)
+    volumes = particles.volumes
+    if volumes is None and len(setups) > 1:
+        volumes = particle_volumes(positions, params.dx)
     for _, run_probe, E, nu, rho in setups:
         model = build_model(
-            particles.positions, E=E, nu=nu, rho=rho, params=params, volumes=particles.volumes,
+            positions, E=E, nu=nu, rho=rho, params=params, volumes=volumes,
             probe=run_probe, probe_force_scale=force_scale, device=device,
         )
-        models.append((model, make_state(model, particles.positions)))
+        models.append((model, make_state(model, positions)))
     inv = None
     if perm is not None:  # exported back in the particle set's order, gathered on the device
         inv = np.empty_like(perm)

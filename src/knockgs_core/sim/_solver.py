@@ -465,6 +465,11 @@ class MPMSolver:
     them in a fixed order (:func:`~knockgs_core.sim._kernels.p2g_gather`): no float atomics on
     the grid. The same sums as the other variants, in another order (the CPU's scatter stays
     the default there); the cost on a GPU is in benchmarks/README.md.
+
+    ``polar_step``: the polar iterations' step near convergence (the class attribute of the
+    same name documents it). ``crowding``: the model's :func:`cell_crowding` where the caller
+    has it (runs of one particle set share it: :func:`simulate_many` counts it once);
+    computed from the model's rest positions otherwise.
     """
 
     #: cap on the warm-started polar iterations per particle and substep (they stop when the
@@ -526,7 +531,7 @@ class MPMSolver:
     def __init__(self, model: Model, *, p2g: str = "auto", graph: bool | str = "auto", fuse: bool | str = "auto",
                  resort_every: int | None = None, cell_chunk: int | None = None, max_chunk_slots: int | None = None,
                  node_line: int | None = None, cell_sums: str | None = None, deterministic: bool = False,
-                 polar_step: float | str | None = None):
+                 polar_step: float | str | None = None, crowding: float | None = None):
         self.model = model
         if deterministic not in (True, False):
             raise InputError("MPMSolver", "deterministic", f"must be True or False, got {deterministic!r}")
@@ -573,7 +578,9 @@ class MPMSolver:
         if p2g == "auto":
             if cuda:
                 x0 = model.particle_x0_host
-                self.crowding = cell_crowding(x0, p.dx) if x0 is not None else math.inf
+                if crowding is None:
+                    crowding = cell_crowding(x0, p.dx) if x0 is not None else math.inf
+                self.crowding = float(crowding)
             p2g = self.auto_p2g(cuda, self.crowding)
         if p2g not in ("scatter", "cells"):
             raise InputError("MPMSolver", "p2g", f"must be 'auto', 'scatter' or 'cells', got {p2g!r}")
@@ -1042,9 +1049,11 @@ def simulate_many(
 
     exporters = [_Exporter(model, export_F, export_index) for model, _ in runs]
     solvers, positions, Fs, stats = [], [], [], []
+    crowding: dict[int, float | None] = {}  # by rest positions: runs of one particle set count their cells once
     for i, (model, state) in enumerate(runs):
         with on(i):
-            solver = MPMSolver(model, deterministic=deterministic)
+            solver = MPMSolver(model, deterministic=deterministic, crowding=crowding.get(id(model.particle_x0_host)))
+            crowding[id(model.particle_x0_host)] = solver.crowding
             n = model.particle_count
             X = np.empty((n_frames, n, 3), dtype=np.float32)
             F = np.empty((n_frames, export_F, 3, 3), dtype=np.float32) if export_F else None
