@@ -18,6 +18,8 @@ import argparse
 import numpy as np
 import warp as wp
 
+from knockgs_core.sim import _kernels as K
+
 
 @wp.kernel
 def counted_polar(F: wp.array(dtype=wp.mat33), q0: wp.array(dtype=wp.quat), max_iter: int, step: float, guard: float,
@@ -51,6 +53,13 @@ def counted_polar(F: wp.array(dtype=wp.mat33), q0: wp.array(dtype=wp.quat), max_
     iters[p] = n
     last[p] = angle
     out[p] = q
+
+
+@wp.kernel
+def solver_polar(F: wp.array(dtype=wp.mat33), q0: wp.array(dtype=wp.quat), step: float, out: wp.array(dtype=wp.quat)):
+    """The solver's own ``_kernels.polar_rotation`` (the counted copy above is checked against it)."""
+    p = wp.tid()
+    out[p] = K.polar_rotation(F[p], q0[p], 32, step)
 
 
 def run(F: np.ndarray, q0: np.ndarray, step: float, guard: float, device: str):
@@ -96,7 +105,12 @@ def main() -> None:
         if (s + 1) % max(1, args.steps // 3) == 0:
             F = state.deformation_gradients()
             for step in args.polar_steps:
-                it, la, _ = run(F, state.particle_rot.numpy(), step, 0.1, args.device)
+                it, la, q = run(F, state.particle_rot.numpy(), step, 0.1, args.device)
+                ref = wp.zeros(len(F), dtype=wp.quat, device=args.device)
+                wp.launch(solver_polar, dim=len(F), inputs=[wp.array(F.astype(np.float32), dtype=wp.mat33, device=args.device),
+                                                            state.particle_rot, step], outputs=[ref], device=args.device)
+                if not np.array_equal(ref.numpy(), q):
+                    raise SystemExit("the counted copy no longer computes the solver's polar_rotation")
                 hist = {int(k): int(v) for k, v in enumerate(np.bincount(it)) if v}
                 print(f"| {s + 1} | {step} | {it.mean():.2f} | {it.max()} | {hist} | {np.quantile(la, 0.99):.2e} |")
 
