@@ -3,6 +3,7 @@ the Parquet rollout format, and the `knockgs simulate` command."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 
@@ -243,6 +244,31 @@ def test_rollouts_simulated_together_equal_separate_rollouts_bit_for_bit(pillow_
         assert ro.F.tobytes() == alone.F.tobytes()
         assert ro.meta["theta"] == list(theta) and ro.meta["probe"] == alone.meta["probe"]
         assert ro.meta["stats"] == alone.meta["stats"] and ro.meta["simulated_with"] == 3
+
+
+def test_rollouts_simulated_together_count_their_cells_once(pillow_ci, monkeypatch):
+    # a batch's runs share one particle set: its per-cell volumes and its cell crowding are
+    # counted once for the batch, not once a model and a solver (the same values: the test above
+    # holds the bits)
+    from knockgs_core.rollout import run_rollouts
+    from knockgs_core.sim import _solver
+
+    contract, built = pillow_ci
+    calls = {"volumes": 0, "crowding": 0}
+
+    def counted(name, inner):
+        def wrapper(*args, **kwargs):
+            calls[name] += 1
+            return inner(*args, **kwargs)
+        return wrapper
+
+    volumes = counted("volumes", _solver.particle_volumes)
+    monkeypatch.setattr(_solver, "particle_volumes", volumes)  # build_model's
+    monkeypatch.setattr("knockgs_core.rollout.particle_volumes", volumes)
+    monkeypatch.setattr(_solver, "cell_crowding", counted("crowding", _solver.cell_crowding))
+    runs = [((0.95, 1.35), "standard_x"), ((1.6, 0.8), "standard_x"), ((0.7, 1.1), "standard_y")]
+    run_rollouts(contract, runs, particles=dataclasses.replace(built.particles, volumes=None))
+    assert calls == {"volumes": 1, "crowding": 1}
 
 
 def test_rollouts_simulated_in_cell_order_come_back_in_the_asset_order(pillow_ci):

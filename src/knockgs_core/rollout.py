@@ -229,9 +229,7 @@ def _simulate_rollouts(contract, runs, *, particles, device, export_F, probe, pr
     # one rest-position array for the batch's models, and its per-cell volumes counted once (each
     # model would count them again): the same arrays, so the same bits
     positions = np.ascontiguousarray(particles.positions, dtype=np.float32)
-    volumes = particles.volumes
-    if volumes is None and len(setups) > 1:
-        volumes = particle_volumes(positions, params.dx)
+    volumes = particle_volumes(positions, params.dx) if particles.volumes is None else particles.volumes
     for _, run_probe, E, nu, rho in setups:
         model = build_model(
             positions, E=E, nu=nu, rho=rho, params=params, volumes=volumes,

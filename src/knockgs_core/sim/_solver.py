@@ -437,8 +437,8 @@ class MPMSolver:
     ``p2g``: ``"scatter"`` (one float atomic per particle and stencil node; the CPU's),
     ``"cells"`` (particles sorted by base cell every :attr:`resort_every` substeps, chunk sums
     with one atomic per chunk and node) or ``"auto"``: by cells on a CUDA device where the particles crowd their
-    cells (:func:`cell_crowding` at least :attr:`CELLS_CROWDING`, recorded in ``crowding``),
-    else the scatter.
+    cells (:func:`cell_crowding` at least :attr:`CELLS_CROWDING`; counted on every device and
+    recorded in ``crowding``), else the scatter.
 
     ``graph``: replay each substep as a captured graph (one per probe state and set of active
     supports, captured again when the guard moves the active box), which skips the host's
@@ -576,11 +576,10 @@ class MPMSolver:
         if p2g == "auto" and self.deterministic:
             p2g = "cells"
         if p2g == "auto":
-            if cuda:
-                x0 = model.particle_x0_host
-                if crowding is None:
-                    crowding = cell_crowding(x0, p.dx) if x0 is not None else math.inf
-                self.crowding = float(crowding)
+            x0 = model.particle_x0_host
+            if crowding is None:
+                crowding = cell_crowding(x0, p.dx) if x0 is not None else math.inf
+            self.crowding = float(crowding)
             p2g = self.auto_p2g(cuda, self.crowding)
         if p2g not in ("scatter", "cells"):
             raise InputError("MPMSolver", "p2g", f"must be 'auto', 'scatter' or 'cells', got {p2g!r}")
@@ -1049,11 +1048,12 @@ def simulate_many(
 
     exporters = [_Exporter(model, export_F, export_index) for model, _ in runs]
     solvers, positions, Fs, stats = [], [], [], []
-    crowding: dict[int, float | None] = {}  # by rest positions: runs of one particle set count their cells once
+    crowding: dict[tuple, float | None] = {}  # runs of one particle set and grid count their cells once
     for i, (model, state) in enumerate(runs):
         with on(i):
-            solver = MPMSolver(model, deterministic=deterministic, crowding=crowding.get(id(model.particle_x0_host)))
-            crowding[id(model.particle_x0_host)] = solver.crowding
+            shared = (id(model.particle_x0_host), model.params.dx)
+            solver = MPMSolver(model, deterministic=deterministic, crowding=crowding.get(shared))
+            crowding[shared] = solver.crowding
             n = model.particle_count
             X = np.empty((n_frames, n, 3), dtype=np.float32)
             F = np.empty((n_frames, export_F, 3, 3), dtype=np.float32) if export_F else None
