@@ -85,28 +85,14 @@ def main() -> None:
         for name in particle_kernels:
             setattr(_kernels, name, wp.kernel(getattr(_kernels, name).func, cuda_max_registers=args.max_registers))
 
-    from pathlib import Path
+    from _object_model import object_particles, probe_a_model
 
-    from knockgs_core.assets import build_asset, load_particles, save_particles
     from knockgs_core.contract import load_contract
-    from knockgs_core.sim import MPMSolver, build_model, make_state
+    from knockgs_core.sim import MPMSolver, make_state
 
     contract = load_contract(args.object, args.profile)
-    if args.particles and Path(args.particles).exists():
-        ps = load_particles(args.particles, contract=contract)
-    else:
-        ps = build_asset(contract).particles
-        if args.particles:
-            save_particles(ps, args.particles, contract=contract)
-    if args.order == "cell":
-        from knockgs_core.rollout import _permuted, cell_order
-
-        ps = _permuted(ps, cell_order(ps, n_grid=contract.sim.n_grid, grid_lim=contract.sim.grid_lim))
-    probe = contract.resolve_probes(ps)[contract.roles["calibration"]]
-    E, nu, rho = contract.particle_materials(ps, (1.0, 1.0))
-    ref = getattr(contract, "probe_reference_particles", None)
-    model = build_model(ps.positions, E=E, nu=nu, rho=rho, params=contract.sim, volumes=ps.volumes, probe=probe,
-                        probe_force_scale=float(ref) / len(ps.positions) if ref else 1.0, device=args.device)
+    ps = object_particles(contract, args.particles, order=args.order)
+    model = probe_a_model(contract, ps, args.device)
     runs = [(v, n, r, k, f, d, line, w, ps_) for v in args.p2g for n in args.slots for r in args.resort for k in args.chunk
             for f in args.fuse for d in args.deterministic for line in args.line for w in args.sums
             for ps_ in args.polar_step]

@@ -84,17 +84,14 @@ def main() -> None:
 
     from scipy.spatial.transform import Rotation
 
-    from knockgs_core.assets import build_asset
+    from _object_model import object_particles, probe_a_model
+
     from knockgs_core.contract import load_contract
-    from knockgs_core.sim import MPMSolver, build_model, make_state
+    from knockgs_core.sim import MPMSolver, make_state
 
     c = load_contract(args.object, args.profile)
-    ps = build_asset(c).particles
-    probe = c.resolve_probes(ps)[c.roles["calibration"]]
-    E, nu, rho = c.particle_materials(ps, (1.0, 1.0))
-    ref = getattr(c, "probe_reference_particles", None)
-    model = build_model(ps.positions, E=E, nu=nu, rho=rho, params=c.sim, volumes=ps.volumes, probe=probe,
-                        probe_force_scale=float(ref) / len(ps.positions) if ref else 1.0, device=args.device)
+    ps = object_particles(c, order="asset")
+    model = probe_a_model(c, ps, args.device)
     state = make_state(model, ps.positions)
     solver = MPMSolver(model)
     print(f"{args.object} {args.profile}: {len(ps.positions)} particles, the solver's polar step {solver.polar_step}")

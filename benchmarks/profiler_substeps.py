@@ -12,8 +12,6 @@ profiler to attach to (Nsight Compute: each kernel launched once a substep).
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
-
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -29,24 +27,14 @@ def main() -> None:
 
     if args.lineinfo:
         wp.config.lineinfo = True
-    from knockgs_core.assets import build_asset, load_particles, save_particles
+    from _object_model import object_particles, probe_a_model
+
     from knockgs_core.contract import load_contract
-    from knockgs_core.rollout import _permuted, cell_order
-    from knockgs_core.sim import MPMSolver, build_model, make_state
+    from knockgs_core.sim import MPMSolver, make_state
 
     c = load_contract(args.object, args.profile)
-    if args.particles and Path(args.particles).exists():
-        ps = load_particles(args.particles, contract=c)
-    else:
-        ps = build_asset(c).particles
-        if args.particles:
-            save_particles(ps, args.particles, contract=c)
-    ps = _permuted(ps, cell_order(ps, n_grid=c.sim.n_grid, grid_lim=c.sim.grid_lim))
-    probe = c.resolve_probes(ps)[c.roles["calibration"]]
-    E, nu, rho = c.particle_materials(ps, (1.0, 1.0))
-    ref = getattr(c, "probe_reference_particles", None)
-    model = build_model(ps.positions, E=E, nu=nu, rho=rho, params=c.sim, volumes=ps.volumes, probe=probe,
-                        probe_force_scale=float(ref) / len(ps.positions) if ref else 1.0, device=args.device)
+    ps = object_particles(c, args.particles)
+    model = probe_a_model(c, ps, args.device)
     state = make_state(model, ps.positions)
     solver = MPMSolver(model, graph=False)
     solver.check(state)

@@ -26,7 +26,6 @@ register cap, ``--repeats`` times, and compares the displacements.
 """
 import argparse
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -228,25 +227,15 @@ def main():
     ap.add_argument("--regs", type=int, nargs="+", default=[0])
     ap.add_argument("--mode", type=int, nargs="+", default=[1])
     args = ap.parse_args()
-    from knockgs_core.assets import build_asset, load_particles, save_particles
+    from _object_model import object_particles, probe_a_model
+
     from knockgs_core.contract import load_contract
-    from knockgs_core.rollout import _permuted, cell_order
-    from knockgs_core.sim import MPMSolver, build_model, make_state
+    from knockgs_core.sim import MPMSolver, make_state
 
     contract = load_contract(args.object, args.profile)
-    if args.particles and Path(args.particles).exists():
-        ps = load_particles(args.particles, contract=contract)
-    else:
-        ps = build_asset(contract).particles
-        if args.particles:
-            save_particles(ps, args.particles, contract=contract)
-    ps = _permuted(ps, cell_order(ps, n_grid=contract.sim.n_grid, grid_lim=contract.sim.grid_lim))
-    probe = contract.resolve_probes(ps)[contract.roles["calibration"]]
-    E, nu, rho = contract.particle_materials(ps, (1.0, 1.0))
-    ref = getattr(contract, "probe_reference_particles", None)
+    ps = object_particles(contract, args.particles)
     dev = args.device
-    model = build_model(ps.positions, E=E, nu=nu, rho=rho, params=contract.sim, volumes=ps.volumes, probe=probe,
-                        probe_force_scale=float(ref) / len(ps.positions) if ref else 1.0, device=dev)
+    model = probe_a_model(contract, ps, dev)
     p = model.params
     n = model.particle_count
     state = make_state(model, ps.positions)
