@@ -67,6 +67,11 @@ def main() -> None:
     ap.add_argument("--polar-step", type=float, nargs="+", default=[None],
                     help="the polar iterations' step (MPMSolver(polar_step=...); default: the solver's, 1.5 on a GPU), "
                          "each profiled")
+    ap.add_argument("--polar-update", nargs="+", choices=["auto", "axis_angle", "rational"], default=["auto"],
+                    help="how the polar iterations rotate (MPMSolver(polar_update=...); auto: rational on a GPU), "
+                         "each profiled")
+    ap.add_argument("--g2p-sums", nargs="+", choices=["auto", "nodes", "lines"], default=["auto"],
+                    help="how G2P sums its stencil (MPMSolver(g2p_sums=...); auto: lines on a GPU), each profiled")
     args = ap.parse_args()
 
     import warp as wp
@@ -93,10 +98,10 @@ def main() -> None:
     contract = load_contract(args.object, args.profile)
     ps = object_particles(contract, args.particles, order=args.order)
     model = probe_a_model(contract, ps, args.device)
-    runs = [(v, n, r, k, f, d, line, w, ps_) for v in args.p2g for n in args.slots for r in args.resort for k in args.chunk
+    runs = [(v, n, r, k, f, d, line, w, ps_, pu, g) for v in args.p2g for n in args.slots for r in args.resort for k in args.chunk
             for f in args.fuse for d in args.deterministic for line in args.line for w in args.sums
-            for ps_ in args.polar_step]
-    for variant, slots, resort, chunk, fuse, det, line, sums, polar_step in runs:
+            for ps_ in args.polar_step for pu in args.polar_update for g in args.g2p_sums]
+    for variant, slots, resort, chunk, fuse, det, line, sums, polar_step, polar_update, g2p_sums in runs:
         state = make_state(model, ps.positions)
         p2g, graph = variant.split("+")[0], variant.endswith("+graph")
         fuse = {"auto": "auto", "on": True, "off": False}[fuse]
@@ -106,6 +111,7 @@ def main() -> None:
             continue
         solver = MPMSolver(model, p2g=p2g, graph=graph, fuse=fuse, max_chunk_slots=slots or None, resort_every=resort,
                            cell_chunk=chunk, node_line=line, cell_sums=sums, deterministic=det == "on",
+                           polar_update=polar_update, g2p_sums=g2p_sums,
                            **({} if polar_step is None else {"polar_step": polar_step}))
         solver.check(state)
         for _ in range(args.warm):
@@ -129,7 +135,9 @@ def main() -> None:
         print(f"{args.object} {args.profile}, P2G {variant} ({args.order} order, chunk slots {slots or 'all'}, sort every "
               f"{resort} substeps, chunks of {chunk}, node line {solver.node_line}, sums by {solver.cell_sums}, "
               f"G2P fused with the next P2G half: {solver.fuse}, "
-              f"reproducible: {solver.deterministic}, polar step {getattr(solver, 'polar_step', 1.0)}, "
+              f"reproducible: {solver.deterministic}, polar step {getattr(solver, 'polar_step', 1.0)} "
+              f"({getattr(solver, 'polar_update', 'axis_angle')}), "
+              f"G2P sums by {getattr(solver, 'g2p_sums', 'nodes')}, "
               f"module options {options or 'default'}, "
               f"register cap {args.max_registers or 'none'}): "
               f"{len(ps.positions)} particles, n_grid {contract.sim.n_grid}, "

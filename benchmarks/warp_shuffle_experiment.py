@@ -99,6 +99,7 @@ def make_kernel(regs, mode):
         affine_flip: int,
         flip_weight: float,
         grid_v_old: wp.array(dtype=wp.vec3),
+        g2p_lines: int,
         mass: wp.array(dtype=float),
         vol: wp.array(dtype=float),
         mu: wp.array(dtype=float),
@@ -108,6 +109,7 @@ def make_kernel(regs, mode):
         probe_on: int,
         polar_iters: int,
         polar_step: float,
+        polar_rational: int,
         retardation: float,
         n_grid: int,
         none_key: int,
@@ -133,14 +135,15 @@ def make_kernel(regs, mode):
         base = wp.vec3i(0)
         if p < count:
             ok, up, vp, Cp, Fp = g2p_particle(p, grid_v, n_grid, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo,
-                                              hi, x0, affine_flip, flip_weight, grid_v_old, u, v, C, F, overrun)
+                                              hi, x0, affine_flip, flip_weight, grid_v_old, g2p_lines, u, v, C, F,
+                                              overrun)
             if ok:
                 m = mass[p]
                 if probe_on == 1 and probe_mask[p] != 0:
                     vp = vp + probe_force * (dt / m)
                     v[p] = vp
                 q, aff, mCp = p2g_terms(vp, Cp, Fp, rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters,
-                                        polar_step, retardation)
+                                        polar_step, polar_rational, retardation)
                 rot[p] = q
                 gx = (x0[p] + up) * inv_dx
                 base = stencil_base(gx)
@@ -322,10 +325,11 @@ def main():
                 wp.launch(K.grid_bc_cuboid, dim=dims, inputs=[lo, p.dx, *box_args], outputs=[S["grid_mv"]], device=dev)
         wp.launch(kernel, dim=padded, block_dim=bd,
                   inputs=[S["grid_mv"].flatten(), solver._inv_dx, p.dt, zero_mask, wp.vec3(0.0), 0, lo, hi,
-                          state.particle_x0, flip, p.flip_weight, S["grid_mv_old"].flatten(), model.particle_mass,
+                          state.particle_x0, flip, p.flip_weight, S["grid_mv_old"].flatten(),
+                          int(solver.g2p_sums == "lines"), model.particle_mass,
                           model.particle_vol, model.particle_mu, model.particle_lam, model.probe_mask,
                           wp.vec3(*model.probe_force), probe_next, solver.polar_iters, solver.polar_step,
-                          solver.retardation, g, none_key, n, 27],
+                          solver._polar_rational, solver.retardation, g, none_key, n, 27],
                   outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, state.particle_rot,
                            overrun, D["grid_mv"], D["grid_m"], D["grid_mv_old"]], device=dev)
 
@@ -355,7 +359,8 @@ def main():
         wp.launch(K.p2g, dim=n, inputs=[state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
                                         model.particle_mass, model.particle_vol, model.particle_mu, model.particle_lam,
                                         model.probe_mask, wp.vec3(*model.probe_force), probe(st), solver._inv_dx, p.dt,
-                                        solver.polar_iters, solver.polar_step, solver.retardation, lo, hi, flip],
+                                        solver.polar_iters, solver.polar_step, solver._polar_rational, solver.retardation, lo,
+                                        hi, flip],
                   outputs=[state.particle_v, state.particle_rot, state.grid_mv, state.grid_m, state.grid_mv_old, overrun],
                   device=dev)
         # graphs of the two parities

@@ -230,16 +230,18 @@ def test_guard_refuses_an_elastically_unstable_dt():
 # -------------------------------------------------------------------------------------
 # the stress kernel against a NumPy/SVD reference
 # -------------------------------------------------------------------------------------
-@pytest.mark.parametrize("step", [1.0, 1.5])
-def test_fixed_corotated_stress_matches_svd_reference(rng, step):
-    # from the identity (not warm-started), under either polar step (the over-relaxed one takes
-    # corrections above 0.1 rad whole, so it converges from far too)
+@pytest.mark.parametrize("step,rational", [(1.0, 0), (1.5, 0), (1.5, 1)])
+def test_fixed_corotated_stress_matches_svd_reference(rng, step, rational):
+    # from the identity (not warm-started), under either polar step and update (the
+    # over-relaxed step and the rational update take corrections above 0.1 rad whole, by axis
+    # and angle, so they converge from far too)
     from knockgs_core.sim import _kernels as K
 
     @wp.kernel
-    def stress(F: wp.array(dtype=wp.mat33), mu: float, lam: float, step: float, out: wp.array(dtype=wp.mat33)):
+    def stress(F: wp.array(dtype=wp.mat33), mu: float, lam: float, step: float, rational: int,
+               out: wp.array(dtype=wp.mat33)):
         i = wp.tid()
-        q = K.polar_rotation(F[i], wp.quat_identity(dtype=float), 30, step)
+        q = K.polar_rotation(F[i], wp.quat_identity(dtype=float), 30, step, rational)
         out[i] = K.fixed_corotated_kirchhoff(F[i], wp.quat_to_matrix(q), mu, lam)
 
     n = 64
@@ -251,7 +253,7 @@ def test_fixed_corotated_stress_matches_svd_reference(rng, step):
     F = np.einsum("nij,njk->nik", Q, F).astype(np.float32)
     mu, lam = 3.0, 5.0
     out = wp.zeros(n, dtype=wp.mat33, device="cpu")
-    wp.launch(stress, dim=n, inputs=[wp.array(F, dtype=wp.mat33, device="cpu"), mu, lam, step], outputs=[out],
+    wp.launch(stress, dim=n, inputs=[wp.array(F, dtype=wp.mat33, device="cpu"), mu, lam, step, rational], outputs=[out],
               device="cpu")
     U, S, Vt = np.linalg.svd(F.astype(np.float64))
     R = U @ Vt
@@ -262,17 +264,18 @@ def test_fixed_corotated_stress_matches_svd_reference(rng, step):
 
 def test_the_over_relaxed_polar_step_needs_fewer_iterations(rng):
     # Warm-started 1e-3 rad off the rotation of F = R S (stretches up to 1.2), four iterations:
-    # the step of 1.5 reaches the SVD's rotation to float rounding, Mueller et al.'s step of 1
-    # (a third of the error removed an iteration near S = I) is still ~3e-5 off.
+    # the step of 1.5 reaches the SVD's rotation to float rounding, by axis and angle or by the
+    # rational quaternion, where Mueller et al.'s step of 1 (a third of the error removed an
+    # iteration near S = I) is still ~3e-5 off.
     from scipy.spatial.transform import Rotation
 
     from knockgs_core.sim import _kernels as K
 
     @wp.kernel
-    def polar(F: wp.array(dtype=wp.mat33), q0: wp.array(dtype=wp.quat), iters: int, step: float,
+    def polar(F: wp.array(dtype=wp.mat33), q0: wp.array(dtype=wp.quat), iters: int, step: float, rational: int,
               out: wp.array(dtype=wp.quat)):
         i = wp.tid()
-        out[i] = K.polar_rotation(F[i], q0[i], iters, step)
+        out[i] = K.polar_rotation(F[i], q0[i], iters, step, rational)
 
     n = 400
     R = Rotation.random(n, random_state=1)
@@ -283,20 +286,24 @@ def test_the_over_relaxed_polar_step_needs_fewer_iterations(rng):
     R_svd = u @ vt
     q0 = (Rotation.from_matrix(R_svd) * Rotation.from_rotvec(1e-3 * rng.standard_normal((n, 3)) / np.sqrt(3)))
     err = {}
-    for step, iters in ((1.0, 4), (1.5, 4), (1.0, 32)):
+    for step, iters, rational in ((1.0, 4, 0), (1.5, 4, 0), (1.0, 32, 0), (1.5, 4, 1), (1.0, 4, 1)):
         out = wp.zeros(n, dtype=wp.quat, device="cpu")
         wp.launch(polar, dim=n, inputs=[wp.array(F, dtype=wp.mat33, device="cpu"),
-                                        wp.array(q0.as_quat().astype(np.float32), dtype=wp.quat, device="cpu"), iters, step],
+                                        wp.array(q0.as_quat().astype(np.float32), dtype=wp.quat, device="cpu"), iters, step,
+                                        rational],
                   outputs=[out], device="cpu")
         Rq = Rotation.from_quat(out.numpy().astype(np.float64)).as_matrix()
-        err[step, iters] = np.abs(Rq - R_svd).max()
-    assert err[1.5, 4] < 1e-6 and err[1.0, 32] < 1e-6  # float rounding: ~2.4e-7
-    assert err[1.0, 4] > 1e-5
+        err[step, iters, rational] = np.abs(Rq - R_svd).max()
+    assert err[1.5, 4, 0] < 1e-6 and err[1.0, 32, 0] < 1e-6 and err[1.5, 4, 1] < 1e-6  # float rounding: ~2.4e-7
+    assert err[1.0, 4, 0] > 1e-5 and err[1.0, 4, 1] > 1e-5
     model = build_model(np.full((8, 3), 1.0, dtype=np.float32), E=1e4, nu=0.3, rho=100.0, params=SimParams(n_grid=16),
                         device="cpu")
     for bad in (0.5, 2.5, "fast", True):
         with pytest.raises(InputError, match="polar_step"):
             MPMSolver(model, polar_step=bad)
+    for bad in ("sine", "", 1):
+        with pytest.raises(InputError, match="polar_update"):
+            MPMSolver(model, polar_update=bad)
 
 
 @pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
@@ -306,24 +313,110 @@ def test_polar_steps_give_one_response(rng, transfer):
     # through a strong push that moves particles across cells.
     params, X = shell_scene(rng, transfer, shell=3000, guard_every=10)
     out = {}
-    for step in ("auto", 1.0, 1.5):
-        _, state, solver = pushed_shell(params, X, 40, polar_step=step)
+    for step, update in (("auto", "auto"), (1.0, "axis_angle"), (1.5, "axis_angle"), (1.5, "rational")):
+        _, state, solver = pushed_shell(params, X, 40, polar_step=step, polar_update=update)
         assert solver.polar_step == (1.0 if step == "auto" else step)
-        out[step] = state.particle_u.numpy()
-    np.testing.assert_array_equal(out["auto"], out[1.0])
-    scale = np.sqrt((out[1.0] ** 2).sum(-1).mean())
+        assert solver.polar_update == ("axis_angle" if update == "auto" else update)
+        out[step, update] = state.particle_u.numpy()
+    np.testing.assert_array_equal(out["auto", "auto"], out[1.0, "axis_angle"])
+    scale = np.sqrt((out[1.0, "axis_angle"] ** 2).sum(-1).mean())
     assert scale > 1e-3
-    diff = np.sqrt(((out[1.5] - out[1.0]) ** 2).sum(-1).mean())
-    assert 0 < diff < 1e-4 * scale
+    for key in ((1.5, "axis_angle"), (1.5, "rational")):
+        diff = np.sqrt(((out[key] - out[1.0, "axis_angle"]) ** 2).sum(-1).mean())
+        assert 0 < diff < 1e-4 * scale, key
 
 
-@pytest.mark.parametrize("step", [1.0, 1.5])
-def test_the_polar_iteration_cap_never_binds(step):
+@pytest.mark.parametrize("affine_flip", [0, 1])
+def test_g2p_gathers_match_numpy(rng, affine_flip):
+    # Both G2P gathers against the definition summed node by node in float64 by NumPy:
+    # v = sum w v_i, C = 4 / dx sum w v_i (x_i - x_p)^T, and under affine FLIP the same sums of
+    # the increments v_i - v_old_i (zero under APIC). Random node velocities, random positions
+    # in the base cell (the edges included).
+    from knockgs_core.sim import _kernels as K
+
+    @wp.kernel
+    def gather(grid_v: wp.array(dtype=wp.vec3), grid_v_old: wp.array(dtype=wp.vec3), origin: wp.array(dtype=int),
+               fx: wp.array(dtype=wp.vec3), n_grid: int, inv_dx: float, affine_flip: int, lines: int,
+               v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33), dv: wp.array(dtype=wp.vec3),
+               dC: wp.array(dtype=wp.mat33)):
+        p = wp.tid()
+        a, b, c, d = K.gather_by_nodes(grid_v, grid_v_old, origin[p], n_grid, fx[p], inv_dx, affine_flip)
+        if lines == 1:
+            a, b, c, d = K.gather_by_lines(grid_v, grid_v_old, origin[p], n_grid, fx[p], inv_dx, affine_flip)
+        v[p] = a
+        C[p] = b
+        dv[p] = c
+        dC[p] = d
+
+    n_grid, n, inv_dx = 6, 300, 6.0
+    gv = rng.normal(size=(n_grid ** 3, 3)).astype(np.float32)
+    gv_old = (gv + 0.1 * rng.normal(size=gv.shape)).astype(np.float32)
+    base = rng.integers(0, n_grid - 2, size=(n, 3))
+    f = rng.uniform(0.5, 1.5, size=(n, 3)).astype(np.float32)
+    f[:4] = [[0.5, 0.5, 0.5], [1.5, 1.5, 1.5], [0.5, 1.5, 1.0], [1.0, 1.0, 1.0]]
+    origin = (base[:, 0] * n_grid + base[:, 1]) * n_grid + base[:, 2]
+    # the quadratic B-spline's weights at offsets 0, 1, 2 from the base node, per axis
+    f64 = f.astype(np.float64)
+    w = np.stack([0.5 * (1.5 - f64) ** 2, 0.75 - (f64 - 1.0) ** 2, 0.5 * (f64 - 0.5) ** 2], axis=1)  # (n, 3, 3)
+    ref = {name: 0.0 for name in ("v", "C", "dv", "dC")}
+    for i, j, k in np.ndindex(3, 3, 3):
+        weight = w[:, i, 0] * w[:, j, 1] * w[:, k, 2]
+        node = origin + (i * n_grid + j) * n_grid + k
+        dpos = np.array([i, j, k]) - f64
+        vi, di = gv[node].astype(np.float64), (gv[node] - gv_old[node]).astype(np.float64)
+        ref["v"] = ref["v"] + weight[:, None] * vi
+        ref["C"] = ref["C"] + 4 * inv_dx * weight[:, None, None] * vi[:, :, None] * dpos[:, None, :]
+        ref["dv"] = ref["dv"] + weight[:, None] * di
+        ref["dC"] = ref["dC"] + 4 * inv_dx * weight[:, None, None] * di[:, :, None] * dpos[:, None, :]
+    if not affine_flip:
+        ref["dv"], ref["dC"] = np.zeros((n, 3)), np.zeros((n, 3, 3))
+    out = {}
+    for lines in (0, 1):
+        arrays = [wp.zeros(n, dtype=t, device="cpu") for t in (wp.vec3, wp.mat33, wp.vec3, wp.mat33)]
+        wp.launch(gather, dim=n, inputs=[wp.array(gv, dtype=wp.vec3, device="cpu"), wp.array(gv_old, dtype=wp.vec3, device="cpu"),
+                                         wp.array(origin, dtype=int, device="cpu"), wp.array(f, dtype=wp.vec3, device="cpu"),
+                                         n_grid, inv_dx, affine_flip, lines], outputs=arrays, device="cpu")
+        out[lines] = dict(zip(("v", "C", "dv", "dC"), (a.numpy() for a in arrays)))
+    for lines in (0, 1):
+        for name, r in ref.items():
+            scale = max(np.abs(ref[name.replace("d", "")]).max(), 1.0)  # C's scale: 4 / dx times the velocities
+            np.testing.assert_allclose(out[lines][name], r, rtol=0, atol=2e-6 * scale, err_msg=f"{name}, lines={lines}")
+    # another order of the same sums: the lines differ from the nodes in the last bits only
+    assert any(not np.array_equal(out[0][name], out[1][name]) for name in ref)
+
+
+@pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
+def test_g2p_sums_give_one_response(rng, transfer):
+    # "auto" gathers node by node on the CPU (its rollouts keep their bits); by lines, the GPU's
+    # choice, the same response through a strong push that moves particles across cells, and
+    # through the fused G2P.
+    params, X = shell_scene(rng, transfer, shell=3000, guard_every=10)
+    out = {}
+    for sums, fuse in (("auto", False), ("nodes", False), ("lines", False), ("lines", True)):
+        options = dict(p2g="cells", graph=True, fuse=True) if fuse else {}
+        _, state, solver = pushed_shell(params, X, 40, g2p_sums=sums, **options)
+        assert solver.g2p_sums == ("nodes" if sums == "auto" else sums)
+        out[sums, fuse] = state.particle_u.numpy()
+    np.testing.assert_array_equal(out["auto", False], out["nodes", False])
+    scale = np.sqrt((out["nodes", False] ** 2).sum(-1).mean())
+    assert scale > 1e-3
+    for key in (("lines", False), ("lines", True)):
+        diff = np.sqrt(((out[key] - out["nodes", False]) ** 2).sum(-1).mean())
+        assert 0 < diff < 1e-5 * scale, key
+    model = build_model(np.full((8, 3), 1.0, dtype=np.float32), E=1e4, nu=0.3, rho=100.0, params=SimParams(n_grid=16),
+                        device="cpu")
+    for bad in ("outer", "", 1):
+        with pytest.raises(InputError, match="g2p_sums"):
+            MPMSolver(model, g2p_sums=bad)
+
+
+@pytest.mark.parametrize("step,update", [(1.0, "axis_angle"), (1.5, "axis_angle"), (1.5, "rational")])
+def test_the_polar_iteration_cap_never_binds(step, update):
     """The stress needs the converged rotation: on the Ficus (thin parts that rotate fast under
     its global knock) a rollout with the solver's cap equals one with twice the cap bit for bit,
-    and a cap of 4 (the former value) is measurably off; under either polar step (the CPU's and
-    the GPU's: with the over-relaxed step a cap of 2 already gives the converged rollout here, and
-    a cap of 1 does not)."""
+    and a cap of 4 (the former value) is measurably off; under either polar step and update (the
+    CPU's and the GPU's: with the over-relaxed step a cap of 2 already gives the converged
+    rollout here, and a cap of 1 does not)."""
     from knockgs_core.assets import build_asset
     from knockgs_core.contract import load_contract
     from knockgs_core.rollout import run_rollout
@@ -332,14 +425,15 @@ def test_the_polar_iteration_cap_never_binds(step):
     c = load_contract("ficus", "ci")
     ps = build_asset(c).particles
     probe = dataclasses.replace(c.resolve_probes(ps)["standard_x"], export=ExportSchedule(0.04, 6))
-    cap, auto = MPMSolver.polar_iters, MPMSolver.polar_step
+    saved = MPMSolver.polar_iters, MPMSolver.polar_step, MPMSolver.polar_update
+    cap = saved[0]
 
     def run(n):
-        MPMSolver.polar_iters, MPMSolver.polar_step = n, step
+        MPMSolver.polar_iters, MPMSolver.polar_step, MPMSolver.polar_update = n, step, update
         try:
             return run_rollout(c, (1.15, 0.75), "standard_x", particles=ps, probe=probe).positions
         finally:
-            MPMSolver.polar_iters, MPMSolver.polar_step = cap, auto
+            MPMSolver.polar_iters, MPMSolver.polar_step, MPMSolver.polar_update = saved
 
     X, X2 = run(cap), run(2 * cap)
     np.testing.assert_array_equal(X, X2)

@@ -466,8 +466,9 @@ class MPMSolver:
     the grid. The same sums as the other variants, in another order (the CPU's scatter stays
     the default there); the cost on a GPU is in benchmarks/README.md.
 
-    ``polar_step``: the polar iterations' step near convergence (the class attribute of the
-    same name documents it). ``crowding``: the model's :func:`cell_crowding` where the caller
+    ``polar_step`` and ``polar_update``: the polar iterations' step near convergence and how it
+    is taken, and ``g2p_sums``: how G2P sums its stencil (the class attributes of the same names
+    document them). ``crowding``: the model's :func:`cell_crowding` where the caller
     has it (runs of one particle set share it: :func:`simulate_many` counts it once);
     computed from the model's rest positions otherwise.
     """
@@ -484,6 +485,20 @@ class MPMSolver:
     #: rad). ``"auto"``: 1.5 on a GPU, 1.0 on the CPU (whose rollouts, and the tables made from
     #: them, keep their bits)
     polar_step: float | str = "auto"
+    #: how the polar iterations rotate by a correction below 0.1 rad
+    #: (:func:`~knockgs_core.sim._kernels.polar_rotation`): ``"axis_angle"`` (the axis and the
+    #: angle's sine and cosine, Mueller et al.'s) or ``"rational"`` (the quaternion ``(h, 1)``
+    #: normalized: no sine, cosine or square root, one division; the same converged rotation).
+    #: ``"auto"``: rational on a GPU, axis and angle on the CPU (whose rollouts, and the tables
+    #: made from them, keep their bits)
+    polar_update: str = "auto"
+    #: how G2P sums the node velocities into the particle's velocity and affine matrix:
+    #: ``"nodes"`` (an outer product a node, :func:`~knockgs_core.sim._kernels.gather_by_nodes`)
+    #: or ``"lines"`` (factored along the stencil's lines, ~300 multiply-adds a particle and field
+    #: instead of ~700: :func:`~knockgs_core.sim._kernels.gather_by_lines`; the same sums in
+    #: another order). ``"auto"``: lines on a GPU, nodes on the CPU (whose rollouts, and the
+    #: tables made from them, keep their bits)
+    g2p_sums: str = "auto"
     #: ``p2g="auto"`` on a CUDA device sums by cells from this :func:`cell_crowding` on (particles
     #: sharing a particle's base cell, on average), and scatters below it. Measured on an H100
     #: (benchmarks/README.md): a 681k-particle block at 1 per cell scatters faster (0.92 against
@@ -531,7 +546,8 @@ class MPMSolver:
     def __init__(self, model: Model, *, p2g: str = "auto", graph: bool | str = "auto", fuse: bool | str = "auto",
                  resort_every: int | None = None, cell_chunk: int | None = None, max_chunk_slots: int | None = None,
                  node_line: int | None = None, cell_sums: str | None = None, deterministic: bool = False,
-                 polar_step: float | str | None = None, crowding: float | None = None):
+                 polar_step: float | str | None = None, polar_update: str | None = None, g2p_sums: str | None = None,
+                 crowding: float | None = None):
         self.model = model
         if deterministic not in (True, False):
             raise InputError("MPMSolver", "deterministic", f"must be True or False, got {deterministic!r}")
@@ -564,6 +580,20 @@ class MPMSolver:
                 or not 1.0 <= self.polar_step <= 1.9:
             raise InputError("MPMSolver", "polar_step", f"must be 'auto' or a number in [1, 1.9], got {self.polar_step!r}")
         self.polar_step = float(self.polar_step)
+        if polar_update is not None:
+            self.polar_update = polar_update
+        if self.polar_update == "auto":
+            self.polar_update = "rational" if cuda else "axis_angle"
+        if self.polar_update not in ("axis_angle", "rational"):
+            raise InputError("MPMSolver", "polar_update",
+                             f"must be 'auto', 'axis_angle' or 'rational', got {self.polar_update!r}")
+        self._polar_rational = int(self.polar_update == "rational")
+        if g2p_sums is not None:
+            self.g2p_sums = g2p_sums
+        if self.g2p_sums == "auto":
+            self.g2p_sums = "lines" if cuda else "nodes"
+        if self.g2p_sums not in ("nodes", "lines"):
+            raise InputError("MPMSolver", "g2p_sums", f"must be 'auto', 'nodes' or 'lines', got {self.g2p_sums!r}")
         if graph == "auto":
             graph = cuda and not p.effects and not model.translations
         if graph not in (True, False):
@@ -692,7 +722,7 @@ class MPMSolver:
         particle_args = [state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
                          m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
                          m.probe_mask, wp.vec3(*m.probe_force), 0, self._inv_dx, dt, self.polar_iters, self.polar_step,
-                         self.retardation, lo, hi]
+                         self._polar_rational, self.retardation, lo, hi]
         if self._cells is not None:
             c = self._cells
             for name in ("resort_every", "cell_chunk"):
@@ -769,7 +799,7 @@ class MPMSolver:
             K.g2p,
             dim=m.particle_count,
             inputs=[state.grid_mv.flatten(), p.n_grid, self._inv_dx, dt, self._zero_mask, wp.vec3(0.0), 0, lo, hi,
-                    state.particle_x0, flip, p.flip_weight, state.grid_mv_old.flatten()],
+                    state.particle_x0, flip, p.flip_weight, state.grid_mv_old.flatten(), int(self.g2p_sums == "lines")],
             outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, self._overrun],
             **rec,
         )
@@ -779,9 +809,10 @@ class MPMSolver:
                 K.g2p_prepare,
                 dim=m.particle_count,
                 inputs=[state.grid_mv.flatten(), self._inv_dx, dt, self._zero_mask, wp.vec3(0.0), 0, lo, hi,
-                        state.particle_x0, flip, p.flip_weight, state.grid_mv_old.flatten(), m.particle_mass,
+                        state.particle_x0, flip, p.flip_weight, state.grid_mv_old.flatten(), int(self.g2p_sums == "lines"),
+                        m.particle_mass,
                         m.particle_vol, m.particle_mu, m.particle_lam, m.probe_mask, wp.vec3(*m.probe_force), 0,
-                        self.polar_iters, self.polar_step, self.retardation, p.n_grid, c.none_key],
+                        self.polar_iters, self.polar_step, self._polar_rational, self.retardation, p.n_grid, c.none_key],
                 outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, state.particle_rot,
                          c.fx, c.affine, c.keys, self._overrun],
                 **rec,
