@@ -855,8 +855,9 @@ def window_sums(t_key: Any, t_end: Any, t_runs: Any, runs: int, t_w: Any, t_fx: 
                 grid_m: wp.array(dtype=float), grid_mv_old: wp.array(dtype=wp.vec3)):
     """A block's sums from its staged terms (shared-memory tiles of the window's slots: key, run
     end (:func:`window_run_end`), the weights ``t_w[slot, 3 axis + node]``, ``fx``, momentum and
-    mass, ``affine``, ``m C``) and its ``runs`` runs' first slots ``t_runs`` (in slot order): the
-    thread ``lane`` of ``threads`` takes the (run, stencil node) pairs ``lane, lane + threads,
+    mass, and the rows of ``affine`` and ``m C``, each in a vec4: one 16-byte load where a vec3
+    or a matrix's row would take three) and its ``runs`` runs' first slots ``t_runs`` (in slot
+    order): the thread ``lane`` of ``threads`` takes the (run, stencil node) pairs ``lane, lane + threads,
     ...``; a run is the slots ``s .. t_end[s] - 1``, its :func:`node_term` summed to node ``n`` in
     slot order as :func:`chunk_sum` sums them, and added to the grid (flat arrays of the
     ``n_grid``^3 nodes; a base cell's key is its node's index) with one atomic per array."""
@@ -872,7 +873,11 @@ def window_sums(t_key: Any, t_end: Any, t_runs: Any, runs: int, t_w: Any, t_fx: 
         sum_old = wp.vec3(0.0)
         for t in range(s, e):
             weight = t_w[t, o[0]] * t_w[t, 3 + o[1]] * t_w[t, 6 + o[2]]
-            d_mv, d_m, d_old = weighted_node_term(weight, t_fx[t], t_mv[t], t_aff[t], t_mC[t], o[0], o[1], o[2], dx,
+            M = wp.mat33(0.0)
+            if affine_flip == 1:
+                M = mat33_from_rows(t_mC[t, 0], t_mC[t, 1], t_mC[t, 2])
+            d_mv, d_m, d_old = weighted_node_term(weight, vec4_head(t_fx[t]), t_mv[t],
+                                                  mat33_from_rows(t_aff[t, 0], t_aff[t, 1], t_aff[t, 2]), M, o[0], o[1], o[2], dx,
                                                   affine_flip)
             sum_mv += d_mv
             sum_m += d_m
@@ -882,6 +887,18 @@ def window_sums(t_key: Any, t_end: Any, t_runs: Any, runs: int, t_w: Any, t_fx: 
         wp.atomic_add(grid_m, node, sum_m)
         if affine_flip == 1:
             wp.atomic_add(grid_mv_old, node, sum_old)
+
+
+@wp.func
+def vec4_head(a: wp.vec4) -> wp.vec3:
+    """The first three components of ``a``."""
+    return wp.vec3(a[0], a[1], a[2])
+
+
+@wp.func
+def mat33_from_rows(r0: wp.vec4, r1: wp.vec4, r2: wp.vec4) -> wp.mat33:
+    """The matrix whose rows are the first three components of ``r0``, ``r1``, ``r2``."""
+    return wp.mat33(r0[0], r0[1], r0[2], r1[0], r1[1], r1[2], r2[0], r2[1], r2[2])
 
 
 @wp.func
@@ -956,10 +973,10 @@ def p2g_windows(window: int, affine_flip: int):
         s0 = b * wp.static(window)
         t_key = wp.tile_empty(shape=wp.static(window), dtype=wp.int32, storage="shared")
         t_w = wp.tile_empty(shape=(wp.static(window), 9), dtype=float, storage="shared")
-        t_fx = wp.tile_empty(shape=wp.static(window), dtype=wp.vec3, storage="shared")
+        t_fx = wp.tile_empty(shape=wp.static(window), dtype=wp.vec4, storage="shared")
         t_mv = wp.tile_empty(shape=wp.static(window), dtype=wp.vec4, storage="shared")
-        t_aff = wp.tile_empty(shape=wp.static(window), dtype=wp.mat33, storage="shared")
-        t_mC = wp.tile_empty(shape=wp.static(window), dtype=wp.mat33, storage="shared")
+        t_aff = wp.tile_empty(shape=(wp.static(window), 3), dtype=wp.vec4, storage="shared")
+        t_mC = wp.tile_empty(shape=(wp.static(window), 3), dtype=wp.vec4, storage="shared")
         for slot in range(lane, wp.static(window), threads):
             key = none_key
             p = int(0)
@@ -973,11 +990,15 @@ def p2g_windows(window: int, affine_flip: int):
             for a in range(3):
                 for n in range(3):
                     wp.tile_scatter_masked(t_w, slot, 3 * a + n, W[n, a], True)
-            wp.tile_scatter_masked(t_fx, slot, f, True)
+            wp.tile_scatter_masked(t_fx, slot, wp.vec4(f[0], f[1], f[2], 0.0), True)
             wp.tile_scatter_masked(t_mv, slot, q, True)
-            wp.tile_scatter_masked(t_aff, slot, mat33_at(affine, p), True)
+            A = mat33_at(affine, p)
+            for r in range(3):
+                wp.tile_scatter_masked(t_aff, slot, r, wp.vec4(A[r, 0], A[r, 1], A[r, 2], 0.0), True)
             if wp.static(affine_flip == 1):
-                wp.tile_scatter_masked(t_mC, slot, apic_term(q, C, p), True)
+                M = apic_term(q, C, p)
+                for r in range(3):
+                    wp.tile_scatter_masked(t_mC, slot, r, wp.vec4(M[r, 0], M[r, 1], M[r, 2], 0.0), True)
         t_end = wp.tile_empty(shape=wp.static(window), dtype=wp.int32, storage="shared")
         for slot in range(lane, wp.static(window), threads):
             wp.tile_scatter_masked(t_end, slot, window_run_end(t_key, slot, wp.static(window), none_key), True)
