@@ -67,6 +67,8 @@ def main() -> None:
     ap.add_argument("--polar-step", type=float, nargs="+", default=[None],
                     help="the polar iterations' step (MPMSolver(polar_step=...); default: the solver's, 1.5 on a GPU), "
                          "each profiled")
+    ap.add_argument("--guard", action="store_true",
+                    help="run the guard every guard_every substeps in the timed loop, as a rollout does")
     ap.add_argument("--polar-update", nargs="+", choices=["auto", "axis_angle", "rational"], default=["auto"],
                     help="how the polar iterations rotate (MPMSolver(polar_update=...); auto: rational on a GPU), "
                          "each profiled")
@@ -123,6 +125,8 @@ def main() -> None:
         t0 = time.perf_counter()
         for _ in range(args.steps):
             solver.step(state)
+            if args.guard and state.step % contract.sim.guard_every == 0:
+                solver.check(state)
         wp.synchronize_device(args.device)
         wall = time.perf_counter() - t0
         results = wp.timing_end()
@@ -138,7 +142,7 @@ def main() -> None:
               f"reproducible: {solver.deterministic}, polar step {getattr(solver, 'polar_step', 1.0)} "
               f"({getattr(solver, 'polar_update', 'axis_angle')}), "
               f"G2P sums by {getattr(solver, 'g2p_sums', 'nodes')}, "
-              f"module options {options or 'default'}, "
+              f"module options {options or 'default'}, guard in the loop: {args.guard}, "
               f"register cap {args.max_registers or 'none'}): "
               f"{len(ps.positions)} particles, n_grid {contract.sim.n_grid}, "
               f"active box {[h - lo for lo, h in zip(solver._lo, solver._hi)]}, {args.steps} substeps, "

@@ -227,6 +227,35 @@ def test_guard_refuses_an_elastically_unstable_dt():
         simulate(model, make_state(model, X), frame_dt=0.2, n_frames=3)
 
 
+def test_the_guard_statistics_match_numpy_across_blocks(rng):
+    # The guard reduces each block of particles on the device and adds one atomic a block: its
+    # max |v|, the active box it sets from the particles' cells and its count of non-finite
+    # particles match NumPy's over 2,500 particles (three blocks, the last one partial), with
+    # the extremes placed in different blocks.
+    from knockgs_core.sim import _kernels as K
+
+    n = 2 * K.STATS_PER_BLOCK + 452
+    X = rng.uniform(0.7, 1.3, size=(n, 3)).astype(np.float32)
+    X[5] = (0.55, 1.0, 1.0)  # lowest x cell, block 0
+    X[n - 1] = (1.0, 1.45, 1.0)  # highest y cell, the partial block
+    params = SimParams(n_grid=32, dt=1e-4)
+    model = build_model(X, E=1e4, nu=0.3, rho=100.0, params=params, device="cpu")
+    V = rng.normal(scale=0.05, size=(n, 3)).astype(np.float32)
+    V[K.STATS_PER_BLOCK + 7] = (0.0, 0.9, 0.0)  # the fastest, block 1
+    state = make_state(model, X, V)
+    solver = MPMSolver(model)
+    stats = solver.check(state)
+    assert stats["vmax"] == pytest.approx(float(np.sqrt((V.astype(np.float64) ** 2).sum(-1).max())), rel=1e-6)
+    assert stats["min_det_F"] == 1.0
+    cells = np.floor(X.astype(np.float64) / params.dx).astype(int)
+    pad = 2 + math.ceil(2.0 * stats["vmax"] * params.guard_every * params.dt / params.dx)
+    assert solver._lo == tuple(int(max(0, c - 1 - pad)) for c in cells.min(0))
+    assert solver._hi == tuple(int(min(params.n_grid, c + 3 + pad)) for c in cells.max(0))
+    V[[3, K.STATS_PER_BLOCK + 1, n - 2]] = np.nan  # one in each block
+    with pytest.raises(SimulationError, match=r"blew up at step 0 .*: 3 particles have non-finite state"):
+        MPMSolver(model).check(make_state(model, X, V))
+
+
 # -------------------------------------------------------------------------------------
 # the stress kernel against a NumPy/SVD reference
 # -------------------------------------------------------------------------------------

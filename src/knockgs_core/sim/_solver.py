@@ -643,8 +643,9 @@ class MPMSolver:
         self._hi = (p.n_grid, p.n_grid, p.n_grid)
         dev = model.device
         self._stats_f = wp.zeros(2, dtype=float, device=dev)
-        self._stats_i = wp.zeros(7, dtype=wp.int32, device=dev)
+        self._stats_i = wp.zeros(9, dtype=wp.int32, device=dev)
         self._overrun = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._stats_zero = wp.zeros(1, dtype=wp.int32, device=dev)  # no reproducible P2G: no overflow
         self._zero_mask = wp.zeros(model.particle_count, dtype=wp.int32, device=dev)
         self.max_cfl = 0.0
         self.min_det_F = 1.0
@@ -656,16 +657,17 @@ class MPMSolver:
     def check(self, state: State) -> dict:
         """Run the guard; resize the active box. Returns the statistics."""
         m, p = self.model, self.model.params
-        self._stats_f.assign(np.array([0.0, np.inf], dtype=np.float32))
-        big = np.iinfo(np.int32).max
-        self._stats_i.assign(np.array([0, big, big, big, -big, -big, -big], dtype=np.int32))
-        wp.launch(K.particle_stats, dim=m.particle_count,
-                  inputs=[state.particle_x0, state.particle_u, state.particle_v, state.particle_F, self._inv_dx],
-                  outputs=[self._stats_f, self._stats_i], device=m.device)
+        wp.launch(K.guard_reset, dim=1, outputs=[self._stats_f, self._stats_i], device=m.device)
+        per = K.STATS_PER_BLOCK
+        overflow = self._gather.overflow if self._gather is not None else self._stats_zero
+        wp.launch_tiled(K.particle_stats, dim=[max(1, -(-m.particle_count // per))],
+                        inputs=[state.particle_x0, state.particle_u, state.particle_v, state.particle_F, self._inv_dx,
+                                m.particle_count, per, self._overrun, overflow],
+                        outputs=[self._stats_f, self._stats_i], block_dim=K.STATS_BLOCK_DIM, device=m.device)
         sf = self._stats_f.numpy()
-        si = self._stats_i.numpy()
-        overrun = int(self._overrun.numpy()[0])
-        if self._gather is not None and int(self._gather.overflow.numpy()[0]):
+        si = self._stats_i.numpy()  # with the overrun flag and the reproducible P2G's overflow (one read-back)
+        overrun = int(si[7])
+        if int(si[8]):
             raise SimulationError(f"the reproducible P2G's chunk buffers ({self._gather.capacity} chunks) overflowed by "
                                   f"step {state.step}: an internal bound failed; rerun with deterministic=False")
         t = state.step * p.dt
