@@ -30,23 +30,16 @@ def default_device() -> str:
     return os.environ.get("KNOCKGS_DEVICE", "cpu")
 
 
-def _cell_counts(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For integer cells [N, 3]: the particles in each occupied (or, in a dense box, each) cell
-    of the rows' box, and each row's index into those counts: ((M,) int64, (N,) int64)."""
+def _sharing(cells: np.ndarray) -> np.ndarray:
+    """For integer cells [N, 3]: how many of the rows share each row's cell, (N,) int64."""
     cells = cells - cells.min(axis=0)
     span = cells.max(axis=0) + 1
     key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]  # the cell's index in the particles' box
     if int(np.prod(span)) <= max(8 * len(key), 1 << 22):
-        return np.bincount(key), key
+        return np.bincount(key)[key]
     # a sparse box (particles far apart): count the occupied cells only
     _, inverse, per_cell = np.unique(key, return_inverse=True, return_counts=True)
-    return per_cell, inverse
-
-
-def _sharing(cells: np.ndarray) -> np.ndarray:
-    """For integer cells [N, 3]: how many of the rows share each row's cell, (N,) int64."""
-    counts, index = _cell_counts(cells)
-    return counts[index]
+    return per_cell[inverse]
 
 
 def particle_volumes(positions: np.ndarray, dx: float) -> np.ndarray:
@@ -66,10 +59,7 @@ def cell_crowding(positions: np.ndarray, dx: float) -> float:
     if len(positions) == 0:
         return 0.0
     cells = np.floor(np.asarray(positions, dtype=np.float64) / dx - 0.5).astype(np.int64)
-    counts, _ = _cell_counts(cells)
-    # the mean over the particles of their cells' counts: sum over the cells of count^2, in
-    # integers (exact), over N
-    return float(np.dot(counts, counts) / len(cells))
+    return float(np.mean(_sharing(cells)))
 
 
 @dataclass
