@@ -1222,6 +1222,16 @@ def columns_to_mat33(c0: wp.vec3, c1: wp.vec3, c2: wp.vec3, scale: float) -> wp.
 
 
 @wp.func
+def fold_line(v: wp.vec3, c0: wp.vec3, c1: wp.vec3, c2: wp.vec3, line_w: wp.vec3, line_d: wp.vec3, wi: float,
+              wj: float, di: float, dj: float):
+    """Add a stencil line's sums (``line_w``: weighted by ``w_z``, ``line_d``: by ``w_z d_z``) to
+    the gather's velocity and affine columns, with the line's x and y weights ``wi``, ``wj``
+    and their offset-weighted ``di = wi d_x``, ``dj = wj d_y`` (:func:`gather_by_lines`)."""
+    wij = wi * wj
+    return v + wij * line_w, c0 + (di * wj) * line_w, c1 + (wi * dj) * line_w, c2 + wij * line_d
+
+
+@wp.func
 def gather_by_lines(grid_v: wp.array(dtype=wp.vec3), grid_v_old: wp.array(dtype=wp.vec3), origin: int, n_grid: int,
                     fx: wp.vec3, inv_dx: float, affine_flip: int):
     """:func:`gather_by_nodes`'s sums factored along the stencil's lines. The weight and the
@@ -1261,16 +1271,9 @@ def gather_by_lines(grid_v: wp.array(dtype=wp.vec3), grid_v_old: wp.array(dtype=
                     du = gv - grid_v_old[row + k]
                     line_dv = line_dv + wk * du
                     line_dd = line_dd + dk * du
-            wij = wi * wj
-            new_v = new_v + wij * line_v
-            c0 = c0 + (di * wj) * line_v
-            c1 = c1 + (wi * dj) * line_v
-            c2 = c2 + wij * line_d
+            new_v, c0, c1, c2 = fold_line(new_v, c0, c1, c2, line_v, line_d, wi, wj, di, dj)
             if affine_flip == 1:
-                dv = dv + wij * line_dv
-                e0 = e0 + (di * wj) * line_dv
-                e1 = e1 + (wi * dj) * line_dv
-                e2 = e2 + wij * line_dd
+                dv, e0, e1, e2 = fold_line(dv, e0, e1, e2, line_dv, line_dd, wi, wj, di, dj)
     return new_v, columns_to_mat33(c0, c1, c2, 4.0 * inv_dx), dv, columns_to_mat33(e0, e1, e2, 4.0 * inv_dx)
 
 
