@@ -25,6 +25,8 @@ def main() -> None:
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--count", type=int, default=6)
     ap.add_argument("--batch", type=int, nargs="+", default=[3, 6])
+    ap.add_argument("--export-F", action="store_true",
+                    help="export the Gaussian-associated particles' deformation gradients too, as library jobs do")
     args = ap.parse_args()
 
     from knockgs_core.assets import build_asset
@@ -38,10 +40,11 @@ def main() -> None:
     thetas = [(float(e), float(r)) for e, r in zip(cand["E_scale"], cand["density_scale"])][: args.count]
     print(f"{args.object} {args.profile}: {len(ps.positions)} particles, {len(thetas)} candidates, device {args.device}",
           flush=True)
-    run_rollout(contract, thetas[0], probe, particles=ps, device=args.device)  # kernels loaded
+    F = args.export_F
+    run_rollout(contract, thetas[0], probe, particles=ps, device=args.device, export_F=F)  # kernels loaded
 
     t0 = time.perf_counter()
-    alone = [run_rollout(contract, th, probe, particles=ps, device=args.device).positions for th in thetas]
+    alone = [run_rollout(contract, th, probe, particles=ps, device=args.device, export_F=F).positions for th in thetas]
     serial = time.perf_counter() - t0
     rows = [("one at a time", 1, serial, 0.0)]
     for b in args.batch:
@@ -49,7 +52,7 @@ def main() -> None:
         together = []
         for k in range(0, len(thetas), b):
             together += [ro.positions for ro in run_rollouts(contract, [(th, probe) for th in thetas[k:k + b]], particles=ps,
-                                                               device=args.device)]
+                                                               device=args.device, export_F=F)]
         wall = time.perf_counter() - t0
         diff = max(float(np.abs(a - t).max()) for a, t in zip(alone, together))
         rows.append((f"batches of {b}", b, wall, diff))

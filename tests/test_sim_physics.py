@@ -720,6 +720,71 @@ def test_no_kernel_is_made_at_a_launch(rng):
     assert [m.hash_module() for m in modules] == before
 
 
+@pytest.mark.parametrize("per_frame", [20, 5])
+def test_frames_copied_behind_the_next_substeps_are_handed_over_in_order(rng, monkeypatch, per_frame):
+    # On a GPU a frame is gathered and copied into pinned host memory without waiting, and handed
+    # over (written into the result, then on_frame and progress) once the next substeps are
+    # enqueued, before the host waits on the next guard check or frame. Emulated on the CPU (a
+    # staged frame marked pending, as on a GPU): the same frames as the export at once, each
+    # handed over once, in frame order per run, after the next frame's first substep and
+    # before its first guard check; every frame handed over by the end. With 5 substeps a frame
+    # and the guard every 10, some frames end with no check inside the next: handed over then
+    # before the next frame is staged.
+    from knockgs_core.sim import _solver, simulate_many
+
+    params, X = shell_scene(rng, "affine_flip", shell=1500, guard_every=10)
+    index = rng.permutation(len(X)).astype(np.int32)
+
+    def runs():
+        out = []
+        for E in (2e4, 3e4):
+            model = build_model(X, E=E, nu=0.3, rho=1000.0, params=params, device="cpu")
+            out.append((model, make_state(model, X)))
+        return out
+
+    kw = dict(frame_dt=per_frame * params.dt, n_frames=4, export_F=50, export_index=index)
+    at_once = simulate_many(runs(), **kw)
+    events, log = [], []
+    stage, check, step = _solver._Exporter.stage, MPMSolver.check, MPMSolver.step
+
+    def pending_stage(self, state):
+        stage(self, state)  # on the CPU: the frame copied at once; kept in "pinned" arrays, pending
+        x, F = self._staged
+        self._staged = None
+        self.x_host = wp.array(x, dtype=wp.vec3, device="cpu")
+        self.F_host = wp.array(F, dtype=wp.mat33, device="cpu")
+        self.pending = object()
+        events.append(self.pending)
+
+    def waited(event):
+        assert event in events
+        events.remove(event)
+
+    monkeypatch.setattr(_solver._Exporter, "stage", pending_stage)
+    monkeypatch.setattr(_solver.wp, "synchronize_event", waited)
+    monkeypatch.setattr(MPMSolver, "check", lambda self, state: (log.append(("check", state.step)), check(self, state))[1])
+    monkeypatch.setattr(MPMSolver, "step", lambda self, state: (log.append(("step", state.step)), step(self, state))[1])
+    frames = []
+
+    def on_frame(i, f, positions, F):
+        frames.append((i, f))
+        log.append(("frame", i, f))
+        np.testing.assert_array_equal(positions, at_once[i].positions[f])
+        np.testing.assert_array_equal(F, at_once[i].F[f])
+
+    staged = simulate_many(runs(), **kw, on_frame=on_frame, progress=lambda i, f, n, st: log.append(("progress", i, f)))
+    assert not events  # every staged frame was waited for
+    assert frames == [(0, 0), (1, 0)] + [(i, f) for f in (1, 2, 3) for i in (0, 1)]
+    for a, b in zip(at_once, staged):
+        np.testing.assert_array_equal(a.positions, b.positions)
+        np.testing.assert_array_equal(a.F, b.F)
+    for f in (1, 2):  # frame f: handed over after frame f + 1's first substep, before its next check
+        where = log.index(("frame", 0, f))
+        first_step = log.index(("step", per_frame * f))
+        assert first_step < where < log.index(next(e for e in log[first_step:] if e[0] == "check"), first_step)
+        assert log[where + 1] == ("progress", 0, f)
+
+
 @pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
 def test_reproducible_p2g_gives_the_same_bits_in_any_thread_order(rng, transfer):
     # The P2G by cells adds each chunk's sums to the grid with float atomics, in the order the

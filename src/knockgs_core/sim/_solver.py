@@ -996,34 +996,69 @@ def simulate(
 class _Exporter:
     """Writes a state's positions (and the first ``n_F`` deformation gradients) into frame
     arrays: on the host as the state holds them, or, with ``index``, gathered on the device
-    in that order (row i is particle ``index[i]``)."""
+    in that order (row i is particle ``index[i]``).
+
+    A frame is staged (:meth:`stage`) and then taken into the arrays (:meth:`take`). With
+    ``index`` on a GPU, staging gathers the rows and copies them into pinned host memory in
+    the current stream's order without waiting (``pending``); taking waits for those copies.
+    So the caller can enqueue the next substeps between the two and the GPU keeps working
+    while the frame comes back. Elsewhere staging copies the frame at once."""
 
     def __init__(self, model: Model, n_F: int, index: np.ndarray | None):
         self.n_F = n_F
         self.index = None
+        self.pending = None  # the event after a staged frame's copies on a GPU
+        self._staged: tuple[np.ndarray, np.ndarray | None] | None = None  # a frame staged on the host
         if index is not None:
             index = np.asarray(index)
             n = model.particle_count
             if index.shape != (n,) or (n and (index.min() < 0 or index.max() >= n)):
                 raise InputError("simulation", "export_index", f"must be {n} particle indices, got shape {index.shape}")
             dev = model.device
+            self.cuda = wp.get_device(dev).is_cuda
             self.index = wp.array(index.astype(np.int32), dtype=wp.int32, device=dev)
             self.x = wp.empty(n, dtype=wp.vec3, device=dev)
             self.F = wp.empty(n_F, dtype=wp.mat33, device=dev) if n_F else None
+            if self.cuda:  # the frames' way back: pinned host copies, filled in the stream's order
+                self.x_host = wp.empty(n, dtype=wp.vec3, device="cpu", pinned=True)
+                self.F_host = wp.empty(n_F, dtype=wp.mat33, device="cpu", pinned=True) if n_F else None
+                self.event = wp.Event(dev)
 
-    def export(self, state: State, X: np.ndarray, F: np.ndarray | None, frame: int) -> None:
+    def stage(self, state: State) -> None:
+        """Start exporting ``state``'s frame (see the class); at most one frame is staged."""
         if self.index is None:
-            X[frame] = state.positions()
-            if F is not None:
-                F[frame] = state.deformation_gradients()[: self.n_F].astype(np.float32)
+            self._staged = (state.positions(),
+                            state.deformation_gradients()[: self.n_F].astype(np.float32) if self.n_F else None)
             return
         dev = self.x.device
         wp.launch(K.gather_positions, dim=len(self.x), inputs=[state.particle_x0, state.particle_u, self.index],
                   outputs=[self.x], device=dev)
-        X[frame] = self.x.numpy()
-        if F is not None:
+        if self.n_F:
             wp.launch(K.gather_F, dim=self.n_F, inputs=[state.particle_F, self.index], outputs=[self.F], device=dev)
-            F[frame] = self.F.numpy()
+        if not self.cuda:
+            self._staged = (self.x.numpy().copy(), self.F.numpy().copy() if self.n_F else None)
+            return
+        stream = wp.get_stream(dev)  # the gathers' stream: the device's current one
+        wp.copy(self.x_host, self.x, stream=stream)
+        if self.n_F:
+            wp.copy(self.F_host, self.F, stream=stream)
+        self.pending = stream.record_event(self.event)
+
+    def take(self, X: np.ndarray, F: np.ndarray | None, frame: int) -> None:
+        """Write the staged frame into row ``frame`` of ``X`` (and of ``F`` where given)."""
+        if self.pending is not None:  # the copies into the pinned host arrays, then the arrays
+            wp.synchronize_event(self.pending)
+            self.pending = None
+            self._staged = (self.x_host.numpy(), self.F_host.numpy() if self.n_F else None)
+        staged, self._staged = self._staged, None
+        X[frame] = staged[0]
+        if F is not None:
+            F[frame] = staged[1]
+
+    def export(self, state: State, X: np.ndarray, F: np.ndarray | None, frame: int) -> None:
+        """Stage and take ``state``'s frame at once."""
+        self.stage(state)
+        self.take(X, F, frame)
 
 
 def simulate_many(
@@ -1097,6 +1132,20 @@ def simulate_many(
         solvers.append(solver)
         positions.append(X)
         Fs.append(F)
+    # (run, frame, its statistics) staged and not yet taken: on a GPU a frame's copies run
+    # behind the next substeps, and the frame is handed over before the host waits on anything
+    # else (the next guard check or frame)
+    staged: list[tuple[int, int, dict]] = []
+
+    def hand_over() -> None:
+        for i, f, st in staged:
+            exporters[i].take(positions[i], Fs[i], f)
+            if on_frame is not None:
+                on_frame(i, f, positions[i][f], None if Fs[i] is None else Fs[i][f])
+            if progress is not None:
+                progress(i, f, n_frames, st)
+        staged.clear()
+
     for frame in range(1, n_frames):
         for s in range(steps_per_frame):
             for i, (model, state) in enumerate(runs):
@@ -1106,16 +1155,18 @@ def simulate_many(
                 # the guard runs every guard_every substeps and right after the probe's first
                 # substep (velocities jump there, and the active box must follow)
                 if state.step % model.params.guard_every == 0 or (model.probe_steps and state.step == model.probe_first + 1):
+                    hand_over()
                     with on(i):
                         stats[i] = solvers[i].check(state)
+        hand_over()
         for i, (model, state) in enumerate(runs):
             with on(i):
                 stats[i] = solvers[i].check(state)
-                exporters[i].export(state, positions[i], Fs[i], frame)
-            if on_frame is not None:
-                on_frame(i, frame, positions[i][frame], None if Fs[i] is None else Fs[i][frame])
-            if progress is not None:
-                progress(i, frame, n_frames, stats[i])
+                exporters[i].stage(state)
+            staged.append((i, frame, stats[i]))
+        if not any(e.pending is not None for e in exporters):
+            hand_over()  # staged on the host: handed over at once, as each frame is exported
+    hand_over()
     times = np.arange(n_frames, dtype=np.float64) * frame_dt
     return [
         SimResult(times=times.copy(), positions=positions[i], F=Fs[i],
