@@ -1085,8 +1085,10 @@ def simulate_many(
     run. ``export_index`` [particle_count] int: exported row i is particle ``export_index[i]``
     (gathered on the device: a model simulated in another order, e.g. by grid cell, exports in
     its particle set's order); the first ``export_F`` rows of it give the deformation gradients.
-    ``on_frame(run, frame, positions, F)`` is called right after each frame of each run is
-    exported, frame 0 included (before ``progress``): ``positions`` [particle_count, 3]
+    ``on_frame(run, frame, positions, F)`` is called once each frame of each run is exported,
+    frame 0 included, in frame order (before ``progress``; with ``export_index`` on a GPU the
+    frame comes back behind the next substeps and is handed over before the host's next wait
+    on the device, else right away): ``positions`` [particle_count, 3]
     float32 [m] and ``F`` [export_F, 3, 3] float32 (None without ``export_F``) are that
     frame's rows of the result's arrays, final once handed over (a consumer may keep them
     without a copy, and must not write to them), e.g. to write the frame while the next one
