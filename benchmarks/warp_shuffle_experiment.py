@@ -326,7 +326,7 @@ def main():
         wp.launch(kernel, dim=padded, block_dim=bd,
                   inputs=[S["grid_mv"].flatten(), solver._inv_dx, p.dt, zero_mask, wp.vec3(0.0), 0, lo, hi,
                           state.particle_x0, flip, p.flip_weight, S["grid_mv_old"].flatten(),
-                          int(solver.g2p_sums == "lines"), model.particle_mass,
+                          solver._g2p_lines, model.particle_mass,
                           model.particle_vol, model.particle_mu, model.particle_lam, model.probe_mask,
                           wp.vec3(*model.probe_force), probe_next, solver.polar_iters, solver.polar_step,
                           solver._polar_rational, solver.retardation, g, none_key, n, 27],

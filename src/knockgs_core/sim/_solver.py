@@ -594,6 +594,7 @@ class MPMSolver:
             self.g2p_sums = "lines" if cuda else "nodes"
         if self.g2p_sums not in ("nodes", "lines"):
             raise InputError("MPMSolver", "g2p_sums", f"must be 'auto', 'nodes' or 'lines', got {self.g2p_sums!r}")
+        self._g2p_lines = int(self.g2p_sums == "lines")
         if graph == "auto":
             graph = cuda and not p.effects and not model.translations
         if graph not in (True, False):
@@ -801,7 +802,7 @@ class MPMSolver:
             K.g2p,
             dim=m.particle_count,
             inputs=[state.grid_mv.flatten(), p.n_grid, self._inv_dx, dt, self._zero_mask, wp.vec3(0.0), 0, lo, hi,
-                    state.particle_x0, flip, p.flip_weight, state.grid_mv_old.flatten(), int(self.g2p_sums == "lines")],
+                    state.particle_x0, flip, p.flip_weight, state.grid_mv_old.flatten(), self._g2p_lines],
             outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, self._overrun],
             **rec,
         )
@@ -811,7 +812,7 @@ class MPMSolver:
                 K.g2p_prepare,
                 dim=m.particle_count,
                 inputs=[state.grid_mv.flatten(), self._inv_dx, dt, self._zero_mask, wp.vec3(0.0), 0, lo, hi,
-                        state.particle_x0, flip, p.flip_weight, state.grid_mv_old.flatten(), int(self.g2p_sums == "lines"),
+                        state.particle_x0, flip, p.flip_weight, state.grid_mv_old.flatten(), self._g2p_lines,
                         m.particle_mass,
                         m.particle_vol, m.particle_mu, m.particle_lam, m.probe_mask, wp.vec3(*m.probe_force), 0,
                         self.polar_iters, self.polar_step, self._polar_rational, self.retardation, p.n_grid, c.none_key],
