@@ -25,16 +25,19 @@ def main() -> None:
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--count", type=int, default=6)
     ap.add_argument("--batch", type=int, nargs="+", default=[3, 6])
+    ap.add_argument("--particles", help="the object's particles .npz: read where it exists, else built and written "
+                                        "there")
     ap.add_argument("--export-F", action="store_true",
                     help="export the Gaussian-associated particles' deformation gradients too, as library jobs do")
     args = ap.parse_args()
 
-    from knockgs_core.assets import build_asset
+    from _object_model import object_particles
+
     from knockgs_core.contract import load_candidates, load_contract
     from knockgs_core.rollout import run_rollout, run_rollouts
 
     contract = load_contract(args.object, args.profile)
-    ps = build_asset(contract).particles
+    ps = object_particles(contract, args.particles, order="asset")
     probe = contract.roles["calibration"]
     cand = load_candidates()
     thetas = [(float(e), float(r)) for e, r in zip(cand["E_scale"], cand["density_scale"])][: args.count]

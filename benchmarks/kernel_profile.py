@@ -74,6 +74,9 @@ def main() -> None:
                          "each profiled")
     ap.add_argument("--g2p-sums", nargs="+", choices=["auto", "nodes", "lines"], default=["auto"],
                     help="how G2P sums its stencil (MPMSolver(g2p_sums=...); auto: lines on a GPU), each profiled")
+    ap.add_argument("--deformation-storage", nargs="+", choices=["auto", "float64", "displacement"], default=["auto"],
+                    help="how the states store F (Model.deformation_storage; auto: the displacement gradient in "
+                         "float32 on a GPU), each profiled")
     args = ap.parse_args()
 
     import warp as wp
@@ -100,10 +103,11 @@ def main() -> None:
     contract = load_contract(args.object, args.profile)
     ps = object_particles(contract, args.particles, order=args.order)
     model = probe_a_model(contract, ps, args.device)
-    runs = [(v, n, r, k, f, d, line, w, ps_, pu, g) for v in args.p2g for n in args.slots for r in args.resort for k in args.chunk
-            for f in args.fuse for d in args.deterministic for line in args.line for w in args.sums
-            for ps_ in args.polar_step for pu in args.polar_update for g in args.g2p_sums]
-    for variant, slots, resort, chunk, fuse, det, line, sums, polar_step, polar_update, g2p_sums in runs:
+    runs = [(v, n, r, k, f, d, line, w, ps_, pu, g, ds) for v in args.p2g for n in args.slots for r in args.resort
+            for k in args.chunk for f in args.fuse for d in args.deterministic for line in args.line for w in args.sums
+            for ps_ in args.polar_step for pu in args.polar_update for g in args.g2p_sums for ds in args.deformation_storage]
+    for variant, slots, resort, chunk, fuse, det, line, sums, polar_step, polar_update, g2p_sums, storage in runs:
+        model.deformation_storage = storage
         state = make_state(model, ps.positions)
         p2g, graph = variant.split("+")[0], variant.endswith("+graph")
         fuse = {"auto": "auto", "on": True, "off": False}[fuse]
@@ -142,6 +146,7 @@ def main() -> None:
               f"reproducible: {solver.deterministic}, polar step {getattr(solver, 'polar_step', 1.0)} "
               f"({getattr(solver, 'polar_update', 'axis_angle')}), "
               f"G2P sums by {getattr(solver, 'g2p_sums', 'nodes')}, "
+              f"F stored as {state.particle_F.dtype.__name__}{tuple(state.particle_F.shape)}, "
               f"module options {options or 'default'}, guard in the loop: {args.guard}, "
               f"register cap {args.max_registers or 'none'}): "
               f"{len(ps.positions)} particles, n_grid {contract.sim.n_grid}, "

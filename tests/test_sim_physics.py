@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -639,15 +640,18 @@ def test_fused_substeps_are_the_unfused_bit_for_bit(rng, transfer):
         MPMSolver(model, p2g="scatter", fuse=True)
 
 
-def pushed_shell(params, X, steps: int, *, matrix_layout: str = "auto", **solver_options):
+def pushed_shell(params, X, steps: int, *, matrix_layout: str = "auto", deformation_storage: str = "auto",
+                 **solver_options):
     """Step the shell scene's particles ``X`` for ``steps`` substeps under a strong push on one
     end (particles change cells, cells empty), with the guard every ``params.guard_every``
-    substeps; the model stores its matrices in ``matrix_layout``, the solver takes
-    ``solver_options``. Returns (model, state, solver)."""
+    substeps; the model stores its matrices in ``matrix_layout`` and F as
+    ``deformation_storage``, the solver takes ``solver_options``. Returns (model, state,
+    solver)."""
     probe = Probe("p", (0.0, 2.0, 0.0), box=Box(center=(1.15, 1.0, 0.85), half_size=(0.06, 0.25, 0.2)), n_steps=4,
                   dt_ref=5e-4)
     model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, probe=probe, device="cpu")
     model.matrix_layout = matrix_layout
+    model.deformation_storage = deformation_storage
     state = make_state(model, X)
     solver = MPMSolver(model, **solver_options)
     solver.check(state)
@@ -693,27 +697,108 @@ def test_matrix_layouts_give_the_same_bits(rng, transfer):
         pushed_shell(params, X, 1, matrix_layout="rows")
 
 
+@pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
+def test_displacement_storage_gives_float64_F(rng, transfer):
+    # F stored as its displacement gradient F - I in float32 (the GPU's storage) against F in
+    # float64, both component by component on the CPU, through the P2G variants the GPU uses
+    # and von Mises plasticity's return mapping on F: the same response to float rounding,
+    # F itself to a few float32 ulps of F - I.
+    params, X = shell_scene(rng, transfer, shell=3000, guard_every=10)
+    plastic = dataclasses.replace(params, effects=(VonMisesPlasticity(yield_stress=30.0),))
+    variants = {"scatter": (params, dict(p2g="scatter")),
+                "windows": (params, dict(p2g="cells", cell_sums="windows", graph=True, fuse=True, resort_every=3,
+                                         cell_chunk=5)),
+                "reproducible": (params, dict(p2g="cells", deterministic=True, graph=True, resort_every=3)),
+                "plastic": (plastic, dict(p2g="cells", cell_sums="windows", resort_every=3))}
+    pitch = -(-len(X) // 32) * 32
+    for name, (p, options) in variants.items():
+        out = {}
+        for storage in ("float64", "displacement"):
+            _, state, _ = pushed_shell(p, X, 30, matrix_layout="components", deformation_storage=storage, **options)
+            F = state.particle_F
+            assert (F.shape, F.dtype) == (((9, pitch), wp.float64) if storage == "float64" else ((3, 3, pitch), wp.float32))
+            out[storage] = state.particle_u.numpy().astype(np.float64), state.deformation_gradients()
+        (u64, F64), (u32, F32) = out["float64"], out["displacement"]
+        scale = np.sqrt((u64 ** 2).sum(-1).mean())
+        strain = np.abs(F64 - np.eye(3)).max()
+        assert scale > 1e-3 and strain > 1e-2, name  # the body moved and strained
+        assert 0 < np.sqrt(((u32 - u64) ** 2).sum(-1).mean()) < 1e-5 * scale, name  # measured <= 8e-8, 5e-7 plastic
+        # F to 4e-7 of the strain; through the yield switch of the return mapping to 2e-4, as
+        # another order of P2G's sums moves it (the scatter against the windows, F in float64)
+        assert np.abs(F32 - F64).max() < (1e-3 if name == "plastic" else 1e-5) * strain, name
+    with pytest.raises(InputError, match="deformation_storage.*components"):
+        pushed_shell(params, X, 1, matrix_layout="records", deformation_storage="displacement")
+    with pytest.raises(InputError, match="deformation_storage"):
+        pushed_shell(params, X, 1, deformation_storage="float32")
+
+
+def test_displacement_storage_keeps_small_strain_increments():
+    # Why F is never stored in float32 as it is: F <- (I + dt C) F at a strain rate whose
+    # increment dt C (3e-9 a substep) lies below half of 1's float32 ulp (6e-8). Over 20,000
+    # substeps (a strain of 6e-5), F in float32 rounds every increment of its diagonal away and
+    # its stretches never move, while its displacement gradient F - I in float32 rounds them at
+    # its own precision: within 2e-4 of the exact strain (F in float64 within 5e-9). A constant
+    # rate rounds alike every substep, the worst case: a rollout's varying increments round
+    # both ways.
+    from knockgs_core.sim import _kernels as K
+    from knockgs_core.sim._solver import deformation_array, matrices
+
+    @wp.kernel
+    def accumulate_F(rate: wp.mat33d, steps: int, F: Any):
+        p = wp.tid()
+        step = wp.identity(n=3, dtype=wp.float64) + rate
+        for _ in range(steps):
+            K.mat33d_put(F, p, step * K.mat33d_at(F, p))
+
+    @wp.kernel
+    def accumulate_F32(rate: wp.mat33, steps: int, F: wp.array(dtype=wp.mat33)):
+        p = wp.tid()
+        step = wp.identity(n=3, dtype=float) + rate
+        for _ in range(steps):
+            F[p] = step * F[p]
+
+    steps = 20000
+    G = np.array([[3.0, 1.0, 0.0], [0.0, -1.5, 0.5], [0.0, 0.0, 2.0]]) * 1e-9  # dt C a substep
+    exact = np.linalg.matrix_power(np.eye(3) + G, steps)  # float64: its own error ~1e-16 a substep
+    strain = np.abs(exact - np.eye(3)).max()
+    errors = {}
+    for storage, layout in (("float64", "records"), ("float64", "components"), ("displacement", "components")):
+        F = deformation_array(4, "cpu", storage=storage, layout=layout)
+        rot = wp.empty(4, dtype=wp.quat, device="cpu")
+        wp.launch(K.state_rest, dim=4, outputs=[F, rot], device="cpu")
+        wp.launch(accumulate_F, dim=4, inputs=[wp.mat33d(*G.ravel()), steps], outputs=[F], device="cpu")
+        errors[storage, layout] = np.abs(matrices(F, 4) - exact).max() / strain
+    F32 = wp.array(np.tile(np.eye(3, dtype=np.float32), (4, 1, 1)), dtype=wp.mat33, device="cpu")
+    wp.launch(accumulate_F32, dim=4, inputs=[wp.mat33(*G.astype(np.float32).ravel()), steps], outputs=[F32], device="cpu")
+    F32 = F32.numpy()
+    assert np.all(np.diagonal(F32, axis1=1, axis2=2) == 1.0)  # its stretches frozen at 1
+    assert np.abs(F32 - exact).max() / strain > 0.5
+    assert errors["float64", "records"] < 1e-7 and errors["float64", "components"] < 1e-7  # measured 4.9e-9
+    assert errors["displacement", "components"] < 1e-3  # measured 1.7e-4: the same rounding every substep
+
+
 def test_no_kernel_is_made_at_a_launch(rng):
     # The kernels generic in the matrices' layout have both overloads declared with the module,
     # and the windows' kernel of the default size is made with it: rollouts through the scatter,
     # the windows, the list, the fused G2P, the reproducible P2G, F's export gathered on the
-    # device, the guard's statistics and von Mises plasticity, in either layout, add no kernel,
-    # so Warp never builds the module again in the middle of a rollout (an overload first made
-    # at a launch did: 20 s on a fresh GPU machine).
+    # device, the guard's statistics and von Mises plasticity, in either layout and with F
+    # stored either way, add no kernel, so Warp never builds the module again in the middle of
+    # a rollout (an overload first made at a launch did: 20 s on a fresh GPU machine).
     from knockgs_core.sim import _effects, _kernels, simulate_many
 
     modules = [wp.get_module(_kernels.__name__), wp.get_module(_effects.__name__)]
     before = [m.hash_module() for m in modules]
     params, X = shell_scene(rng, "affine_flip", shell=1500, guard_every=10)
     plastic = dataclasses.replace(params, effects=(VonMisesPlasticity(yield_stress=30.0),))
-    for layout in ("records", "components"):
+    for layout, storage in (("records", "float64"), ("components", "float64"), ("components", "displacement")):
         for p, options in ((params, dict(p2g="scatter")), (params, dict(p2g="cells", cell_sums="windows")),
                            (params, dict(p2g="cells", cell_sums="list")), (plastic, dict(p2g="cells")),
                            (params, dict(p2g="cells", graph=True, fuse=True)),
                            (params, dict(p2g="cells", deterministic=True))):
-            pushed_shell(p, X, 12, matrix_layout=layout, **options)
+            pushed_shell(p, X, 12, matrix_layout=layout, deformation_storage=storage, **options)
         model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=plastic, device="cpu")
         model.matrix_layout = layout
+        model.deformation_storage = storage
         r = simulate_many([(model, make_state(model, X))], frame_dt=2 * params.dt, n_frames=3, export_F=100,
                           export_index=rng.permutation(len(X)).astype(np.int32))[0]
         assert r.F.shape == (3, 100, 3, 3)

@@ -325,6 +325,25 @@ def _planned(work: Path, *args) -> dict:
     return counts
 
 
+def test_library_jobs_split_over_the_cards_the_run_may_hold(tmp_path):
+    # library_chunk auto: six candidates a job on the CPU; on a GPU the 54 candidates split
+    # evenly over --resources gpu (one job an object on one card); a number is taken as given
+    work = scratch_copy(tmp_path)
+    table = "results/{}/tables/main_pillow.csv"
+
+    def library_jobs(config, *args):
+        profile = {"config": "default"}.get(config, config)
+        return _planned(work, f"--configfile=config/{config}.yaml", *args, "--", table.format(profile))["rollout_library"]
+
+    assert library_jobs("config") == 9
+    assert library_jobs("paper", "--resources", "gpu=1") == library_jobs("paper") == 1
+    assert library_jobs("paper", "--resources", "gpu=4") == 4  # 14, 14, 14, 12
+    assert library_jobs("paper", "--resources", "gpu=1", "--config", "library_chunk=6") == 9
+    assert library_jobs("config", "--config", "library_chunk=54") == 1
+    bad = snakemake(work, "-n", "--config", "library_chunk=0", "--", table.format("default"))
+    assert bad.returncode != 0 and "library_chunk" in bad.stdout + bad.stderr
+
+
 def test_discrepancy_cases_run_at_their_configured_resolution(tmp_path):
     # default profile, cases at the ci resolution: their own asset and library, not the profile's
     work = scratch_copy(tmp_path)

@@ -123,11 +123,42 @@ def mat33d_put(A: wp.array2d(dtype=wp.float64), p: int, M: wp.mat33d):  # noqa: 
             A[3 * i + j, p] = M[i, j]
 
 
+# The deformation gradient as its displacement gradient H = F - I in float32 (the model's
+# ``deformation_storage = "displacement"``, _solver.deformation_array), as positions are kept as
+# x0 + u: a (3, 3, columns) float32 array holds H's component (i, j) of particle p at [i, j, p].
+# F is read as I + H in float64 and stored back as F - I rounded to float32: a strain's increment
+# rounds at H's precision (H's ulp), not at 1's as a float32 F would, and a substep reads and
+# writes 36 bytes of it a particle instead of 72.
+@wp.func
+def mat33d_at(A: wp.array3d(dtype=float), p: int) -> wp.mat33d:  # noqa: F811  (an overload)
+    """Particle ``p``'s deformation gradient ``I + H`` in float64 from its displacement gradient
+    ``H`` in a (3, 3, columns) float32 array."""
+    one = wp.float64(1.0)
+    return wp.mat33d(one + wp.float64(A[0, 0, p]), wp.float64(A[0, 1, p]), wp.float64(A[0, 2, p]),
+                     wp.float64(A[1, 0, p]), one + wp.float64(A[1, 1, p]), wp.float64(A[1, 2, p]),
+                     wp.float64(A[2, 0, p]), wp.float64(A[2, 1, p]), one + wp.float64(A[2, 2, p]))
+
+
+@wp.func
+def mat33d_put(A: wp.array3d(dtype=float), p: int, M: wp.mat33d):  # noqa: F811  (an overload)
+    """Store particle ``p``'s deformation gradient ``M`` as its displacement gradient ``M - I``
+    (taken in float64, then rounded to float32) in a (3, 3, columns) float32 array."""
+    for i in range(3):
+        for j in range(3):
+            h = M[i, j]
+            if i == j:
+                h = h - wp.float64(1.0)
+            A[i, j, p] = float(h)
+
+
 #: the per-particle matrix arrays of each layout (_solver.matrix_array): (float32, float64)
 MATRIX_ARRAYS = {
     "records": (wp.array(dtype=wp.mat33), wp.array(dtype=wp.mat33d)),
     "components": (wp.array2d(dtype=float), wp.array2d(dtype=wp.float64)),
 }
+#: the deformation gradients' array as displacement gradients (_solver.deformation_array); its
+#: kernels take the float32 matrices component by component
+DISPLACEMENT_ARRAY = wp.array3d(dtype=float)
 
 
 def overload_per_layout(kernel: wp.Kernel, *, f32: tuple[str, ...] = (), f64: tuple[str, ...] = ()) -> wp.Kernel:
@@ -139,6 +170,9 @@ def overload_per_layout(kernel: wp.Kernel, *, f32: tuple[str, ...] = (), f64: tu
     rebuilding the module)."""
     for a32, a64 in MATRIX_ARRAYS.values():
         wp.overload(kernel, {**dict.fromkeys(f32, a32), **dict.fromkeys(f64, a64)})
+    if f64:  # F as displacement gradients, beside float32 matrices component by component
+        wp.overload(kernel, {**dict.fromkeys(f32, MATRIX_ARRAYS["components"][0]),
+                             **dict.fromkeys(f64, DISPLACEMENT_ARRAY)})
     return kernel
 
 

@@ -75,7 +75,9 @@ class Model:
     ``particle_x0_host`` rest positions [m] (particle_count, 3) float32, from which regions
     are selected at t = 0 (effects' ``setup``). ``matrix_layout``: how the states and scratch
     made for this model store the per-particle matrices (:func:`matrix_array`; a storage
-    choice, the same values).
+    choice, the same values). ``deformation_storage``: how they store the deformation gradients
+    (:func:`deformation_array`: F in float64, or its displacement gradient F - I in float32;
+    the same F to within F - I's float32 rounding).
     """
 
     params: SimParams
@@ -95,6 +97,7 @@ class Model:
     max_wave_speed: float = 0.0
     particle_x0_host: np.ndarray | None = None
     matrix_layout: str = "auto"
+    deformation_storage: str = "auto"
 
     @property
     def total_probe_force(self) -> tuple[float, float, float]:
@@ -113,9 +116,10 @@ class State:
 
     particle_x0 rest positions [m] (particle_count, 3) and particle_u displacements [m]
     (positions are x0 + u: small displacements keep their float32 precision); particle_v
-    [m/s]; particle_F deformation gradient in float64 (it accumulates ``I + dt C`` every
-    substep: in float32 the rounding of a strain of ~1e-3 random-walks into a floor on the dt
-    convergence); particle_C APIC affine velocity [1/s]; both laid out as the model says
+    [m/s]; particle_F deformation gradient in float64, or on a GPU as its displacement gradient
+    F - I in float32 (:func:`deformation_array`; it accumulates ``I + dt C`` every substep: a
+    float32 F would round a strain of ~1e-3 at 1's precision, a random walk into a floor on the
+    dt convergence); particle_C APIC affine velocity [1/s]; both laid out as the model says
     (:func:`matrix_array`: records on the CPU, components on a GPU;
     :meth:`deformation_gradients`, :meth:`affine_velocities` give them as (particle_count, 3,
     3) in either); particle_rot
@@ -181,11 +185,46 @@ def matrix_array(n: int, dtype, device, *, layout: str = "auto") -> wp.array:
     return wp.zeros(shape, dtype=kind.dtype, device=dev)
 
 
+DEFORMATION_STORAGES = ("float64", "displacement")
+
+
+def deformation_array(n: int, device, *, storage: str = "auto", layout: str = "auto") -> wp.array:
+    """A zeroed deformation-gradient array for ``n`` particles (set F = I with
+    :func:`_kernels.state_rest`; the kernels read and write it through
+    :func:`_kernels.mat33d_at` and :func:`_kernels.mat33d_put`, overloaded per array type).
+
+    ``storage``: ``"float64"``, F in float64 in the matrices' ``layout``
+    (:func:`matrix_array`); ``"displacement"``, its displacement gradient H = F - I in float32,
+    shape (3, 3, :func:`matrix_pitch`) with component (i, j) of particle p at [i, j, p] (the
+    kernels compute in float64 and round F - I: a strain's increment rounds at H's precision,
+    as a displacement u does in x0 + u; half the bytes a substep, beside matrices laid out
+    component by component only); ``"auto"``: displacement on a GPU, float64 on the CPU, whose
+    bits stay those of F in float64 (benchmarks/README.md, "F as its displacement gradient").
+    """
+    dev = wp.get_device(device)
+    if storage == "auto":
+        storage = "displacement" if dev.is_cuda else "float64"
+    if storage not in DEFORMATION_STORAGES:
+        raise InputError("Model", "deformation_storage",
+                         f"must be 'auto' or one of {list(DEFORMATION_STORAGES)}, got {storage!r}")
+    F = matrix_array(n, wp.float64, dev, layout=layout)  # the layout checked as the matrices' own
+    if storage == "float64":
+        return F
+    if F.ndim == 1:
+        raise InputError("Model", "deformation_storage",
+                         "'displacement' is stored component by component: it needs matrix_layout 'components' "
+                         f"(or 'auto' on a GPU), got {layout!r}")
+    return wp.zeros((3, 3, matrix_pitch(n)), dtype=float, device=dev)
+
+
 def matrices(a: wp.array, n: int) -> np.ndarray:
     """A per-particle matrix array of :func:`matrix_array` (either layout) as (n, 3, 3) on the
-    host."""
+    host; a displacement-gradient array (:func:`deformation_array`) as the deformation
+    gradients I + H in float64."""
     if a.ndim == 1:
         return a.numpy()[:n].copy()
+    if a.ndim == 3:
+        return np.moveaxis(a.numpy()[:, :, :n], 2, 0).astype(np.float64) + np.eye(3)
     return np.ascontiguousarray(a.numpy()[:, :n].T.reshape(n, 3, 3))
 
 
@@ -326,7 +365,7 @@ def make_state(model: Model, positions: np.ndarray, velocities: np.ndarray | Non
         v = wp.zeros(n, dtype=wp.vec3, device=dev)
     else:
         v = wp.array(np.ascontiguousarray(velocities, dtype=np.float32), dtype=wp.vec3, device=dev)
-    F = matrix_array(n, wp.float64, dev, layout=model.matrix_layout)
+    F = deformation_array(n, dev, storage=model.deformation_storage, layout=model.matrix_layout)
     rot = wp.empty(n, dtype=wp.quat, device=dev)
     wp.launch(K.state_rest, dim=n, outputs=[F, rot], device=dev)  # F = I, rotations the identity
     return State(
