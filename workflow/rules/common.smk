@@ -60,11 +60,11 @@ CANDIDATES = load_candidates()
 # A library job simulates LIBRARY_CHUNK candidates in one process (simulate.smk; config
 # library_chunk), in candidates.csv order: job {chunk} writes the folder .../lib/chunk{chunk}.
 _CANDIDATE_NAMES = list(CANDIDATES.case_name)
-_GPUS = workflow.global_resources.get("gpu")  # --resources gpu=N (a Resource in Snakemake 9, a number before)
-_GPUS = max(1, int(getattr(_GPUS, "value", _GPUS) or 1))
+_gpu = workflow.global_resources.get("gpu")  # --resources gpu=N (a Resource in Snakemake 9, a number before)
+_CARDS = max(1, int(getattr(_gpu, "value", _gpu) or 1))
 LIBRARY_CHUNK = config["library_chunk"]
 if LIBRARY_CHUNK == "auto":  # a job a card (each job's runs on streams of one card), or 6 a job on the CPU
-    LIBRARY_CHUNK = -(-len(_CANDIDATE_NAMES) // _GPUS) if ON_GPU else 6
+    LIBRARY_CHUNK = -(-len(_CANDIDATE_NAMES) // _CARDS) if ON_GPU else 6
 LIBRARY_CHUNKS = [_CANDIDATE_NAMES[i : i + LIBRARY_CHUNK] for i in range(0, len(_CANDIDATE_NAMES), LIBRARY_CHUNK)]
 _CHUNK_OF = {case: k for k, chunk in enumerate(LIBRARY_CHUNKS) for case in chunk}
 _CANDIDATE_THETA = {r.case_name: (float(r.E_scale), float(r.density_scale)) for r in CANDIDATES.itertuples(index=False)}

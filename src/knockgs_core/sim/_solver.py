@@ -162,6 +162,15 @@ def matrix_pitch(n: int) -> int:
     return max(32, -(-n // 32) * 32)
 
 
+def _matrix_layout(layout: str, dev) -> str:
+    """The matrix layout ``layout`` means on device ``dev`` (see :func:`matrix_array`), checked."""
+    if layout == "auto":
+        layout = "components" if dev.is_cuda else "records"
+    if layout not in K.MATRIX_ARRAYS:
+        raise InputError("Model", "matrix_layout", f"must be 'auto' or one of {sorted(K.MATRIX_ARRAYS)}, got {layout!r}")
+    return layout
+
+
 def matrix_array(n: int, dtype, device, *, layout: str = "auto") -> wp.array:
     """A zeroed per-particle 3x3 matrix array for ``n`` particles, of float32 (``dtype=float``)
     or float64 (``wp.float64``) components (the kernels read and write it through
@@ -176,11 +185,7 @@ def matrix_array(n: int, dtype, device, *, layout: str = "auto") -> wp.array:
     values, and on the CPU the bits, are the same in both.
     """
     dev = wp.get_device(device)
-    if layout == "auto":
-        layout = "components" if dev.is_cuda else "records"
-    if layout not in K.MATRIX_ARRAYS:
-        raise InputError("Model", "matrix_layout", f"must be 'auto' or one of {sorted(K.MATRIX_ARRAYS)}, got {layout!r}")
-    kind = K.MATRIX_ARRAYS[layout][dtype is wp.float64]  # the array type the kernels take
+    kind = K.MATRIX_ARRAYS[_matrix_layout(layout, dev)][dtype is wp.float64]  # the array type the kernels take
     shape = max(n, 1) if kind.ndim == 1 else (9, matrix_pitch(n))
     return wp.zeros(shape, dtype=kind.dtype, device=dev)
 
@@ -207,10 +212,9 @@ def deformation_array(n: int, device, *, storage: str = "auto", layout: str = "a
     if storage not in DEFORMATION_STORAGES:
         raise InputError("Model", "deformation_storage",
                          f"must be 'auto' or one of {list(DEFORMATION_STORAGES)}, got {storage!r}")
-    F = matrix_array(n, wp.float64, dev, layout=layout)  # the layout checked as the matrices' own
     if storage == "float64":
-        return F
-    if F.ndim == 1:
+        return matrix_array(n, wp.float64, dev, layout=layout)
+    if _matrix_layout(layout, dev) != "components":
         raise InputError("Model", "deformation_storage",
                          "'displacement' is stored component by component: it needs matrix_layout 'components' "
                          f"(or 'auto' on a GPU), got {layout!r}")
