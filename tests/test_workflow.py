@@ -344,6 +344,36 @@ def test_library_jobs_split_over_the_cards_the_run_may_hold(tmp_path):
     assert bad.returncode != 0 and "library_chunk" in bad.stdout + bad.stderr
 
 
+def _planned_runtimes(work: Path, *args) -> dict:
+    """The time limit [min] (``runtime``) of each rule's planned jobs in a dry run: rule -> set."""
+    out = snakemake(work, "-n", *args)
+    assert out.returncode == 0, out.stderr[-3000:]
+    runtimes, rule = {}, None
+    for line in out.stdout.splitlines():
+        line = line.strip()
+        if line.startswith(("rule ", "localrule ")) and line.endswith(":"):
+            rule = line.split()[1].rstrip(":")
+        elif line.startswith("resources:") and rule:
+            fields = dict(f.strip().split("=", 1) for f in line.partition(":")[2].split(","))
+            if "runtime" in fields:
+                runtimes.setdefault(rule, set()).add(int(fields["runtime"]))
+    return runtimes
+
+
+def test_rollout_jobs_ask_for_the_time_their_device_needs(tmp_path):
+    # a Slurm job's time limit: an hour a paper-scale rollout on the CPU, 20 minutes at the
+    # smaller profiles, a minute a rollout plus ten a job on a GPU (one job of 54 candidates a card)
+    work = scratch_copy(tmp_path)
+    paper = ["--configfile=config/paper.yaml", "--resources", "gpu=1"]
+    gpu = _planned_runtimes(work, *paper, "--", "results/paper/tables/main_pillow.csv")
+    assert gpu["rollout_library"] == {10 + 54}
+    assert gpu["rollout_eval"] <= {10 + 2, 10 + 3} and gpu["rollout_eval"]
+    cpu = _planned_runtimes(work, *paper, "--config", "device=cpu", "--", "results/paper/tables/main_pillow.csv")
+    assert cpu["rollout_library"] == {60 * 6} and cpu["rollout_eval"] <= {60 * 2, 60 * 3}
+    default = _planned_runtimes(work, "--", "results/default/tables/main_pillow.csv")
+    assert default["rollout_library"] == {20 * 6}
+
+
 def test_discrepancy_cases_run_at_their_configured_resolution(tmp_path):
     # default profile, cases at the ci resolution: their own asset and library, not the profile's
     work = scratch_copy(tmp_path)

@@ -79,7 +79,7 @@ rule boundary_rollout_library:
         device=DEVICE,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
-        runtime=60 * LIBRARY_CHUNK if PROFILE == "paper" else 20 * LIBRARY_CHUNK,
+        runtime=rollout_minutes(LIBRARY_CHUNK),
         gpu=1 if ON_GPU else 0,
     threads: 1
     script:
@@ -108,7 +108,7 @@ rule boundary_rollout_eval:
         device=DEVICE,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
-        runtime=lambda wc: (60 if PROFILE == "paper" else 20) * len(boundary_eval_runs(wc)),
+        runtime=lambda wc: rollout_minutes(len(boundary_eval_runs(wc))),
         gpu=1 if ON_GPU else 0,
     threads: 1
     script:

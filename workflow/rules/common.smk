@@ -67,6 +67,20 @@ if LIBRARY_CHUNK == "auto":  # a job a card (each job's runs on streams of one c
     LIBRARY_CHUNK = -(-len(_CANDIDATE_NAMES) // _CARDS) if ON_GPU else 6
 LIBRARY_CHUNKS = [_CANDIDATE_NAMES[i : i + LIBRARY_CHUNK] for i in range(0, len(_CANDIDATE_NAMES), LIBRARY_CHUNK)]
 _CHUNK_OF = {case: k for k, chunk in enumerate(LIBRARY_CHUNKS) for case in chunk}
+# A rollout job's time limit [min] (`runtime`, what a Slurm profile asks for) for `runs`
+# rollouts: an hour a paper-scale rollout on a CPU, 20 minutes at the smaller profiles; on a
+# GPU a paper-scale rollout takes 2-12 s (the Ficus's 75,000 substeps the longest;
+# benchmarks/README.md), so a minute a rollout and ten for the job's start leave 5x there:
+# 54 candidates on one card ask for 64 minutes, not 54 hours.
+_ROLLOUT_MINUTES = (1 if ON_GPU else 60) if PROFILE == "paper" else 20
+_JOB_MINUTES = 10 if PROFILE == "paper" and ON_GPU else 0
+
+
+def rollout_minutes(runs):
+    """The time limit [min] of a job of ``runs`` rollouts."""
+    return _JOB_MINUTES + _ROLLOUT_MINUTES * runs
+
+
 _CANDIDATE_THETA = {r.case_name: (float(r.E_scale), float(r.density_scale)) for r in CANDIDATES.itertuples(index=False)}
 _CANDIDATE_OF_TAG = {theta_tag(theta): case for case, theta in _CANDIDATE_THETA.items()}
 

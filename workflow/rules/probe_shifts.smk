@@ -126,7 +126,7 @@ rule rollout_passive_library:
         deterministic=DETERMINISTIC,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
-        runtime=60 * LIBRARY_CHUNK if PROFILE == "paper" else 20 * LIBRARY_CHUNK,
+        runtime=rollout_minutes(LIBRARY_CHUNK),
         gpu=1 if ON_GPU else 0,
     threads: 1
     script:
@@ -155,7 +155,7 @@ rule rollout_passive_targets:
         deterministic=DETERMINISTIC,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
-        runtime=60 * 5 if PROFILE == "paper" else 20 * 5,
+        runtime=rollout_minutes(5),
         gpu=1 if ON_GPU else 0,
     threads: 1
     script:

@@ -32,7 +32,7 @@ rule rollout_library:
         deterministic=DETERMINISTIC,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
-        runtime=60 * LIBRARY_CHUNK if PROFILE == "paper" else 20 * LIBRARY_CHUNK,
+        runtime=rollout_minutes(LIBRARY_CHUNK),
         gpu=1 if ON_GPU else 0,
     threads: 1
     script:
@@ -63,7 +63,7 @@ rule rollout_eval:
         deterministic=DETERMINISTIC,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
-        runtime=lambda wc: (60 if PROFILE == "paper" else 20) * len(simulated_probes(wc.object, wc.theta)),
+        runtime=lambda wc: rollout_minutes(len(simulated_probes(wc.object, wc.theta))),
         gpu=1 if ON_GPU else 0,
     threads: 1
     script:
@@ -93,7 +93,7 @@ rule rollout_diag:
         deterministic=DETERMINISTIC,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
-        runtime=60 if PROFILE == "paper" else 20,
+        runtime=rollout_minutes(1),
         gpu=1 if ON_GPU else 0,
     threads: 1
     script:
