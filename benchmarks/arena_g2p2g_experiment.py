@@ -1,0 +1,415 @@
+"""An experiment, not a solver path: G2P fused with the next substep's P2G, each block's P2G
+summed into a node arena in shared memory before one atomic per arena node.
+
+The solver's GPU substep runs G2P fused with the next P2G's per-particle half (``g2p_prepare``,
+which stores each particle's P2G terms: ~50 bytes a particle written, ~110 read back) and then
+sums the terms by windows of 32 sorted particles (``p2g_windows``: one global atomic per run of
+equal base cells, stencil node and sum; ~24 a particle on the 8-a-cell block). Here one kernel
+(``g2p2g_arena``) does both, as the GPU MPM literature's G2P2G does over grid blocks:
+
+- the particles are held in grid-block order (``--tile`` cells a side, then the cells within
+  a block; ``block_order``), so a CUDA block's ``--block`` consecutive particles lie in one or
+  two grid blocks;
+- a thread runs its particle's G2P (the node velocities read from the global grid) and its
+  next P2G terms in registers;
+- the block reduces its particles' stencil base cells to a bounding box; where the box's nodes
+  fit the arena (``--cap`` nodes), each thread adds its 27 stencil contributions to the arena
+  in shared memory with shared atomics (``tile_scatter_add``), and the block then adds each
+  arena node that received mass to the next grid with one atomic per sum; a block whose box
+  does not fit adds its particles' contributions to the grid directly (counted: ``spilled``).
+
+No stored terms, no sort, no window kernel; the grid is double-buffered (node velocities read
+from one set of grids, sums added to another, swapped every substep), so a substep is: zero the
+other grids, the grid update and supports, the fused kernel. On the CPU (one lane a block) a
+block is one particle, so the arena only checks the indexing: there the pipeline agrees with the
+solver's scatter path to float rounding.
+
+Builds the object's model (``block``: ``sim_bench.py``'s 681k jelly block; or a contract's
+object), the particles in grid-block order, runs ``--warm`` substeps, then from one saved state
+times ``--steps`` substeps of the solver's default GPU path (graphs) and of the experiment at
+each block size and arena capacity, ``--repeats`` times, and compares the displacements.
+
+    python3 benchmarks/arena_g2p2g_experiment.py --object block --particles-count 20000 --n-grid 32 --device cpu \
+        --warm 20 --steps 10 --repeats 1
+    python3 benchmarks/arena_g2p2g_experiment.py --object block --device cuda:0 --block 128 256 --cap 512 1024
+    python3 benchmarks/arena_g2p2g_experiment.py --object pillow --profile paper --particles OUT/pillow.npz
+"""
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from knockgs_core.sim import _kernels as K
+from knockgs_core.sim._kernels import bspline_weights, g2p_particle, p2g_terms, stencil_base, stencil_inside
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def block_order(X: np.ndarray, dx: float, tile: int) -> np.ndarray:
+    """A permutation [N] sorting positions ``X`` [m] by the grid block (``tile`` cells a side)
+    of their stencil base cell, x-major, then by the base cell within the block, x-major."""
+    base = np.floor(X.astype(np.float64) / dx - 0.5).astype(np.int64)
+    blk, cell = base // tile, base % tile
+    return np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0], blk[:, 2], blk[:, 1], blk[:, 0]))
+
+
+def make_kernel(cap: int, regs: int, affine_flip: int):
+    def g2p2g_arena(
+        grid_v: wp.array(dtype=wp.vec3),
+        inv_dx: float,
+        dt: float,
+        trans_mask: wp.array(dtype=wp.int32),
+        trans_velocity: wp.vec3,
+        trans_on: int,
+        lo: wp.vec3i,
+        hi: wp.vec3i,
+        x0: wp.array(dtype=wp.vec3),
+        flip_weight: float,
+        grid_v_old: wp.array(dtype=wp.vec3),
+        g2p_lines: int,
+        mass: wp.array(dtype=float),
+        vol: wp.array(dtype=float),
+        mu: wp.array(dtype=float),
+        lam: wp.array(dtype=float),
+        probe_mask: wp.array(dtype=wp.int32),
+        probe_force: wp.vec3,
+        probe_on: int,
+        polar_iters: int,
+        polar_step: float,
+        polar_rational: int,
+        retardation: float,
+        n_grid: int,
+        count: int,
+        u: wp.array(dtype=wp.vec3),
+        v: wp.array(dtype=wp.vec3),
+        C: Any,
+        F: Any,
+        rot: wp.array(dtype=wp.quat),
+        overrun: wp.array(dtype=wp.int32),
+        spilled: wp.array(dtype=wp.int32),
+        grid_mv: wp.array(dtype=wp.vec3),
+        grid_m: wp.array(dtype=float),
+        grid_mv_old: wp.array(dtype=wp.vec3),
+    ):
+        b, lane = wp.tid()
+        threads = wp.block_dim()
+        p = b * threads + lane
+        valid = False
+        f = wp.vec3(0.0)
+        mvp = wp.vec3(0.0)
+        m = float(0.0)
+        aff = wp.mat33(0.0)
+        mCp = wp.mat33(0.0)
+        base = wp.vec3i(0)
+        if p < count:
+            ok, up, vp, Cp, Fp = g2p_particle(p, grid_v, n_grid, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo,
+                                              hi, x0, wp.static(affine_flip), flip_weight, grid_v_old, g2p_lines, u, v,
+                                              C, F, overrun)
+            if ok:
+                m = mass[p]
+                if probe_on == 1 and probe_mask[p] != 0:
+                    vp = vp + probe_force * (dt / m)
+                    v[p] = vp
+                q, aff, mCp = p2g_terms(vp, Cp, Fp, rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters,
+                                        polar_step, polar_rational, retardation)
+                rot[p] = q
+                gx = (x0[p] + up) * inv_dx
+                base = stencil_base(gx)
+                if stencil_inside(base, lo, hi):
+                    valid = True
+                    f = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+                    mvp = m * vp
+                else:
+                    wp.atomic_add(overrun, 0, 1)
+        big = int(1073741824)
+        l0 = big
+        l1 = big
+        l2 = big
+        h0 = -big
+        h1 = -big
+        h2 = -big
+        if valid:
+            l0 = base[0]
+            l1 = base[1]
+            l2 = base[2]
+            h0 = base[0]
+            h1 = base[1]
+            h2 = base[2]
+        t_l0 = wp.tile_min(wp.tile(l0))
+        t_l1 = wp.tile_min(wp.tile(l1))
+        t_l2 = wp.tile_min(wp.tile(l2))
+        t_h0 = wp.tile_max(wp.tile(h0))
+        t_h1 = wp.tile_max(wp.tile(h1))
+        t_h2 = wp.tile_max(wp.tile(h2))
+        o0 = t_l0[0]
+        o1 = t_l1[0]
+        o2 = t_l2[0]
+        e0 = t_h0[0] - o0 + 3
+        e1 = t_h1[0] - o1 + 3
+        e2 = t_h2[0] - o2 + 3
+        a_mv = wp.tile_zeros(shape=wp.static(cap), dtype=wp.vec4, storage="shared")
+        a_old = wp.tile_zeros(shape=wp.static(cap), dtype=wp.vec3, storage="shared")
+        dx = 1.0 / inv_dx
+        any_valid = e0 > 0
+        fits = any_valid and e0 * e1 * e2 <= wp.static(cap)
+        w = bspline_weights(f)
+        if fits:
+            for i in range(3):
+                for j in range(3):
+                    for k in range(3):
+                        weight = w[i, 0] * w[j, 1] * w[k, 2]
+                        dpos = (wp.vec3(float(i), float(j), float(k)) - f) * dx
+                        a = weight * (mvp + aff * dpos)
+                        idx = ((base[0] + i - o0) * e1 + (base[1] + j - o1)) * e2 + (base[2] + k - o2)
+                        wp.tile_scatter_add(a_mv, idx, wp.vec4(a[0], a[1], a[2], weight * m), valid)
+                        if wp.static(affine_flip == 1):
+                            wp.tile_scatter_add(a_old, idx, weight * (mvp + mCp * dpos), valid)
+            for idx in range(lane, e0 * e1 * e2, threads):
+                s = a_mv[idx]
+                if s[3] != 0.0:
+                    gi = o0 + idx // (e1 * e2)
+                    gj = o1 + (idx // e2) % e1
+                    gk = o2 + idx % e2
+                    node = (gi * n_grid + gj) * n_grid + gk
+                    wp.atomic_add(grid_mv, node, wp.vec3(s[0], s[1], s[2]))
+                    wp.atomic_add(grid_m, node, s[3])
+                    if wp.static(affine_flip == 1):
+                        wp.atomic_add(grid_mv_old, node, a_old[idx])
+        elif any_valid:
+            if lane == 0:
+                wp.atomic_add(spilled, 0, 1)
+            if valid:
+                for i in range(3):
+                    for j in range(3):
+                        for k in range(3):
+                            weight = w[i, 0] * w[j, 1] * w[k, 2]
+                            dpos = (wp.vec3(float(i), float(j), float(k)) - f) * dx
+                            node = ((base[0] + i) * n_grid + base[1] + j) * n_grid + base[2] + k
+                            wp.atomic_add(grid_mv, node, weight * (mvp + aff * dpos))
+                            wp.atomic_add(grid_m, node, weight * m)
+                            if wp.static(affine_flip == 1):
+                                wp.atomic_add(grid_mv_old, node, weight * (mvp + mCp * dpos))
+
+    return wp.kernel(g2p2g_arena, name=f"g2p2g_arena_{cap}_{regs}_{affine_flip}", cuda_max_registers=regs or None,
+                     module="unique")
+
+
+def build(args):
+    """The model, its particles' initial positions and a label."""
+    from knockgs_core.sim import Probe, SimParams, build_model
+
+    if args.object == "block":
+        from sim_bench import block
+
+        X = block(args.particles_count, args.n_grid)
+        params = SimParams(n_grid=args.n_grid, dt=1e-4, transfer=args.transfer)
+        X = X[block_order(X, params.dx, args.tile)]
+        model = build_model(X, E=1e4, nu=0.3, rho=2000.0, params=params,
+                            probe=Probe("standard_x", (-0.18, 0.0, 0.0)), device=args.device)
+        return model, X
+    from _object_model import object_particles, probe_a_model
+
+    from knockgs_core.contract import load_contract
+    from knockgs_core.rollout import _permuted
+
+    contract = load_contract(args.object, args.profile)
+    ps = object_particles(contract, args.particles)
+    dx, g = contract.sim.grid_lim / contract.sim.n_grid, int(ps.n_gs)
+    X = np.asarray(ps.positions)  # the Gaussian-associated rows stay first, as in a rollout
+    ps = _permuted(ps, np.concatenate([block_order(X[:g], dx, args.tile), g + block_order(X[g:], dx, args.tile)]))
+    return probe_a_model(contract, ps, args.device), ps.positions
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--object", default="block", help="block, or a contract's object (pillow, ficus, vasedeck)")
+    ap.add_argument("--profile", default="paper")
+    ap.add_argument("--particles", help="the object's particle file (cached)")
+    ap.add_argument("--particles-count", type=int, default=681472, help="the block's particles")
+    ap.add_argument("--n-grid", type=int, default=100, help="the block's grid")
+    ap.add_argument("--transfer", default="affine_flip", choices=["affine_flip", "apic"])
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--tile", type=int, default=4, help="grid block side [cells] of the particles' order")
+    ap.add_argument("--warm", type=int, default=40)
+    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--block", type=int, nargs="+", default=[256], help="threads (particles) a CUDA block")
+    ap.add_argument("--cap", type=int, nargs="+", default=[1024], help="arena nodes")
+    ap.add_argument("--regs", type=int, nargs="+", default=[0], help="register caps (0: none)")
+    args = ap.parse_args()
+    from knockgs_core.sim import MPMSolver, make_state
+    from knockgs_core.sim._config import DomainWalls
+
+    wp.init()
+    dev = args.device
+    cuda = wp.get_device(dev).is_cuda
+    model, X = build(args)
+    p = model.params
+    n = model.particle_count
+    state = make_state(model, X)
+    solver = MPMSolver(model, p2g="cells" if cuda else "scatter", graph=False, fuse=False)
+    solver.check(state)
+    for _ in range(args.warm):
+        solver.step(state)
+        if state.step % p.guard_every == 0:
+            solver.check(state)
+    solver.check(state)
+    wp.synchronize_device(dev)
+    print(f"{args.object}: {n} particles, box {solver._lo}..{solver._hi}, step {state.step}, "
+          f"probe steps {model.probe_first}..{model.probe_first + model.probe_steps}, tile {args.tile}", flush=True)
+
+    names = ["particle_u", "particle_v", "particle_C", "particle_F", "particle_rot", "grid_mv", "grid_m", "grid_mv_old"]
+    snap = {k: wp.clone(getattr(state, k)) for k in names}
+
+    def restore():
+        for k in names:
+            wp.copy(getattr(state, k), snap[k])
+
+    step0 = state.step
+    base_solver = MPMSolver(model) if cuda else MPMSolver(model, p2g="scatter", graph=False, fuse=False)
+    print(f"baseline: p2g {base_solver.p2g}, sums {base_solver.cell_sums}, fuse {base_solver.fuse}, "
+          f"graph {base_solver.graph}", flush=True)
+
+    def run_base():
+        restore()
+        state.step = step0
+        base_solver._prepared = None
+        base_solver._sorted_at = None
+        base_solver._cmds_key = None
+        base_solver._lo, base_solver._hi = solver._lo, solver._hi
+        for _ in range(2):  # record and capture outside the timing
+            base_solver.step(state)
+        wp.synchronize_device(dev)
+        t0 = time.perf_counter()
+        for _ in range(args.steps):
+            base_solver.step(state)
+        wp.synchronize_device(dev)
+        return (time.perf_counter() - t0) / args.steps
+
+    g = p.n_grid
+    other = dict(grid_mv=wp.zeros((g, g, g), dtype=wp.vec3, device=dev), grid_m=wp.zeros((g, g, g), dtype=float, device=dev),
+                 grid_mv_old=wp.zeros((g, g, g), dtype=wp.vec3, device=dev))
+    lo = wp.vec3i(*solver._lo)
+    hi = wp.vec3i(*solver._hi)
+    dims = tuple(h - low for low, h in zip(solver._lo, solver._hi))
+    flip = int(p.transfer == "affine_flip")
+    damping = p.grid_v_damping_scale ** (p.dt / p.damping_dt_ref) if p.grid_v_damping_scale < 1.0 else 1.0
+    walls = p.boundaries[0] if p.boundaries and isinstance(p.boundaries[0], DomainWalls) else None
+    wall_args = [1, g, walls.padding, int(walls.mode == "sticky")] if walls else [0, g, 0, 0]
+    others = [bc for bc in p.boundaries if bc is not walls]
+    overrun = wp.zeros(1, dtype=wp.int32, device=dev)
+    spilled = wp.zeros(1, dtype=wp.int32, device=dev)
+    zero_mask = wp.zeros(n, dtype=wp.int32, device=dev)
+
+    def grids(which):
+        if which == 0:
+            return dict(grid_mv=state.grid_mv, grid_m=state.grid_m, grid_mv_old=state.grid_mv_old)
+        return other
+
+    def substep(kernel, bd, src, dst):
+        S, D = grids(src), grids(dst)
+        wp.launch(K.grid_zero, dim=dims, inputs=[lo, flip], outputs=[D["grid_mv"], D["grid_m"], D["grid_mv_old"]],
+                  device=dev)
+        wp.launch(K.grid_update, dim=dims, inputs=[lo, p.dt, wp.vec3(*p.gravity), damping, *wall_args, flip, S["grid_m"]],
+                  outputs=[S["grid_mv"], S["grid_mv_old"]], device=dev)
+        for bc in others:
+            if isinstance(bc, DomainWalls):
+                wp.launch(K.grid_bc_walls, dim=dims, inputs=[lo, g, bc.padding, int(bc.mode == "sticky")],
+                          outputs=[S["grid_mv"]], device=dev)
+            else:
+                assert bc.start_time <= 0 and bc.end_time == float("inf")
+                box_args = [wp.vec3(*bc.box.center), wp.vec3(*bc.box.half_size), wp.vec3(*bc.velocity),
+                            bc.friction_coefficient]
+                wp.launch(K.grid_bc_cuboid, dim=dims, inputs=[lo, p.dx, *box_args], outputs=[S["grid_mv"]], device=dev)
+        wp.launch_tiled(kernel, dim=-(-n // bd) if cuda else n, block_dim=bd,
+                        inputs=[S["grid_mv"].flatten(), solver._inv_dx, p.dt, zero_mask, wp.vec3(0.0), 0, lo, hi,
+                                state.particle_x0, p.flip_weight, S["grid_mv_old"].flatten(),
+                                solver._g2p_lines, model.particle_mass, model.particle_vol, model.particle_mu,
+                                model.particle_lam, model.probe_mask, wp.vec3(*model.probe_force), 0, solver.polar_iters,
+                                solver.polar_step, solver._polar_rational, solver.retardation, g, n],
+                        outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F,
+                                 state.particle_rot, overrun, spilled, D["grid_mv"].flatten(), D["grid_m"].flatten(),
+                                 D["grid_mv_old"].flatten()], device=dev)
+
+    def probe(step):
+        return int(model.probe_steps > 0 and model.probe_first <= step < model.probe_first + model.probe_steps)
+
+    def run_arena(bd, kernel):
+        restore()
+        # this substep by the plain solver path (scatter), then the next substep's P2G into the state's grids
+        s0 = MPMSolver(model, p2g="scatter", graph=False, fuse=False)
+        s0._lo, s0._hi = solver._lo, solver._hi
+        s0._record(state)
+        st = step0
+        s0._launch(state, st * p.dt, probe(st), (True,) * len(s0._cmds["bcs"]), False, prepared=False, probe_next=None)
+        wp.launch(K.grid_zero, dim=dims, inputs=[lo, flip], outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
+                  device=dev)
+        st += 1
+        if probe(st) or probe(st + args.steps + 2):
+            print("note: the probe is on in the timed substeps; the experiment's graphs leave it off", flush=True)
+        wp.launch(K.p2g, dim=n, inputs=[state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
+                                        model.particle_mass, model.particle_vol, model.particle_mu, model.particle_lam,
+                                        model.probe_mask, wp.vec3(*model.probe_force), probe(st), solver._inv_dx, p.dt,
+                                        solver.polar_iters, solver.polar_step, solver._polar_rational, solver.retardation,
+                                        lo, hi, flip],
+                  outputs=[state.particle_v, state.particle_rot, state.grid_mv, state.grid_m, state.grid_mv_old, overrun],
+                  device=dev)
+        spilled.zero_()
+        graphs = []
+        for par in range(2 if cuda else 0):
+            with wp.ScopedCapture(device=dev) as cap:
+                substep(kernel, bd, par, 1 - par)
+            graphs.append(cap.graph)
+
+        def one(src):
+            if graphs:
+                wp.capture_launch(graphs[src])
+            else:
+                substep(kernel, bd, src, 1 - src)
+            return 1 - src
+
+        src = one(0)  # the baseline's two untimed substeps: one above, one here
+        wp.synchronize_device(dev)
+        t0 = time.perf_counter()
+        for _ in range(args.steps):
+            src = one(src)
+        wp.synchronize_device(dev)
+        return (time.perf_counter() - t0) / args.steps
+
+    made = {(cap, regs): make_kernel(cap, regs, flip) for cap in args.cap for regs in args.regs}
+    kernels = {(bd, cap, regs): made[cap, regs] for bd in args.block for cap in args.cap for regs in args.regs}
+    res = {}
+    u_arena = {}
+    for r in range(args.repeats):
+        tb = run_base()
+        res.setdefault("base", []).append(tb)
+        u_base = state.particle_u.numpy().astype(np.float64)
+        for key, kernel in kernels.items():
+            tw = run_arena(key[0], kernel)
+            res.setdefault(key, []).append(tw)
+            u_arena[key] = state.particle_u.numpy().astype(np.float64)
+        runs = ", ".join(f"block {k[0]} cap {k[1]} regs {k[2]}: {1e3 * v[-1]:.4f}" for k, v in res.items() if k != "base")
+        print(f"repeat {r}: base {1e3 * tb:.4f} ms, {runs}", flush=True)
+    rms = float(np.sqrt((u_base ** 2).sum(1).mean()))
+    print(f"u RMS {rms:.6e} m; overrun {int(overrun.numpy()[0])}; blocks spilled in the last run (over its substeps) "
+          f"{int(spilled.numpy()[0])}")
+    for key, u in u_arena.items():
+        d = float(np.sqrt(((u_base - u) ** 2).sum(1).mean()))
+        print(f"block {key[0]} cap {key[1]} regs {key[2]}: base vs arena RMS difference {d:.3e} m ({d / rms:.2e} of the RMS)")
+    for k, v in res.items():
+        print(f"{k}: median {1e3 * float(np.median(v)):.4f} ms a substep")
+    if cuda:
+        for key, kernel in kernels.items():
+            try:
+                q = wp.get_cuda_kernel_properties(kernel, device=dev)
+                print(key, "registers", q["register_count"], "local", q["local_memory_size"])
+            except Exception as e:  # noqa: BLE001
+                print("properties:", e)
+
+
+if __name__ == "__main__":
+    main()
