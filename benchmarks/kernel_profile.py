@@ -53,9 +53,11 @@ def main() -> None:
     ap.add_argument("--sums", nargs="+", choices=["auto", "windows", "list"], default=[None],
                     help="how the P2G by cells sums its chunks (MPMSolver.cell_sums; default: the solver's), each "
                          "profiled")
-    ap.add_argument("--deterministic", nargs="+", choices=["on", "off"], default=["off"],
+    ap.add_argument("--deterministic", nargs="+", choices=["on", "off", "fixed"], default=["off"],
                     help="the bitwise-reproducible P2G (MPMSolver(deterministic=...); on: by cells, sorted every "
-                         "substep), each profiled; list one twice to compare the runs' bits (MD5 of u)")
+                         "substep, gathered; fixed: the windows' sums added as fixed-point integers, "
+                         "reproducible_sums='fixed_point'), each profiled; list one twice to compare the runs' bits "
+                         "(MD5 of u)")
     ap.add_argument("--fast-math", action="store_true",
                     help="compile the solver's kernels with fast math (approximate division, square root, sine and "
                          "cosine; denormals flushed): a measurement only, the solver never does")
@@ -113,10 +115,13 @@ def main() -> None:
         fuse = {"auto": "auto", "on": True, "off": False}[fuse]
         if fuse is True and p2g != "cells":
             continue
-        if det == "on" and (p2g != "cells" or sums == "windows"):  # the reproducible P2G sums the list
+        if det == "on" and (p2g != "cells" or sums == "windows"):  # the reproducible P2G by gathers sums the list
+            continue
+        if det == "fixed" and (p2g != "cells" or sums == "list"):  # the fixed-point one sums by windows
             continue
         solver = MPMSolver(model, p2g=p2g, graph=graph, fuse=fuse, max_chunk_slots=slots or None, resort_every=resort,
-                           cell_chunk=chunk, node_line=line, cell_sums=sums, deterministic=det == "on",
+                           cell_chunk=chunk, node_line=line, cell_sums=sums, deterministic=det != "off",
+                           reproducible_sums="fixed_point" if det == "fixed" else None,
                            polar_update=polar_update, g2p_sums=g2p_sums,
                            **({} if polar_step is None else {"polar_step": polar_step}))
         solver.check(state)
@@ -143,7 +148,7 @@ def main() -> None:
         print(f"{args.object} {args.profile}, P2G {variant} ({args.order} order, chunk slots {slots or 'all'}, sort every "
               f"{resort} substeps, chunks of {chunk}, node line {solver.node_line}, sums by {solver.cell_sums}, "
               f"G2P fused with the next P2G half: {solver.fuse}, "
-              f"reproducible: {solver.deterministic}, polar step {getattr(solver, 'polar_step', 1.0)} "
+              f"reproducible: {solver.deterministic} ({solver.reproducible_sums}), polar step {getattr(solver, 'polar_step', 1.0)} "
               f"({getattr(solver, 'polar_update', 'axis_angle')}), "
               f"G2P sums by {getattr(solver, 'g2p_sums', 'nodes')}, "
               f"F stored as {state.particle_F.dtype.__name__}{tuple(state.particle_F.shape)}, "

@@ -58,8 +58,10 @@ def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: st
     model = build_model(X, E=1e4, nu=0.3, rho=2000.0, params=params, probe=Probe("standard_x", (-0.18, 0.0, 0.0)), device=device)
     model.deformation_storage = deformation_storage
     state = make_state(model, X)
-    reproducible = p2g == "cells-reproducible"  # MPMSolver(deterministic=True): no float atomics on the grid
-    solver = MPMSolver(model, graph=graph, p2g="cells" if reproducible else p2g, deterministic=reproducible, node_line=line,
+    reproducible = p2g in ("cells-reproducible", "cells-fixed")  # MPMSolver(deterministic=True): no float atomics on the grid
+    fixed = {"reproducible_sums": "fixed_point"} if p2g == "cells-fixed" else {}
+    solver = MPMSolver(model, graph=graph, p2g="cells" if reproducible else p2g, deterministic=reproducible, **fixed,
+                       node_line=line,
                        cell_sums=None if reproducible else sums, g2p_sums=g2p_sums, polar_update=polar_update)
     solver.check(state)
     for _ in range(20):  # warm-up (kernel load, caches)
@@ -126,8 +128,9 @@ def main() -> None:
     ap.add_argument("--transfer", choices=["affine_flip", "apic", "both"], default="affine_flip")
     ap.add_argument("--graph", choices=["auto", "off", "both"], default="auto",
                     help="substeps as CUDA graphs (auto: on a CUDA device); both: each case with and without")
-    ap.add_argument("--p2g", nargs="+", choices=["auto", "scatter", "cells", "cells-reproducible"],
-                    default=["auto"], help="P2G variants (cells-reproducible: MPMSolver(deterministic=True))")
+    ap.add_argument("--p2g", nargs="+", choices=["auto", "scatter", "cells", "cells-reproducible", "cells-fixed"],
+                    default=["auto"], help="P2G variants (cells-reproducible: MPMSolver(deterministic=True); cells-fixed: "
+                                           "the same with reproducible_sums='fixed_point')")
     ap.add_argument("--order", nargs="+", choices=["lattice", "cell"], default=["lattice"],
                     help="the particles' order: the lattice's, or sorted by stencil base cell")
     ap.add_argument("--ppc", nargs="+", type=int, default=[8], help="particles per cell of the block (cubes: 8, 27, 64)")

@@ -910,6 +910,61 @@ def test_reproducible_p2g_gives_the_same_bits_in_any_thread_order(rng, transfer)
 
 
 @pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
+def test_fixed_point_p2g_gives_the_same_bits_in_any_thread_order(rng, transfer):
+    # The fixed-point reproducible P2G (deterministic=True, reproducible_sums="fixed_point") adds
+    # the windows' run sums to the nodes as int64 sums. With one lane a block (the CPU's) the
+    # windows' atomics arrive in block order; with Warp's CPU fibers (blocks of 5 lanes) they
+    # interleave as on a GPU, and the float sums' last bits change. The fixed-point sums give
+    # the same u, F and v bit for bit either way, as graphs and fused or not, and the float
+    # windows' response up to rounding, the grid holding all the mass.
+    params, X = shell_scene(rng, transfer, shell=3000, guard_every=10)
+    out = {}
+    cpu_blocks = wp.config.enable_cpu_blocks
+    try:
+        for lanes in (False, True):
+            wp.config.enable_cpu_blocks = lanes
+            for fixed, graph in ((False, False), (True, False), (True, True)):
+                options = dict(deterministic=True, reproducible_sums="fixed_point") if fixed else dict(cell_sums="windows")
+                model, state, solver = pushed_shell(params, X, 40, p2g="cells", graph=graph, fuse=graph, resort_every=3,
+                                                    cell_chunk=5, **options)
+                assert solver.cell_sums == "windows" and (solver._fixed is not None) == fixed
+                assert state.grid_m.numpy().sum() == pytest.approx(model.mass_host.astype(np.float64).sum(), rel=1e-5)
+                out[lanes, fixed, graph] = [a.numpy().copy() for a in (state.particle_u, state.particle_F,
+                                                                       state.particle_v)]
+    finally:
+        wp.config.enable_cpu_blocks = cpu_blocks
+    u = out[False, False, False][0].astype(np.float64)
+    scale = np.sqrt((u ** 2).sum(-1).mean())
+    assert np.abs(u).max() > 1e-3  # the body moved
+    reproducible = [arrays for key, arrays in out.items() if key[1]]
+    for arrays in reproducible[1:]:
+        for a, b in zip(reproducible[0], arrays):
+            assert np.array_equal(a, b)
+    # the float atomics' order shows in their bits (else the equalities above could not fail)
+    assert not np.array_equal(out[False, False, False][0], out[True, False, False][0])
+    assert np.sqrt(((reproducible[0][0] - u) ** 2).sum(-1).mean()) < 1e-5 * scale
+    with pytest.raises(InputError, match="reproducible_sums"):
+        MPMSolver(model, deterministic=True, reproducible_sums="integers")
+    with pytest.raises(InputError, match="cell_sums"):
+        MPMSolver(model, deterministic=True, reproducible_sums="fixed_point", cell_sums="list")
+    assert MPMSolver(model, deterministic=True).reproducible_sums == "gather"  # the default
+
+
+def test_fixed_point_p2g_stops_a_rollout_whose_sums_overflow(rng):
+    # a run sum at or above 2^61 units (the object's mass times 64 dx / dt) is not added: the
+    # guard stops the rollout at its next check, naming the fixed-point sums
+    params, X = shell_scene(rng, "affine_flip", shell=1000, guard_every=10)
+    model, state, solver = pushed_shell(params, X, 2, p2g="cells", deterministic=True, reproducible_sums="fixed_point")
+    v = state.particle_v.numpy()
+    v[0] = (solver._fixed.bound_p / float(model.mass_host[0]) * 64.0, 0.0, 0.0)  # its stencil weights are < 1
+    state.particle_v.assign(v)
+    solver._prepared = None  # the next P2G half reads the new velocity
+    solver.step(state)
+    with pytest.raises(SimulationError, match="fixed-point P2G's sums overflowed"):
+        solver.check(state)
+
+
+@pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
 def test_chunk_sums_by_node_lines_are_the_sums_by_nodes_bit_for_bit(rng, transfer):
     # A thread of the chunk sums may sum a line of three stencil nodes (node_line=3) instead of
     # one node: each particle's terms are read once for three nodes. Per node the same terms in

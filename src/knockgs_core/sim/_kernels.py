@@ -339,6 +339,25 @@ def wall_velocity(g: wp.vec3i, v: wp.vec3, n_grid: int, padding: int, sticky: in
     return v
 
 
+@wp.func
+def updated_node(g: wp.vec3i, m: float, mv: wp.vec3, mv_old: wp.vec3, dt: float, gravity: wp.vec3, damping: float,
+                 walls: int, n_grid: int, padding: int, sticky: int, affine_flip: int):
+    """A node's velocity and (``affine_flip = 1``) old velocity ``u_old`` [m/s] from its mass
+    ``m`` [kg], momentum ``mv`` and stress-free momentum ``mv_old`` [kg m/s]: gravity,
+    velocity damping (scale per substep) and, with ``walls = 1``, the domain walls
+    (:func:`wall_velocity`)."""
+    v = wp.vec3(0.0)
+    if m > 1.0e-15:
+        v = (mv / m + dt * gravity) * damping
+    v_old = wp.vec3(0.0)
+    if affine_flip == 1:
+        if m > 1.0e-15:
+            v_old = mv_old / m
+    if walls == 1:
+        v = wall_velocity(g, v, n_grid, padding, sticky)
+    return v, v_old
+
+
 @wp.kernel
 def grid_update(
     lo: wp.vec3i,
@@ -362,17 +381,87 @@ def grid_update(
     gi = i + lo[0]
     gj = j + lo[1]
     gk = k + lo[2]
-    m = grid_m[gi, gj, gk]
-    v = wp.vec3(0.0)
-    if m > 1.0e-15:
-        v = (grid_mv[gi, gj, gk] / m + dt * gravity) * damping
+    mv_old = wp.vec3(0.0)
     if affine_flip == 1:
-        v_old = wp.vec3(0.0)
-        if m > 1.0e-15:
-            v_old = grid_mv_old[gi, gj, gk] / m
+        mv_old = grid_mv_old[gi, gj, gk]
+    v, v_old = updated_node(wp.vec3i(gi, gj, gk), grid_m[gi, gj, gk], grid_mv[gi, gj, gk], mv_old, dt, gravity, damping,
+                            walls, n_grid, padding, sticky, affine_flip)
+    if affine_flip == 1:
         grid_mv_old[gi, gj, gk] = v_old
-    if walls == 1:
-        v = wall_velocity(wp.vec3i(gi, gj, gk), v, n_grid, padding, sticky)
+    grid_mv[gi, gj, gk] = v
+
+
+# Fixed-point P2G sums (``MPMSolver(deterministic=True, reproducible_sums="fixed_point")``). Float
+# atomics add a node's contributions in the order the GPU schedules them, so their rounding, and
+# a GPU rollout's last bits, vary from run to run. Integer additions give the same sum in any
+# order. So the windows' run sums (each summed in a fixed order) go into int64 node sums
+# ``q`` [7, n_grid^3] (rows: momentum x, y, z, mass, stress-free momentum x, y, z), in units
+# of ``1 / scale`` [kg or kg m/s], where ``scale`` is a power of two: a float32 times it is
+# exact, so a run sum converts without rounding where it is above 2^24 units. The update reads
+# them back as floats and zeroes them for the next substep (:func:`grid_update_fixed`).
+#: the largest magnitude one addition to a fixed-point sum may have (units); the scales put the
+#: object's whole mass, and its mass times 64 dx / dt, at 2^61, so a node's sum stays below 2^63
+FIXED_LIMIT = float(2.0**61)
+
+
+@wp.func
+def fixed_add(q: wp.array2d(dtype=wp.int64), row: int, node: int, x: float, scale: float,
+              overflow: wp.array(dtype=wp.int32)):
+    """Add ``x`` to the fixed-point sum ``q[row, node]`` in units of ``1 / scale``, rounded to
+    the nearest unit; a value at or above :data:`FIXED_LIMIT` units (or not finite) is not
+    added, and ``overflow[0]`` is set."""
+    y = x * scale
+    if wp.abs(y) < FIXED_LIMIT:
+        wp.atomic_add(q, row, node, wp.int64(wp.round(y)))
+    else:
+        overflow[0] = 1
+
+
+@wp.func
+def fixed_value(q: wp.array2d(dtype=wp.int64), row: int, node: int, unit: wp.float64) -> float:
+    """The fixed-point sum ``q[row, node]`` as a float (``unit`` = 1 / scale)."""
+    return float(wp.float64(q[row, node]) * unit)
+
+
+@wp.kernel
+def grid_update_fixed(
+    lo: wp.vec3i,
+    dt: float,
+    gravity: wp.vec3,
+    damping: float,
+    walls: int,
+    n_grid: int,
+    padding: int,
+    sticky: int,
+    affine_flip: int,
+    unit_m: wp.float64,
+    unit_p: wp.float64,
+    q: wp.array2d(dtype=wp.int64),
+    grid_m: wp.array3d(dtype=float),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_mv_old: wp.array3d(dtype=wp.vec3),
+):
+    """:func:`grid_update` from the fixed-point sums ``q`` (mass in units of ``unit_m`` [kg],
+    momenta of ``unit_p`` [kg m/s]): writes the mass, velocity and (``affine_flip = 1``) old
+    velocity of every node of the box, and zeroes its sums for the next substep, so the box
+    needs no zeroing pass."""
+    i, j, k = wp.tid()
+    gi = i + lo[0]
+    gj = j + lo[1]
+    gk = k + lo[2]
+    node = (gi * n_grid + gj) * n_grid + gk
+    m = fixed_value(q, 3, node, unit_m)
+    mv = wp.vec3(fixed_value(q, 0, node, unit_p), fixed_value(q, 1, node, unit_p), fixed_value(q, 2, node, unit_p))
+    mv_old = wp.vec3(0.0)
+    if affine_flip == 1:
+        mv_old = wp.vec3(fixed_value(q, 4, node, unit_p), fixed_value(q, 5, node, unit_p), fixed_value(q, 6, node, unit_p))
+    for r in range(7):
+        q[r, node] = wp.int64(0)
+    v, v_old = updated_node(wp.vec3i(gi, gj, gk), m, mv, mv_old, dt, gravity, damping, walls, n_grid, padding, sticky,
+                            affine_flip)
+    grid_m[gi, gj, gk] = m
+    if affine_flip == 1:
+        grid_mv_old[gi, gj, gk] = v_old
     grid_mv[gi, gj, gk] = v
 
 
@@ -884,6 +973,36 @@ def p2g_cells(
 # (Windows of 64 or 128 cut every 32 slots paid no more on an H100, and the cut's integer
 # modulo cost the kernel 10 %: benchmarks/README.md.)
 @wp.func
+def window_run_sum(t_key: Any, t_end: Any, t_runs: Any, q: int, t_w: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: Any,
+                   n_grid: int, dx: float, affine_flip: int):
+    """The (run, stencil node) pair ``q`` (run ``q // 27``, node ``q % 27``) of a window's staged
+    terms (see :func:`window_sums`): the run's :func:`node_term` summed to the node in slot
+    order, as :func:`chunk_sum` sums them, and the node's index in the grid."""
+    r = q // 27
+    s = t_runs[r]
+    e = t_end[s]
+    key = t_key[s]
+    n = q - 27 * r
+    o = stencil_offset(n)
+    sum_mv = wp.vec3(0.0)
+    sum_m = float(0.0)
+    sum_old = wp.vec3(0.0)
+    for t in range(s, e):
+        weight = t_w[t, o[0]] * t_w[t, 3 + o[1]] * t_w[t, 6 + o[2]]
+        M = wp.mat33(0.0)
+        if affine_flip == 1:
+            M = mat33_from_rows(t_mC[t, 0], t_mC[t, 1], t_mC[t, 2])
+        d_mv, d_m, d_old = weighted_node_term(weight, vec4_head(t_fx[t]), t_mv[t],
+                                              mat33_from_rows(t_aff[t, 0], t_aff[t, 1], t_aff[t, 2]), M, o[0], o[1], o[2], dx,
+                                              affine_flip)
+        sum_mv += d_mv
+        sum_m += d_m
+        sum_old += d_old
+    node = key + (o[0] * n_grid + o[1]) * n_grid + o[2]
+    return node, sum_mv, sum_m, sum_old
+
+
+@wp.func
 def window_sums(t_key: Any, t_end: Any, t_runs: Any, runs: int, t_w: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: Any,
                 lane: int, threads: int, n_grid: int, dx: float, affine_flip: int, grid_mv: wp.array(dtype=wp.vec3),
                 grid_m: wp.array(dtype=float), grid_mv_old: wp.array(dtype=wp.vec3)):
@@ -893,34 +1012,35 @@ def window_sums(t_key: Any, t_end: Any, t_runs: Any, runs: int, t_w: Any, t_fx: 
     or a matrix's row would take three) and its ``runs`` runs' first slots ``t_runs`` (in slot
     order): the thread ``lane`` of ``threads`` takes the (run, stencil node) pairs ``lane, lane + threads,
     ...``; a run is the slots ``s .. t_end[s] - 1``, its :func:`node_term` summed to node ``n`` in
-    slot order as :func:`chunk_sum` sums them, and added to the grid (flat arrays of the
-    ``n_grid``^3 nodes; a base cell's key is its node's index) with one atomic per array."""
+    slot order as :func:`chunk_sum` sums them (:func:`window_run_sum`), and added to the grid
+    (flat arrays of the ``n_grid``^3 nodes; a base cell's key is its node's index) with one
+    atomic per array."""
     for q in range(lane, runs * 27, threads):
-        r = q // 27
-        s = t_runs[r]
-        e = t_end[s]
-        key = t_key[s]
-        n = q - 27 * r
-        o = stencil_offset(n)
-        sum_mv = wp.vec3(0.0)
-        sum_m = float(0.0)
-        sum_old = wp.vec3(0.0)
-        for t in range(s, e):
-            weight = t_w[t, o[0]] * t_w[t, 3 + o[1]] * t_w[t, 6 + o[2]]
-            M = wp.mat33(0.0)
-            if affine_flip == 1:
-                M = mat33_from_rows(t_mC[t, 0], t_mC[t, 1], t_mC[t, 2])
-            d_mv, d_m, d_old = weighted_node_term(weight, vec4_head(t_fx[t]), t_mv[t],
-                                                  mat33_from_rows(t_aff[t, 0], t_aff[t, 1], t_aff[t, 2]), M, o[0], o[1], o[2], dx,
-                                                  affine_flip)
-            sum_mv += d_mv
-            sum_m += d_m
-            sum_old += d_old
-        node = key + (o[0] * n_grid + o[1]) * n_grid + o[2]
+        node, sum_mv, sum_m, sum_old = window_run_sum(t_key, t_end, t_runs, q, t_w, t_fx, t_mv, t_aff, t_mC, n_grid, dx,
+                                                      affine_flip)
         wp.atomic_add(grid_mv, node, sum_mv)
         wp.atomic_add(grid_m, node, sum_m)
         if affine_flip == 1:
             wp.atomic_add(grid_mv_old, node, sum_old)
+
+
+@wp.func
+def window_sums_fixed(t_key: Any, t_end: Any, t_runs: Any, runs: int, t_w: Any, t_fx: Any, t_mv: Any, t_aff: Any,
+                      t_mC: Any, lane: int, threads: int, n_grid: int, dx: float, affine_flip: int,
+                      q_sums: wp.array2d(dtype=wp.int64), scale_m: float, scale_p: float,
+                      overflow: wp.array(dtype=wp.int32)):
+    """:func:`window_sums` into the fixed-point sums ``q_sums`` (:func:`fixed_add`; mass in
+    units of ``1 / scale_m``, momenta of ``1 / scale_p``): the same run sums, added in integers,
+    so the nodes' sums do not depend on the order the runs arrive in."""
+    for q in range(lane, runs * 27, threads):
+        node, sum_mv, sum_m, sum_old = window_run_sum(t_key, t_end, t_runs, q, t_w, t_fx, t_mv, t_aff, t_mC, n_grid, dx,
+                                                      affine_flip)
+        for a in range(3):
+            fixed_add(q_sums, a, node, sum_mv[a], scale_p, overflow)
+        fixed_add(q_sums, 3, node, sum_m, scale_m, overflow)
+        if affine_flip == 1:
+            for a in range(3):
+                fixed_add(q_sums, 4 + a, node, sum_old[a], scale_p, overflow)
 
 
 @wp.func
@@ -971,14 +1091,16 @@ def window_run_end(t_key: Any, s: int, window: int, none_key: int) -> int:
 _WINDOW_KERNELS: dict = {}
 
 
-def p2g_windows(window: int, affine_flip: int):
+def p2g_windows(window: int, affine_flip: int, fixed: bool = False):
     """The P2G-by-windows kernel for windows of ``window`` sorted positions under the transfer
     ``affine_flip`` (1: affine FLIP, 0: APIC). A tile's size is fixed when the kernel is
     compiled, and the transfer is made a constant of the kernel (its branches in the inner
     loop compiled away), so one kernel per size and transfer. Launch with
     ``wp.launch_tiled(..., dim=ceil(count / window), block_dim=window)``; the CPU runs it with
-    one thread a block (the loops stride by the block's size), the same sums."""
-    kernel = _WINDOW_KERNELS.get((window, affine_flip))
+    one thread a block (the loops stride by the block's size), the same sums. ``fixed``: the
+    run sums go into the fixed-point sums ``q`` (:func:`window_sums_fixed`) instead of the
+    float grid arrays (each variant ignores the other's arguments)."""
+    kernel = _WINDOW_KERNELS.get((window, affine_flip, fixed))
     if kernel is not None:
         return kernel
 
@@ -997,6 +1119,10 @@ def p2g_windows(window: int, affine_flip: int):
         grid_mv: wp.array(dtype=wp.vec3),
         grid_m: wp.array(dtype=float),
         grid_mv_old: wp.array(dtype=wp.vec3),
+        q_sums: wp.array2d(dtype=wp.int64),
+        scale_m: float,
+        scale_p: float,
+        overflow: wp.array(dtype=wp.int32),
     ):
         """Block ``b`` stages the terms of the particles ``order[b W + slot]`` (slot
         ``0 .. W-1``; past ``count``: key ``none_key``) in shared memory, the B-spline weights
@@ -1043,13 +1169,17 @@ def p2g_windows(window: int, affine_flip: int):
             ranks = window_runs_before(t_end, slot, wp.static(window))
             wp.tile_scatter_masked(t_runs, ranks[0], slot, t_end[slot] != 0)
             runs = ranks[1]
-        window_sums(t_key, t_end, t_runs, runs, t_w, t_fx, t_mv, t_aff, t_mC, lane, threads, n_grid, 1.0 / inv_dx,
-                    wp.static(affine_flip), grid_mv, grid_m, grid_mv_old)
+        if wp.static(fixed):
+            window_sums_fixed(t_key, t_end, t_runs, runs, t_w, t_fx, t_mv, t_aff, t_mC, lane, threads, n_grid,
+                              1.0 / inv_dx, wp.static(affine_flip), q_sums, scale_m, scale_p, overflow)
+        else:
+            window_sums(t_key, t_end, t_runs, runs, t_w, t_fx, t_mv, t_aff, t_mC, lane, threads, n_grid, 1.0 / inv_dx,
+                        wp.static(affine_flip), grid_mv, grid_m, grid_mv_old)
 
-    name = f"p2g_windows_{window}_{'affine_flip' if affine_flip == 1 else 'apic'}"
+    name = f"p2g_windows_{window}_{'affine_flip' if affine_flip == 1 else 'apic'}{'_fixed' if fixed else ''}"
     kernel = overload_per_layout(wp.Kernel(p2g_windows_kernel, key=name, module=wp.get_module(__name__)),
                                  f32=("affine", "C"))
-    _WINDOW_KERNELS[window, affine_flip] = kernel
+    _WINDOW_KERNELS[window, affine_flip, fixed] = kernel
     return kernel
 
 

@@ -430,6 +430,36 @@ class _CellScratch:
                    index=zeros(wp.int32, n_list), chunks=zeros(wp.int32, n_list), n_chunks=zeros(wp.int32, 1))
 
 
+class _FixedScratch:
+    """Scratch of the fixed-point reproducible P2G (``MPMSolver(deterministic=True,
+    reproducible_sums="fixed_point")``): the int64 node sums ``q`` [7, n_grid^3] (momentum,
+    mass, stress-free momentum), their scales ``scale_m``, ``scale_p`` (powers of two: the
+    object's mass ``M`` [kg] and the momentum bound ``bound_p = M 64 dx / dt`` [kg m/s] at
+    2^61 units) and units ``unit_m``, ``unit_p`` (their inverses, float64), and ``overflow``
+    [1], set where a run sum reached 2^61 units."""
+
+    def __init__(self, model: Model):
+        p = model.params
+        dev = model.device
+        mass = float(np.asarray(model.mass_host, dtype=np.float64).sum())
+        self.bound_p = mass * 64.0 * p.dx / p.dt
+        e_m = 61 - math.ceil(math.log2(mass))
+        e_p = 61 - math.ceil(math.log2(self.bound_p))
+        self.scale_m, self.scale_p = math.ldexp(1.0, e_m), math.ldexp(1.0, e_p)
+        self.unit_m, self.unit_p = wp.float64(math.ldexp(1.0, -e_m)), wp.float64(math.ldexp(1.0, -e_p))
+        self.q = wp.zeros((7, p.n_grid ** 3), dtype=wp.int64, device=dev)
+        self.overflow = wp.zeros(1, dtype=wp.int32, device=dev)
+
+    @classmethod
+    def placeholder(cls, device) -> _FixedScratch:
+        """Stand-in arguments for the float window sums, which ignore them."""
+        f = cls.__new__(cls)
+        f.scale_m = f.scale_p = 1.0
+        f.q = wp.zeros((7, 1), dtype=wp.int64, device=device)
+        f.overflow = wp.zeros(1, dtype=wp.int32, device=device)
+        return f
+
+
 class _GatherScratch:
     """Scratch of the bitwise-reproducible P2G (``MPMSolver(deterministic=True)``): each
     chunk's sums to its 27 stencil nodes (``sums_mv``, ``sums_m``, ``sums_old`` [27 x chunk
@@ -508,6 +538,10 @@ class MPMSolver:
     them in a fixed order (:func:`~knockgs_core.sim._kernels.p2g_gather`): no float atomics on
     the grid. The same sums as the other variants, in another order (the CPU's scatter stays
     the default there); the cost on a GPU is in benchmarks/README.md.
+    ``reproducible_sums="fixed_point"`` makes it reproducible another way: the default path's
+    window sums, each summed in a fixed order, are added to the nodes as int64 fixed-point sums
+    (:func:`~knockgs_core.sim._kernels.window_sums_fixed`), whose integer atomics give one sum
+    in any order (the class attribute documents it).
 
     ``polar_step`` and ``polar_update``: the polar iterations' step near convergence and how it
     is taken, and ``g2p_sums``: how G2P sums its stencil (the class attributes of the same names
@@ -578,6 +612,15 @@ class MPMSolver:
     #: Ficus 0.142 against 0.158-0.163, Vasedeck 0.068 against 0.079, the 681k block 0.429
     #: against 0.448; APIC, the block: 0.377 against 0.349
     cell_sums: str = "auto"
+    #: how the bitwise-reproducible P2G (``deterministic=True``) sums: ``"gather"`` (each chunk's
+    #: sums stored, sorted every substep, gathered by each node in a fixed order) or
+    #: ``"fixed_point"`` (the windows' run sums added as int64 sums in units of a power of two:
+    #: the object's mass, and its mass times 64 dx / dt, at 2^61 units, so a unit is ~4e-19 of
+    #: the mass and ~3e-17 of the momentum bound; integer atomics, so the sums and the rollout
+    #: are the same in any order the GPU runs them; the grid update reads and zeroes them). A
+    #: run sum added at or above 2^61 units stops the rollout at the next guard check
+    #: (:meth:`check`). The fixed-point sums hold 56 bytes a grid node
+    reproducible_sums: str = "gather"
 
     @classmethod
     def auto_p2g(cls, cuda: bool, crowding: float | None) -> str:
@@ -590,7 +633,7 @@ class MPMSolver:
                  resort_every: int | None = None, cell_chunk: int | None = None, max_chunk_slots: int | None = None,
                  node_line: int | None = None, cell_sums: str | None = None, deterministic: bool = False,
                  polar_step: float | str | None = None, polar_update: str | None = None, g2p_sums: str | None = None,
-                 crowding: float | None = None):
+                 crowding: float | None = None, reproducible_sums: str | None = None):
         self.model = model
         if deterministic not in (True, False):
             raise InputError("MPMSolver", "deterministic", f"must be True or False, got {deterministic!r}")
@@ -605,14 +648,23 @@ class MPMSolver:
             self.node_line = node_line
         if self.node_line not in (1, 3) or isinstance(self.node_line, bool):
             raise InputError("MPMSolver", "node_line", f"must be 1 or 3, got {self.node_line!r}")
+        if reproducible_sums is not None:
+            self.reproducible_sums = reproducible_sums
+        if self.reproducible_sums not in ("gather", "fixed_point"):
+            raise InputError("MPMSolver", "reproducible_sums",
+                             f"must be 'gather' or 'fixed_point', got {self.reproducible_sums!r}")
+        gather = deterministic and self.reproducible_sums == "gather"
+        fixed = deterministic and self.reproducible_sums == "fixed_point"
         if cell_sums is not None:
             self.cell_sums = cell_sums
         if self.cell_sums not in ("auto", "windows", "list"):
             raise InputError("MPMSolver", "cell_sums", f"must be 'auto', 'windows' or 'list', got {self.cell_sums!r}")
-        if self.cell_sums == "windows" and deterministic:
-            raise InputError("MPMSolver", "cell_sums", "the bitwise-reproducible P2G sums the chunk list ('list')")
+        if self.cell_sums == "windows" and gather:
+            raise InputError("MPMSolver", "cell_sums", "the bitwise-reproducible P2G by gathers sums the chunk list ('list')")
+        if self.cell_sums == "list" and fixed:
+            raise InputError("MPMSolver", "cell_sums", "the fixed-point reproducible P2G sums by windows ('windows')")
         if self.cell_sums == "auto":
-            self.cell_sums = "windows" if model.params.transfer == "affine_flip" and not deterministic else "list"
+            self.cell_sums = "windows" if (model.params.transfer == "affine_flip" and not deterministic) or fixed else "list"
         p = model.params
         cuda = wp.get_device(model.device).is_cuda
         if polar_step is not None:
@@ -670,7 +722,12 @@ class MPMSolver:
         self.fuse = bool(fuse)
         self._prepared: tuple[int, int] | None = None  # (state, step) whose P2G terms the last G2P computed
         self._cells = _CellScratch.make(model, listed=self.cell_sums == "list") if p2g == "cells" else None
-        self._gather = _GatherScratch(model) if self.deterministic else None
+        self._gather = _GatherScratch(model) if gather else None
+        self._fixed = _FixedScratch(model) if fixed else None
+        # the window kernel's fixed-point arguments (stand-ins, which the float sums ignore, unless fixed)
+        self._window_fixed = self._fixed
+        if self._fixed is None and p2g == "cells" and self.cell_sums == "windows":
+            self._window_fixed = _FixedScratch.placeholder(model.device)
         self._sorted_at: int | None = None  # the step of the last sort by cells
         self._inv_dx = 1.0 / p.dx
         self._lo = (0, 0, 0)
@@ -693,7 +750,9 @@ class MPMSolver:
         m, p = self.model, self.model.params
         wp.launch(K.guard_reset, dim=1, outputs=[self._stats_f, self._stats_i], device=m.device)
         per = K.STATS_PER_BLOCK
-        overflow = self._gather.overflow if self._gather is not None else self._stats_zero
+        overflow = self._stats_zero  # no reproducible P2G: no overflow
+        if self._gather is not None or self._fixed is not None:
+            overflow = (self._gather or self._fixed).overflow
         wp.launch_tiled(K.particle_stats, dim=[max(1, -(-m.particle_count // per))],
                         inputs=[state.particle_x0, state.particle_u, state.particle_v, state.particle_F, self._inv_dx,
                                 m.particle_count, per, self._overrun, overflow],
@@ -701,6 +760,10 @@ class MPMSolver:
         sf = self._stats_f.numpy()
         si = self._stats_i.numpy()  # with the overrun flag and the reproducible P2G's overflow (one read-back)
         overrun = int(si[7])
+        if int(si[8]) and self._fixed is not None:
+            raise SimulationError(f"the fixed-point P2G's sums overflowed by step {state.step}: a node's momentum "
+                                  f"passed {self._fixed.bound_p:.4g} kg m/s (the object's mass times 64 dx / dt); "
+                                  f"the motion is far beyond the CFL limit, or rerun with reproducible_sums='gather'")
         if int(si[8]):
             raise SimulationError(f"the reproducible P2G's chunk buffers ({self._gather.capacity} chunks) overflowed by "
                                   f"step {state.step}: an internal bound failed; rerun with deterministic=False")
@@ -796,13 +859,15 @@ class MPMSolver:
                 self._record_gather(state, self._chunk_slots(dims), dims, lo, flip, rec, cmds)
             elif self.cell_sums == "windows":
                 w = self.cell_chunk
+                f = self._window_fixed
+                fixed_args = [f.q, f.scale_m, f.scale_p, f.overflow]
                 cmds["p2g_windows"] = wp.launch_tiled(
-                    K.p2g_windows(w, flip),
+                    K.p2g_windows(w, flip, self._fixed is not None),
                     dim=-(-m.particle_count // w),
                     block_dim=w,
                     inputs=[c.order, c.keys, c.none_key, m.particle_count, p.n_grid, self._inv_dx, c.fx,
                             state.particle_v, m.particle_mass, c.affine, state.particle_C],
-                    outputs=[state.grid_mv.flatten(), state.grid_m.flatten(), state.grid_mv_old.flatten()],
+                    outputs=[state.grid_mv.flatten(), state.grid_m.flatten(), state.grid_mv_old.flatten(), *fixed_args],
                     **rec,
                 )
             else:
@@ -828,7 +893,14 @@ class MPMSolver:
         fused = p.boundaries[0] if p.boundaries and isinstance(p.boundaries[0], DomainWalls) else None
         wall_args = [1, p.n_grid, fused.padding, int(fused.mode == "sticky")] if fused else [0, p.n_grid, 0, 0]
         update_args = [lo, dt, wp.vec3(*p.gravity), damping, *wall_args, flip, state.grid_m]
-        cmds["update"] = wp.launch(K.grid_update, dim=dims, inputs=update_args, outputs=[state.grid_mv, state.grid_mv_old], **rec)
+        if self._fixed is not None:  # from the fixed-point sums, zeroed there
+            f = self._fixed
+            cmds["update"] = wp.launch(K.grid_update_fixed, dim=dims,
+                                       inputs=[*update_args[:-1], f.unit_m, f.unit_p, f.q],
+                                       outputs=[state.grid_m, state.grid_mv, state.grid_mv_old], **rec)
+        else:
+            cmds["update"] = wp.launch(K.grid_update, dim=dims, inputs=update_args,
+                                       outputs=[state.grid_mv, state.grid_mv_old], **rec)
         bcs = []
         for bc in p.boundaries:
             if bc is fused:
@@ -921,7 +993,7 @@ class MPMSolver:
         t = state.step * p.dt
         probe_on = self._probe_on(state.step)
         active = tuple(isinstance(bc, DomainWalls) or bc.start_time <= t < bc.end_time for bc, _ in self._cmds["bcs"])
-        sort = self._cells is not None and (self.deterministic or self._sorted_at is None
+        sort = self._cells is not None and (self._gather is not None or self._sorted_at is None
                                             or not 0 <= state.step - self._sorted_at < self.resort_every)
         if sort:
             self._sorted_at = state.step
@@ -959,7 +1031,7 @@ class MPMSolver:
         that is None."""
         m, p = self.model, self.model.params
         cmds = self._cmds
-        if self._gather is None:  # the reproducible P2G's gather writes every node of the box
+        if self._gather is None and self._fixed is None:  # both reproducible P2Gs write every node of the box
             cmds["zero"].launch()
         if not prepared:
             cmds["p2g"].set_param_by_name("probe_on", probe_on)
@@ -1017,7 +1089,8 @@ class MPMSolver:
 # overloads: a kernel first made when a solver records its launches would make Warp build the
 # module again)
 for _flip in (0, 1):
-    K.p2g_windows(MPMSolver.cell_chunk, _flip)
+    for _fixed in (False, True):
+        K.p2g_windows(MPMSolver.cell_chunk, _flip, _fixed)
 
 
 def simulate(
