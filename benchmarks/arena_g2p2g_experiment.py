@@ -35,18 +35,13 @@ each block size and arena capacity, ``--repeats`` times, and compares the displa
     python3 benchmarks/arena_g2p2g_experiment.py --object pillow --profile paper --particles OUT/pillow.npz
 """
 import argparse
-import sys
-import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import warp as wp
+from _fused_pipeline import FusedPipeline, g2p_next_terms
 
-from knockgs_core.sim import _kernels as K
-from knockgs_core.sim._kernels import bspline_weights, g2p_particle, p2g_terms, stencil_base, stencil_inside
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+from knockgs_core.sim._kernels import bspline_weights
 
 
 def block_order(X: np.ndarray, dx: float, tile: int) -> np.ndarray:
@@ -98,33 +93,11 @@ def make_kernel(cap: int, regs: int, affine_flip: int):
         b, lane = wp.tid()
         threads = wp.block_dim()
         p = b * threads + lane
-        valid = False
-        f = wp.vec3(0.0)
-        mvp = wp.vec3(0.0)
-        m = float(0.0)
-        aff = wp.mat33(0.0)
-        mCp = wp.mat33(0.0)
-        base = wp.vec3i(0)
-        if p < count:
-            ok, up, vp, Cp, Fp = g2p_particle(p, grid_v, n_grid, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo,
-                                              hi, x0, wp.static(affine_flip), flip_weight, grid_v_old, g2p_lines, u, v,
-                                              C, F, overrun)
-            if ok:
-                m = mass[p]
-                if probe_on == 1 and probe_mask[p] != 0:
-                    vp = vp + probe_force * (dt / m)
-                    v[p] = vp
-                q, aff, mCp = p2g_terms(vp, Cp, Fp, rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters,
-                                        polar_step, polar_rational, retardation)
-                rot[p] = q
-                gx = (x0[p] + up) * inv_dx
-                base = stencil_base(gx)
-                if stencil_inside(base, lo, hi):
-                    valid = True
-                    f = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-                    mvp = m * vp
-                else:
-                    wp.atomic_add(overrun, 0, 1)
+        valid, base, f, mvp, m, aff, mCp = g2p_next_terms(p, count, grid_v, inv_dx, dt, trans_mask, trans_velocity,
+                                                          trans_on, lo, hi, x0, wp.static(affine_flip), flip_weight,
+                                                          grid_v_old, g2p_lines, mass, vol, mu, lam, probe_mask,
+                                                          probe_force, probe_on, polar_iters, polar_step, polar_rational,
+                                                          retardation, n_grid, u, v, C, F, rot, overrun)
         big = int(1073741824)
         l0 = big
         l1 = big
@@ -242,7 +215,6 @@ def main():
     ap.add_argument("--regs", type=int, nargs="+", default=[0], help="register caps (0: none)")
     args = ap.parse_args()
     from knockgs_core.sim import MPMSolver, make_state
-    from knockgs_core.sim._config import DomainWalls
 
     wp.init()
     dev = args.device
@@ -261,154 +233,47 @@ def main():
     wp.synchronize_device(dev)
     print(f"{args.object}: {n} particles, box {solver._lo}..{solver._hi}, step {state.step}, "
           f"probe steps {model.probe_first}..{model.probe_first + model.probe_steps}, tile {args.tile}", flush=True)
-
-    names = ["particle_u", "particle_v", "particle_C", "particle_F", "particle_rot", "grid_mv", "grid_m", "grid_mv_old"]
-    snap = {k: wp.clone(getattr(state, k)) for k in names}
-
-    def restore():
-        for k in names:
-            wp.copy(getattr(state, k), snap[k])
-
-    step0 = state.step
-    base_solver = MPMSolver(model) if cuda else MPMSolver(model, p2g="scatter", graph=False, fuse=False)
-    print(f"baseline: p2g {base_solver.p2g}, sums {base_solver.cell_sums}, fuse {base_solver.fuse}, "
-          f"graph {base_solver.graph}", flush=True)
-
-    def run_base():
-        restore()
-        state.step = step0
-        base_solver._prepared = None
-        base_solver._sorted_at = None
-        base_solver._cmds_key = None
-        base_solver._lo, base_solver._hi = solver._lo, solver._hi
-        for _ in range(2):  # record and capture outside the timing
-            base_solver.step(state)
-        wp.synchronize_device(dev)
-        t0 = time.perf_counter()
-        for _ in range(args.steps):
-            base_solver.step(state)
-        wp.synchronize_device(dev)
-        return (time.perf_counter() - t0) / args.steps
-
-    g = p.n_grid
-    other = dict(grid_mv=wp.zeros((g, g, g), dtype=wp.vec3, device=dev), grid_m=wp.zeros((g, g, g), dtype=float, device=dev),
-                 grid_mv_old=wp.zeros((g, g, g), dtype=wp.vec3, device=dev))
-    lo = wp.vec3i(*solver._lo)
-    hi = wp.vec3i(*solver._hi)
-    dims = tuple(h - low for low, h in zip(solver._lo, solver._hi))
-    flip = int(p.transfer == "affine_flip")
-    damping = p.grid_v_damping_scale ** (p.dt / p.damping_dt_ref) if p.grid_v_damping_scale < 1.0 else 1.0
-    walls = p.boundaries[0] if p.boundaries and isinstance(p.boundaries[0], DomainWalls) else None
-    wall_args = [1, g, walls.padding, int(walls.mode == "sticky")] if walls else [0, g, 0, 0]
-    others = [bc for bc in p.boundaries if bc is not walls]
-    overrun = wp.zeros(1, dtype=wp.int32, device=dev)
+    pipe = FusedPipeline(model, state, solver)
+    b = pipe.base
+    print(f"baseline: p2g {b.p2g}, sums {b.cell_sums}, fuse {b.fuse}, graph {b.graph}", flush=True)
     spilled = wp.zeros(1, dtype=wp.int32, device=dev)
-    zero_mask = wp.zeros(n, dtype=wp.int32, device=dev)
 
-    def grids(which):
-        if which == 0:
-            return dict(grid_mv=state.grid_mv, grid_m=state.grid_m, grid_mv_old=state.grid_mv_old)
-        return other
+    def launcher(kernel, bd):
+        def fused(S, D):
+            wp.launch_tiled(kernel, dim=-(-n // bd) if cuda else n, block_dim=bd,
+                            inputs=[S["grid_mv"].flatten(), solver._inv_dx, p.dt, pipe.zero_mask, wp.vec3(0.0), 0, pipe.lo,
+                                    pipe.hi, state.particle_x0, p.flip_weight, S["grid_mv_old"].flatten(),
+                                    solver._g2p_lines, model.particle_mass, model.particle_vol, model.particle_mu,
+                                    model.particle_lam, model.probe_mask, wp.vec3(*model.probe_force), 0,
+                                    solver.polar_iters, solver.polar_step, solver._polar_rational, solver.retardation,
+                                    p.n_grid, n],
+                            outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F,
+                                     state.particle_rot, pipe.overrun, spilled, D["grid_mv"].flatten(),
+                                     D["grid_m"].flatten(), D["grid_mv_old"].flatten()], device=dev)
+        return fused
 
-    def substep(kernel, bd, src, dst):
-        S, D = grids(src), grids(dst)
-        wp.launch(K.grid_zero, dim=dims, inputs=[lo, flip], outputs=[D["grid_mv"], D["grid_m"], D["grid_mv_old"]],
-                  device=dev)
-        wp.launch(K.grid_update, dim=dims, inputs=[lo, p.dt, wp.vec3(*p.gravity), damping, *wall_args, flip, S["grid_m"]],
-                  outputs=[S["grid_mv"], S["grid_mv_old"]], device=dev)
-        for bc in others:
-            if isinstance(bc, DomainWalls):
-                wp.launch(K.grid_bc_walls, dim=dims, inputs=[lo, g, bc.padding, int(bc.mode == "sticky")],
-                          outputs=[S["grid_mv"]], device=dev)
-            else:
-                assert bc.start_time <= 0 and bc.end_time == float("inf")
-                box_args = [wp.vec3(*bc.box.center), wp.vec3(*bc.box.half_size), wp.vec3(*bc.velocity),
-                            bc.friction_coefficient]
-                wp.launch(K.grid_bc_cuboid, dim=dims, inputs=[lo, p.dx, *box_args], outputs=[S["grid_mv"]], device=dev)
-        wp.launch_tiled(kernel, dim=-(-n // bd) if cuda else n, block_dim=bd,
-                        inputs=[S["grid_mv"].flatten(), solver._inv_dx, p.dt, zero_mask, wp.vec3(0.0), 0, lo, hi,
-                                state.particle_x0, p.flip_weight, S["grid_mv_old"].flatten(),
-                                solver._g2p_lines, model.particle_mass, model.particle_vol, model.particle_mu,
-                                model.particle_lam, model.probe_mask, wp.vec3(*model.probe_force), 0, solver.polar_iters,
-                                solver.polar_step, solver._polar_rational, solver.retardation, g, n],
-                        outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F,
-                                 state.particle_rot, overrun, spilled, D["grid_mv"].flatten(), D["grid_m"].flatten(),
-                                 D["grid_mv_old"].flatten()], device=dev)
-
-    def probe(step):
-        return int(model.probe_steps > 0 and model.probe_first <= step < model.probe_first + model.probe_steps)
-
-    def run_arena(bd, kernel):
-        restore()
-        # this substep by the plain solver path (scatter), then the next substep's P2G into the state's grids
-        s0 = MPMSolver(model, p2g="scatter", graph=False, fuse=False)
-        s0._lo, s0._hi = solver._lo, solver._hi
-        s0._record(state)
-        st = step0
-        s0._launch(state, st * p.dt, probe(st), (True,) * len(s0._cmds["bcs"]), False, prepared=False, probe_next=None)
-        wp.launch(K.grid_zero, dim=dims, inputs=[lo, flip], outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
-                  device=dev)
-        st += 1
-        if probe(st) or probe(st + args.steps + 2):
-            print("note: the probe is on in the timed substeps; the experiment's graphs leave it off", flush=True)
-        wp.launch(K.p2g, dim=n, inputs=[state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
-                                        model.particle_mass, model.particle_vol, model.particle_mu, model.particle_lam,
-                                        model.probe_mask, wp.vec3(*model.probe_force), probe(st), solver._inv_dx, p.dt,
-                                        solver.polar_iters, solver.polar_step, solver._polar_rational, solver.retardation,
-                                        lo, hi, flip],
-                  outputs=[state.particle_v, state.particle_rot, state.grid_mv, state.grid_m, state.grid_mv_old, overrun],
-                  device=dev)
-        spilled.zero_()
-        graphs = []
-        for par in range(2 if cuda else 0):
-            with wp.ScopedCapture(device=dev) as cap:
-                substep(kernel, bd, par, 1 - par)
-            graphs.append(cap.graph)
-
-        def one(src):
-            if graphs:
-                wp.capture_launch(graphs[src])
-            else:
-                substep(kernel, bd, src, 1 - src)
-            return 1 - src
-
-        src = one(0)  # the baseline's two untimed substeps: one above, one here
-        wp.synchronize_device(dev)
-        t0 = time.perf_counter()
-        for _ in range(args.steps):
-            src = one(src)
-        wp.synchronize_device(dev)
-        return (time.perf_counter() - t0) / args.steps
-
-    made = {(cap, regs): make_kernel(cap, regs, flip) for cap in args.cap for regs in args.regs}
+    made = {(cap, regs): make_kernel(cap, regs, pipe.flip) for cap in args.cap for regs in args.regs}
     kernels = {(bd, cap, regs): made[cap, regs] for bd in args.block for cap in args.cap for regs in args.regs}
     res = {}
     u_arena = {}
     for r in range(args.repeats):
-        tb = run_base()
+        tb = pipe.time_base(args.steps)
         res.setdefault("base", []).append(tb)
         u_base = state.particle_u.numpy().astype(np.float64)
         for key, kernel in kernels.items():
-            tw = run_arena(key[0], kernel)
-            res.setdefault(key, []).append(tw)
+            spilled.zero_()
+            res.setdefault(key, []).append(pipe.time_fused(launcher(kernel, key[0]), args.steps))
             u_arena[key] = state.particle_u.numpy().astype(np.float64)
         runs = ", ".join(f"block {k[0]} cap {k[1]} regs {k[2]}: {1e3 * v[-1]:.4f}" for k, v in res.items() if k != "base")
         print(f"repeat {r}: base {1e3 * tb:.4f} ms, {runs}", flush=True)
     rms = float(np.sqrt((u_base ** 2).sum(1).mean()))
-    print(f"u RMS {rms:.6e} m; overrun {int(overrun.numpy()[0])}; blocks spilled in the last run (over its substeps) "
-          f"{int(spilled.numpy()[0])}")
+    print(f"u RMS {rms:.6e} m; overrun {int(pipe.overrun.numpy()[0])}; blocks spilled in the last run (over its "
+          f"substeps) {int(spilled.numpy()[0])}")
     for key, u in u_arena.items():
         d = float(np.sqrt(((u_base - u) ** 2).sum(1).mean()))
         print(f"block {key[0]} cap {key[1]} regs {key[2]}: base vs arena RMS difference {d:.3e} m ({d / rms:.2e} of the RMS)")
     for k, v in res.items():
         print(f"{k}: median {1e3 * float(np.median(v)):.4f} ms a substep")
-    if cuda:
-        for key, kernel in kernels.items():
-            try:
-                q = wp.get_cuda_kernel_properties(kernel, device=dev)
-                print(key, "registers", q["register_count"], "local", q["local_memory_size"])
-            except Exception as e:  # noqa: BLE001
-                print("properties:", e)
 
 
 if __name__ == "__main__":

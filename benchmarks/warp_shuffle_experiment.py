@@ -25,15 +25,13 @@ register cap, ``--repeats`` times, and compares the displacements.
     python3 benchmarks/warp_shuffle_experiment.py --object ficus --particles OUT/ficus.npz --regs 0 128 --mode 1 --repeats 3
 """
 import argparse
-import time
 from typing import Any
 
 import numpy as np
 import warp as wp
+from _fused_pipeline import FusedPipeline, g2p_next_terms
 
-from knockgs_core.sim import _kernels as K
-from knockgs_core.sim._kernels import (bspline_weights, g2p_particle, node_term, p2g_terms, stencil_base, stencil_inside,
-                                       stencil_offset)
+from knockgs_core.sim._kernels import bspline_weights, node_term, stencil_offset
 
 SEG = """
 #if defined(__CUDA_ARCH__)
@@ -126,34 +124,14 @@ def make_kernel(regs, mode):
         grid_mv_old: wp.array3d(dtype=wp.vec3),
     ):
         p = wp.tid()
+        valid, base, f, mvp, m, aff, mCp = g2p_next_terms(p, count, grid_v, inv_dx, dt, trans_mask, trans_velocity,
+                                                          trans_on, lo, hi, x0, affine_flip, flip_weight, grid_v_old,
+                                                          g2p_lines, mass, vol, mu, lam, probe_mask, probe_force, probe_on,
+                                                          polar_iters, polar_step, polar_rational, retardation, n_grid,
+                                                          u, v, C, F, rot, overrun)
         key = none_key
-        f = wp.vec3(0.0)
-        mvp = wp.vec3(0.0)
-        m = float(0.0)
-        aff = wp.mat33(0.0)
-        mCp = wp.mat33(0.0)
-        base = wp.vec3i(0)
-        if p < count:
-            ok, up, vp, Cp, Fp = g2p_particle(p, grid_v, n_grid, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo,
-                                              hi, x0, affine_flip, flip_weight, grid_v_old, g2p_lines, u, v, C, F,
-                                              overrun)
-            if ok:
-                m = mass[p]
-                if probe_on == 1 and probe_mask[p] != 0:
-                    vp = vp + probe_force * (dt / m)
-                    v[p] = vp
-                q, aff, mCp = p2g_terms(vp, Cp, Fp, rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters,
-                                        polar_step, polar_rational, retardation)
-                rot[p] = q
-                gx = (x0[p] + up) * inv_dx
-                base = stencil_base(gx)
-                if stencil_inside(base, lo, hi):
-                    key = (base[0] * n_grid + base[1]) * n_grid + base[2]
-                    f = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-                    mvp = m * vp
-                else:
-                    wp.atomic_add(overrun, 0, 1)
-                    m = 0.0
+        if valid:
+            key = (base[0] * n_grid + base[1]) * n_grid + base[2]
         seg = warp_segment(key)
         span = seg // 2
         top = warp_max(span)
@@ -252,155 +230,45 @@ def main():
     wp.synchronize_device(dev)
     print(f"{args.object}: {n} particles, box {solver._lo}..{solver._hi}, step {state.step}, "
           f"probe steps {model.probe_first}..{model.probe_first + model.probe_steps}", flush=True)
-
-    names = ["particle_u", "particle_v", "particle_C", "particle_F", "particle_rot", "grid_mv", "grid_m", "grid_mv_old"]
-
-    def snapshot(s):
-        return {k: wp.clone(getattr(s, k)) for k in names}
-
-    def restore(s, snap):
-        for k in names:
-            wp.copy(getattr(s, k), snap[k])
-
-    snap = snapshot(state)
-    step0 = state.step
-    # baseline: the solver's default GPU path (fused G2P + windows, graphs)
-    base_solver = MPMSolver(model)
-    print(f"baseline: p2g {base_solver.p2g}, sums {base_solver.cell_sums}, fuse {base_solver.fuse}, graph {base_solver.graph}")
-
-    def run_base():
-        restore(state, snap)
-        state.step = step0
-        base_solver._prepared = None
-        base_solver._sorted_at = None
-        base_solver._cmds_key = None
-        base_solver._lo, base_solver._hi = solver._lo, solver._hi
-        for _ in range(2):  # record and capture outside the timing
-            base_solver.step(state)
-        wp.synchronize_device(dev)
-        t0 = time.perf_counter()
-        for _ in range(args.steps):
-            base_solver.step(state)
-        wp.synchronize_device(dev)
-        return (time.perf_counter() - t0) / args.steps
-
-    # warp-sum pipeline: grids A (state's) and B, swapped every substep
+    pipe = FusedPipeline(model, state, solver)
+    b = pipe.base
+    print(f"baseline: p2g {b.p2g}, sums {b.cell_sums}, fuse {b.fuse}, graph {b.graph}")
+    print("other boundaries:", pipe.others)
     g = p.n_grid
-    B = dict(grid_mv=wp.zeros((g, g, g), dtype=wp.vec3, device=dev), grid_m=wp.zeros((g, g, g), dtype=float, device=dev),
-             grid_mv_old=wp.zeros((g, g, g), dtype=wp.vec3, device=dev))
-    lo = wp.vec3i(*solver._lo)
-    hi = wp.vec3i(*solver._hi)
-    dims = tuple(h - low for low, h in zip(solver._lo, solver._hi))
-    flip = int(p.transfer == "affine_flip")
-    damping = p.grid_v_damping_scale ** (p.dt / p.damping_dt_ref) if p.grid_v_damping_scale < 1.0 else 1.0
-    from knockgs_core.sim._config import DomainWalls
-    fused_walls = p.boundaries[0] if p.boundaries and isinstance(p.boundaries[0], DomainWalls) else None
-    wall_args = [1, p.n_grid, fused_walls.padding, int(fused_walls.mode == "sticky")] if fused_walls else [0, p.n_grid, 0, 0]
-    others = [bc for bc in p.boundaries if bc is not fused_walls]
-    print("other boundaries:", others)
-    overrun = wp.zeros(1, dtype=wp.int32, device=dev)
-    zero_mask = wp.zeros(n, dtype=wp.int32, device=dev)
     none_key = g * g * g
     padded = -(-n // 32) * 32
 
-    def grids(which):
-        if which == 0:
-            return dict(grid_mv=state.grid_mv, grid_m=state.grid_m, grid_mv_old=state.grid_mv_old)
-        return B
-
-    def pipeline_substep(kernel, bd, src, dst, probe_next):
-        S, D = grids(src), grids(dst)
-        wp.launch(K.grid_zero, dim=dims, inputs=[lo, flip], outputs=[D["grid_mv"], D["grid_m"], D["grid_mv_old"]],
-                  device=dev)
-        wp.launch(K.grid_update, dim=dims, inputs=[lo, p.dt, wp.vec3(*p.gravity), damping, *wall_args, flip, S["grid_m"]],
-                  outputs=[S["grid_mv"], S["grid_mv_old"]], device=dev)
-        for bc in others:
-            if isinstance(bc, DomainWalls):
-                wp.launch(K.grid_bc_walls, dim=dims, inputs=[lo, p.n_grid, bc.padding, int(bc.mode == "sticky")],
-                          outputs=[S["grid_mv"]], device=dev)
-            else:
-                assert bc.start_time <= 0 and bc.end_time == float("inf")
-                box_args = [wp.vec3(*bc.box.center), wp.vec3(*bc.box.half_size), wp.vec3(*bc.velocity),
-                            bc.friction_coefficient]
-                wp.launch(K.grid_bc_cuboid, dim=dims, inputs=[lo, p.dx, *box_args], outputs=[S["grid_mv"]], device=dev)
-        wp.launch(kernel, dim=padded, block_dim=bd,
-                  inputs=[S["grid_mv"].flatten(), solver._inv_dx, p.dt, zero_mask, wp.vec3(0.0), 0, lo, hi,
-                          state.particle_x0, flip, p.flip_weight, S["grid_mv_old"].flatten(),
-                          solver._g2p_lines, model.particle_mass,
-                          model.particle_vol, model.particle_mu, model.particle_lam, model.probe_mask,
-                          wp.vec3(*model.probe_force), probe_next, solver.polar_iters, solver.polar_step,
-                          solver._polar_rational, solver.retardation, g, none_key, n, 27],
-                  outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, state.particle_rot,
-                           overrun, D["grid_mv"], D["grid_m"], D["grid_mv_old"]], device=dev)
-
-    def probe(step):
-        return int(model.probe_steps > 0 and model.probe_first <= step < model.probe_first + model.probe_steps)
+    def launcher(kernel, bd):
+        def fused(S, D):
+            wp.launch(kernel, dim=padded, block_dim=bd,
+                      inputs=[S["grid_mv"].flatten(), solver._inv_dx, p.dt, pipe.zero_mask, wp.vec3(0.0), 0, pipe.lo,
+                              pipe.hi, state.particle_x0, pipe.flip, p.flip_weight, S["grid_mv_old"].flatten(),
+                              solver._g2p_lines, model.particle_mass, model.particle_vol, model.particle_mu,
+                              model.particle_lam, model.probe_mask, wp.vec3(*model.probe_force), 0, solver.polar_iters,
+                              solver.polar_step, solver._polar_rational, solver.retardation, g, none_key, n, 27],
+                      outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F,
+                               state.particle_rot, pipe.overrun, D["grid_mv"], D["grid_m"], D["grid_mv_old"]], device=dev)
+        return fused
 
     kernels = {(regs, mode): make_kernel(regs, mode) for regs in args.regs for mode in args.mode}
-
-    def launch_one(graphs, src, bd, kernel):
-        if graphs:
-            wp.capture_launch(graphs[src])
-        else:
-            pipeline_substep(kernel, bd, src, 1 - src, 0)
-
-    def run_warp(bd, kernel):
-        restore(state, snap)
-        # the first substep's P2G: the solver's scatter-free path, from a fresh solver
-        s0 = MPMSolver(model, p2g="scatter" if not wp.get_device(dev).is_cuda else "cells", graph=False, fuse=False)
-        s0._lo, s0._hi = solver._lo, solver._hi
-        s0._record(state)
-        st = step0
-        # one whole substep
-        s0._launch(state, st * p.dt, probe(st), (True,) * len(s0._cmds["bcs"]), True, prepared=False, probe_next=None)
-        # that substep's G2P already ran; now P2G of the next substep by the plain scatter into A
-        wp.launch(K.grid_zero, dim=dims, inputs=[lo, flip], outputs=[state.grid_mv, state.grid_m, state.grid_mv_old], device=dev)
-        st += 1
-        wp.launch(K.p2g, dim=n, inputs=[state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
-                                        model.particle_mass, model.particle_vol, model.particle_mu, model.particle_lam,
-                                        model.probe_mask, wp.vec3(*model.probe_force), probe(st), solver._inv_dx, p.dt,
-                                        solver.polar_iters, solver.polar_step, solver._polar_rational, solver.retardation, lo,
-                                        hi, flip],
-                  outputs=[state.particle_v, state.particle_rot, state.grid_mv, state.grid_m, state.grid_mv_old, overrun],
-                  device=dev)
-        # graphs of the two parities
-        src = 0
-        graphs = []
-        cuda = wp.get_device(dev).is_cuda
-        for par in range(2 if cuda else 0):
-            with wp.ScopedCapture(device=dev) as cap:
-                pipeline_substep(kernel, bd, par, 1 - par, 0)
-            graphs.append(cap.graph)
-        # probe on at warm end? keep probe_next as of the solver
-        if probe(st + 1):
-            print("note: probe active; prototype graphs have probe off", flush=True)
-        launch_one(graphs, src, bd, kernel)  # one substep untimed: the baseline's count
-        src = 1 - src
-        wp.synchronize_device(dev)
-        t0 = time.perf_counter()
-        for i in range(args.steps):
-            launch_one(graphs, src, bd, kernel)
-            src = 1 - src
-        wp.synchronize_device(dev)
-        el = (time.perf_counter() - t0) / args.steps
-        return el, src
-
-    # correctness: both from the same state, compare u after steps (+1 of the first substep)
+    first_p2g = "cells" if pipe.cuda else "scatter"
+    # correctness: both from the same state, compare u after the timed substeps
     res = {}
     for r in range(args.repeats):
-        tb = run_base()
+        tb = pipe.time_base(args.steps)
         res.setdefault("base", []).append(tb)
         u_base = state.particle_u.numpy().astype(np.float64)
         for bd in args.block:
             for regs, kernel in kernels.items():
-                tw, src = run_warp(bd, kernel)
+                tw = pipe.time_fused(launcher(kernel, bd), args.steps, first_p2g=first_p2g)
                 res.setdefault(f"warp{bd}r{regs}", []).append(tw)
                 u_warp = state.particle_u.numpy().astype(np.float64)
         runs = ", ".join(f"{k} {1e3 * v[-1]:.4f}" for k, v in res.items() if k != "base")
         print(f"repeat {r}: base {1e3 * tb:.4f} ms, {runs}", flush=True)
     rms = float(np.sqrt((u_base ** 2).sum(1).mean()))
     d = float(np.sqrt(((u_base - u_warp) ** 2).sum(1).mean()))
-    print(f"u RMS {rms:.6e}; base vs warp RMS diff {d:.3e} ({d / rms:.2e} relative); overrun {int(overrun.numpy()[0])}")
+    print(f"u RMS {rms:.6e}; base vs warp RMS diff {d:.3e} ({d / rms:.2e} relative); "
+          f"overrun {int(pipe.overrun.numpy()[0])}")
     for k, v in res.items():
         print(f"{k}: median {1e3 * float(np.median(v)):.4f} ms/substep")
     for regs, kernel in kernels.items():
