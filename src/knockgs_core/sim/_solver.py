@@ -443,8 +443,14 @@ class _FixedScratch:
         dev = model.device
         mass = float(np.asarray(model.mass_host, dtype=np.float64).sum())
         self.bound_p = mass * 64.0 * p.dx / p.dt
+        if not (mass > 0.0 and math.isfinite(self.bound_p) and self.bound_p > 0.0):
+            raise InputError("MPMSolver", "reproducible_sums", f"fixed-point sums need a positive total mass and "
+                             f"momentum bound, got {mass!r} kg and {self.bound_p!r} kg m/s")
         e_m = 61 - math.ceil(math.log2(mass))
         e_p = 61 - math.ceil(math.log2(self.bound_p))
+        if max(abs(e_m), abs(e_p)) > 120:  # the scales are float32 kernel arguments
+            raise InputError("MPMSolver", "reproducible_sums", f"fixed-point scales 2^{e_m} and 2^{e_p} leave float32's "
+                             f"range (total mass {mass:.3g} kg, momentum bound {self.bound_p:.3g} kg m/s)")
         self.scale_m, self.scale_p = math.ldexp(1.0, e_m), math.ldexp(1.0, e_p)
         self.unit_m, self.unit_p = wp.float64(math.ldexp(1.0, -e_m)), wp.float64(math.ldexp(1.0, -e_p))
         self.q = wp.zeros((7, p.n_grid ** 3), dtype=wp.int64, device=dev)
