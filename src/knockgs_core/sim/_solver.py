@@ -621,8 +621,9 @@ class MPMSolver:
     #: how the bitwise-reproducible P2G (``deterministic=True``) sums: ``"gather"`` (each chunk's
     #: sums stored, sorted every substep, gathered by each node in a fixed order) or
     #: ``"fixed_point"`` (the windows' run sums added as int64 sums in units of a power of two:
-    #: the object's mass, and its mass times 64 dx / dt, at 2^61 units, so a unit is ~4e-19 of
-    #: the mass and ~3e-17 of the momentum bound; integer atomics, so the sums and the rollout
+    #: the object's mass, and its mass times 64 dx / dt, at 2^61 units or less, so a unit is
+    #: 4e-19 to 9e-19 of each: of the momenta, 3e-17 to 6e-17 of the mass times dx / dt;
+    #: integer atomics, so the sums and the rollout
     #: are the same in any order the GPU runs them; the grid update reads and zeroes them). A
     #: run sum added at or above 2^61 units stops the rollout at the next guard check
     #: (:meth:`check`). The fixed-point sums hold 56 bytes a grid node
