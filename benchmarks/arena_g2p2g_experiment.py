@@ -41,7 +41,7 @@ import numpy as np
 import warp as wp
 from _fused_pipeline import FusedPipeline, g2p_next_terms
 
-from knockgs_core.sim._kernels import bspline_weights
+from knockgs_core.sim._kernels import bspline_weights, weighted_node_term
 
 
 def block_order(X: np.ndarray, dx: float, tile: int) -> np.ndarray:
@@ -130,17 +130,17 @@ def make_kernel(cap: int, regs: int, affine_flip: int):
         any_valid = e0 > 0
         fits = any_valid and e0 * e1 * e2 <= wp.static(cap)
         w = bspline_weights(f)
+        q4 = wp.vec4(mvp[0], mvp[1], mvp[2], m)  # momentum and mass, as the solver's node terms take them
         if fits:
             for i in range(3):
                 for j in range(3):
                     for k in range(3):
-                        weight = w[i, 0] * w[j, 1] * w[k, 2]
-                        dpos = (wp.vec3(float(i), float(j), float(k)) - f) * dx
-                        a = weight * (mvp + aff * dpos)
+                        a, am, old = weighted_node_term(w[i, 0] * w[j, 1] * w[k, 2], f, q4, aff, mCp, i, j, k, dx,
+                                                        wp.static(affine_flip))
                         idx = ((base[0] + i - o0) * e1 + (base[1] + j - o1)) * e2 + (base[2] + k - o2)
-                        wp.tile_scatter_add(a_mv, idx, wp.vec4(a[0], a[1], a[2], weight * m), valid)
+                        wp.tile_scatter_add(a_mv, idx, wp.vec4(a[0], a[1], a[2], am), valid)
                         if wp.static(affine_flip == 1):
-                            wp.tile_scatter_add(a_old, idx, weight * (mvp + mCp * dpos), valid)
+                            wp.tile_scatter_add(a_old, idx, old, valid)
             for idx in range(lane, e0 * e1 * e2, threads):
                 s = a_mv[idx]
                 if s[3] != 0.0:
@@ -159,13 +159,13 @@ def make_kernel(cap: int, regs: int, affine_flip: int):
                 for i in range(3):
                     for j in range(3):
                         for k in range(3):
-                            weight = w[i, 0] * w[j, 1] * w[k, 2]
-                            dpos = (wp.vec3(float(i), float(j), float(k)) - f) * dx
+                            a, am, old = weighted_node_term(w[i, 0] * w[j, 1] * w[k, 2], f, q4, aff, mCp, i, j, k,
+                                                            dx, wp.static(affine_flip))
                             node = ((base[0] + i) * n_grid + base[1] + j) * n_grid + base[2] + k
-                            wp.atomic_add(grid_mv, node, weight * (mvp + aff * dpos))
-                            wp.atomic_add(grid_m, node, weight * m)
+                            wp.atomic_add(grid_mv, node, a)
+                            wp.atomic_add(grid_m, node, am)
                             if wp.static(affine_flip == 1):
-                                wp.atomic_add(grid_mv_old, node, weight * (mvp + mCp * dpos))
+                                wp.atomic_add(grid_mv_old, node, old)
 
     return wp.kernel(g2p2g_arena, name=f"g2p2g_arena_{cap}_{regs}_{affine_flip}", cuda_max_registers=regs or None,
                      module="unique")

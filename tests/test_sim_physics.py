@@ -962,6 +962,14 @@ def test_fixed_point_p2g_stops_a_rollout_whose_sums_overflow(rng):
     solver.step(state)
     with pytest.raises(SimulationError, match="fixed-point P2G's sums overflowed"):
         solver.check(state)
+    # scales that float32 (the kernels' argument type) cannot hold are refused, naming the option
+    mass = model.mass_host
+    try:
+        model.mass_host = mass * np.float32(1e-38)
+        with pytest.raises(InputError, match="reproducible_sums.*float32"):
+            MPMSolver(model, p2g="cells", deterministic=True, reproducible_sums="fixed_point")
+    finally:
+        model.mass_host = mass
 
 
 @pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
