@@ -43,16 +43,86 @@ from _fused_pipeline import FusedPipeline, g2p_next_terms
 
 from knockgs_core.sim._kernels import bspline_weights, weighted_node_term
 
+#: floats of the shared-atomics arena: six int bounds (and two spare) and seven sums a node, up to 1,024 nodes
+ARENA_FLOATS = 8 + 7 * 1024
 
-def block_order(X: np.ndarray, dx: float, tile: int) -> np.ndarray:
+
+def _native(cuda: str, cpu: str) -> str:
+    """A snippet's CUDA body and its CPU body (one lane a block: plain loads and adds)."""
+    return f"#if defined(__CUDA_ARCH__)\n{cuda}\n#else\n{cpu}\n#endif\n"
+
+
+@wp.func_native(_native(f"__shared__ float arena[{ARENA_FLOATS}];\nreturn (uint64_t)(&arena[0]);",
+                        f"static float arena[{ARENA_FLOATS}];\nreturn (uint64_t)(&arena[0]);"))
+def arena_address() -> wp.uint64:
+    """The block's arena in shared memory (a static array on the CPU)."""
+    ...
+
+
+@wp.func_native(_native("atomicAdd(((float*)a) + i, x);", "((float*)a)[i] += x;"))
+def arena_add(a: wp.uint64, i: int, x: float):
+    """Adds ``x`` to float ``i`` of the arena at ``a`` (a shared atomic on a GPU)."""
+    ...
+
+
+@wp.func_native("return ((float*)a)[i];")
+def arena_get(a: wp.uint64, i: int) -> float:
+    ...
+
+
+@wp.func_native("((float*)a)[i] = x;")
+def arena_set(a: wp.uint64, i: int, x: float):
+    ...
+
+
+@wp.func_native(_native("atomicMin(((int*)a) + i, x);", "if (x < ((int*)a)[i]) ((int*)a)[i] = x;"))
+def arena_min(a: wp.uint64, i: int, x: int):
+    ...
+
+
+@wp.func_native(_native("atomicMax(((int*)a) + i, x);", "if (x > ((int*)a)[i]) ((int*)a)[i] = x;"))
+def arena_max(a: wp.uint64, i: int, x: int):
+    ...
+
+
+@wp.func_native("return ((int*)a)[i];")
+def arena_geti(a: wp.uint64, i: int) -> int:
+    ...
+
+
+@wp.func_native("((int*)a)[i] = x;")
+def arena_seti(a: wp.uint64, i: int, x: int):
+    ...
+
+
+@wp.func_native(_native("__syncthreads();", ""))
+def block_sync():
+    """A barrier across the CUDA block (nothing on the CPU)."""
+    ...
+
+
+def block_order(X: np.ndarray, dx: float, tile: int, *, interleave: bool = False) -> np.ndarray:
     """A permutation [N] sorting positions ``X`` [m] by the grid block (``tile`` cells a side)
-    of their stencil base cell, x-major, then by the base cell within the block, x-major."""
+    of their stencil base cell, x-major, then by the base cell within the block, x-major.
+
+    ``interleave``: within a grid block, first every cell's first particle, then every cell's
+    second, and so on, so a GPU warp's lanes lie in different cells and its shared atomics on
+    one stencil node go to different addresses (in cell order the ~8 lanes of a cell add to the
+    same node, one after the other)."""
     base = np.floor(X.astype(np.float64) / dx - 0.5).astype(np.int64)
     blk, cell = base // tile, base % tile
-    return np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0], blk[:, 2], blk[:, 1], blk[:, 0]))
+    order = np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0], blk[:, 2], blk[:, 1], blk[:, 0]))
+    if not interleave:
+        return order
+    key = np.stack([blk[:, 0], blk[:, 1], blk[:, 2], cell[:, 0], cell[:, 1], cell[:, 2]], 1)[order]
+    new_cell = np.r_[True, (key[1:] != key[:-1]).any(1)]
+    starts = np.flatnonzero(new_cell)
+    rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
+    k = key.T
+    return order[np.lexsort((k[5], k[4], k[3], rank, k[2], k[1], k[0]))]
 
 
-def make_kernel(cap: int, regs: int, affine_flip: int):
+def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles"):
     def g2p2g_arena(
         grid_v: wp.array(dtype=wp.vec3),
         inv_dx: float,
@@ -167,6 +237,124 @@ def make_kernel(cap: int, regs: int, affine_flip: int):
                             if wp.static(affine_flip == 1):
                                 wp.atomic_add(grid_mv_old, node, old)
 
+    def g2p2g_atomics(
+        grid_v: wp.array(dtype=wp.vec3),
+        inv_dx: float,
+        dt: float,
+        trans_mask: wp.array(dtype=wp.int32),
+        trans_velocity: wp.vec3,
+        trans_on: int,
+        lo: wp.vec3i,
+        hi: wp.vec3i,
+        x0: wp.array(dtype=wp.vec3),
+        flip_weight: float,
+        grid_v_old: wp.array(dtype=wp.vec3),
+        g2p_lines: int,
+        mass: wp.array(dtype=float),
+        vol: wp.array(dtype=float),
+        mu: wp.array(dtype=float),
+        lam: wp.array(dtype=float),
+        probe_mask: wp.array(dtype=wp.int32),
+        probe_force: wp.vec3,
+        probe_on: int,
+        polar_iters: int,
+        polar_step: float,
+        polar_rational: int,
+        retardation: float,
+        n_grid: int,
+        count: int,
+        u: wp.array(dtype=wp.vec3),
+        v: wp.array(dtype=wp.vec3),
+        C: Any,
+        F: Any,
+        rot: wp.array(dtype=wp.quat),
+        overrun: wp.array(dtype=wp.int32),
+        spilled: wp.array(dtype=wp.int32),
+        grid_mv: wp.array(dtype=wp.vec3),
+        grid_m: wp.array(dtype=float),
+        grid_mv_old: wp.array(dtype=wp.vec3),
+    ):
+        # the arena: ints 0-5 the block's box of base cells, then the node sums by component
+        # (momentum 0-2, mass 3, stress-free momentum 4-6), ``cap`` nodes a component
+        b, lane = wp.tid()
+        threads = wp.block_dim()
+        p = b * threads + lane
+        arena = arena_address()
+        big = int(1073741824)
+        for idx in range(lane, wp.static(cap * (7 if affine_flip == 1 else 4)), threads):
+            arena_set(arena, 8 + idx, 0.0)
+        for d in range(lane, 3, threads):
+            arena_seti(arena, d, big)
+            arena_seti(arena, 3 + d, -big)
+        block_sync()
+        valid, base, f, mvp, m, aff, mCp = g2p_next_terms(p, count, grid_v, inv_dx, dt, trans_mask, trans_velocity,
+                                                          trans_on, lo, hi, x0, wp.static(affine_flip), flip_weight,
+                                                          grid_v_old, g2p_lines, mass, vol, mu, lam, probe_mask,
+                                                          probe_force, probe_on, polar_iters, polar_step, polar_rational,
+                                                          retardation, n_grid, u, v, C, F, rot, overrun)
+        if valid:
+            for d in range(3):
+                arena_min(arena, d, base[d])
+                arena_max(arena, 3 + d, base[d])
+        block_sync()
+        o0 = arena_geti(arena, 0)
+        o1 = arena_geti(arena, 1)
+        o2 = arena_geti(arena, 2)
+        e0 = arena_geti(arena, 3) - o0 + 3
+        e1 = arena_geti(arena, 4) - o1 + 3
+        e2 = arena_geti(arena, 5) - o2 + 3
+        dx = 1.0 / inv_dx
+        any_valid = e0 > 0
+        fits = any_valid and e0 * e1 * e2 <= wp.static(cap)
+        w = bspline_weights(f)
+        q4 = wp.vec4(mvp[0], mvp[1], mvp[2], m)
+        if valid:
+            for i in range(3):
+                for j in range(3):
+                    for k in range(3):
+                        a, am, old = weighted_node_term(w[i, 0] * w[j, 1] * w[k, 2], f, q4, aff, mCp, i, j, k, dx,
+                                                        wp.static(affine_flip))
+                        if fits:
+                            idx = 8 + ((base[0] + i - o0) * e1 + (base[1] + j - o1)) * e2 + (base[2] + k - o2)
+                            arena_add(arena, idx, a[0])
+                            arena_add(arena, idx + wp.static(cap), a[1])
+                            arena_add(arena, idx + wp.static(2 * cap), a[2])
+                            arena_add(arena, idx + wp.static(3 * cap), am)
+                            if wp.static(affine_flip == 1):
+                                arena_add(arena, idx + wp.static(4 * cap), old[0])
+                                arena_add(arena, idx + wp.static(5 * cap), old[1])
+                                arena_add(arena, idx + wp.static(6 * cap), old[2])
+                        else:
+                            node = ((base[0] + i) * n_grid + base[1] + j) * n_grid + base[2] + k
+                            wp.atomic_add(grid_mv, node, a)
+                            wp.atomic_add(grid_m, node, am)
+                            if wp.static(affine_flip == 1):
+                                wp.atomic_add(grid_mv_old, node, old)
+        if any_valid and not fits and lane == 0:
+            wp.atomic_add(spilled, 0, 1)
+        block_sync()
+        if fits:
+            for idx in range(lane, e0 * e1 * e2, threads):
+                sm = arena_get(arena, 8 + wp.static(3 * cap) + idx)
+                if sm != 0.0:
+                    gi = o0 + idx // (e1 * e2)
+                    gj = o1 + (idx // e2) % e1
+                    gk = o2 + idx % e2
+                    node = (gi * n_grid + gj) * n_grid + gk
+                    wp.atomic_add(grid_mv, node, wp.vec3(arena_get(arena, 8 + idx),
+                                                         arena_get(arena, 8 + wp.static(cap) + idx),
+                                                         arena_get(arena, 8 + wp.static(2 * cap) + idx)))
+                    wp.atomic_add(grid_m, node, sm)
+                    if wp.static(affine_flip == 1):
+                        wp.atomic_add(grid_mv_old, node, wp.vec3(arena_get(arena, 8 + wp.static(4 * cap) + idx),
+                                                                 arena_get(arena, 8 + wp.static(5 * cap) + idx),
+                                                                 arena_get(arena, 8 + wp.static(6 * cap) + idx)))
+
+    if arena == "atomics":
+        if cap > 1024:
+            raise SystemExit("--cap: the shared-atomics arena holds at most 1024 nodes")
+        return wp.kernel(g2p2g_atomics, name=f"g2p2g_atomics_{cap}_{regs}_{affine_flip}",
+                         cuda_max_registers=regs or None, module="unique", enable_backward=False)
     return wp.kernel(g2p2g_arena, name=f"g2p2g_arena_{cap}_{regs}_{affine_flip}", cuda_max_registers=regs or None,
                      module="unique")
 
@@ -180,7 +368,7 @@ def build(args):
 
         X = block(args.particles_count, args.n_grid)
         params = SimParams(n_grid=args.n_grid, dt=1e-4, transfer=args.transfer)
-        X = X[block_order(X, params.dx, args.tile)]
+        X = X[block_order(X, params.dx, args.tile, interleave=args.interleave)]
         model = build_model(X, E=1e4, nu=0.3, rho=2000.0, params=params,
                             probe=Probe("standard_x", (-0.18, 0.0, 0.0)), device=args.device)
         return model, X
@@ -193,7 +381,9 @@ def build(args):
     ps = object_particles(contract, args.particles)
     dx, g = contract.sim.grid_lim / contract.sim.n_grid, int(ps.n_gs)
     X = np.asarray(ps.positions)  # the Gaussian-associated rows stay first, as in a rollout
-    ps = _permuted(ps, np.concatenate([block_order(X[:g], dx, args.tile), g + block_order(X[g:], dx, args.tile)]))
+    il = args.interleave
+    ps = _permuted(ps, np.concatenate([block_order(X[:g], dx, args.tile, interleave=il),
+                                       g + block_order(X[g:], dx, args.tile, interleave=il)]))
     return probe_a_model(contract, ps, args.device), ps.positions
 
 
@@ -207,12 +397,17 @@ def main():
     ap.add_argument("--transfer", default="affine_flip", choices=["affine_flip", "apic"])
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--tile", type=int, default=4, help="grid block side [cells] of the particles' order")
+    ap.add_argument("--interleave", action="store_true",
+                    help="within a grid block, the cells' first particles, then their second, ... (block_order)")
     ap.add_argument("--warm", type=int, default=40)
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--block", type=int, nargs="+", default=[256], help="threads (particles) a CUDA block")
     ap.add_argument("--cap", type=int, nargs="+", default=[1024], help="arena nodes")
     ap.add_argument("--regs", type=int, nargs="+", default=[0], help="register caps (0: none)")
+    ap.add_argument("--arena", nargs="+", choices=["tiles", "atomics"], default=["tiles"],
+                    help="how a block sums into its arena: Warp's tile_scatter_add (a block barrier a scatter) or "
+                         "shared atomics through native snippets (three barriers a block)")
     args = ap.parse_args()
     from knockgs_core.sim import MPMSolver, make_state
 
@@ -232,7 +427,8 @@ def main():
     solver.check(state)
     wp.synchronize_device(dev)
     print(f"{args.object}: {n} particles, box {solver._lo}..{solver._hi}, step {state.step}, "
-          f"probe steps {model.probe_first}..{model.probe_first + model.probe_steps}, tile {args.tile}", flush=True)
+          f"probe steps {model.probe_first}..{model.probe_first + model.probe_steps}, tile {args.tile}, "
+          f"interleaved {args.interleave}", flush=True)
     pipe = FusedPipeline(model, state, solver)
     b = pipe.base
     print(f"baseline: p2g {b.p2g}, sums {b.cell_sums}, fuse {b.fuse}, graph {b.graph}", flush=True)
@@ -252,28 +448,33 @@ def main():
                                      D["grid_m"].flatten(), D["grid_mv_old"].flatten()], device=dev)
         return fused
 
-    made = {(cap, regs): make_kernel(cap, regs, pipe.flip) for cap in args.cap for regs in args.regs}
-    kernels = {(bd, cap, regs): made[cap, regs] for bd in args.block for cap in args.cap for regs in args.regs}
+    made = {(ar, cap, regs): make_kernel(cap, regs, pipe.flip, ar) for ar in args.arena for cap in args.cap
+            for regs in args.regs}
+    kernels = {(ar, bd, cap, regs): made[ar, cap, regs] for ar in args.arena for bd in args.block for cap in args.cap
+               for regs in args.regs}
     res = {}
     u_arena = {}
+
+    def name(key):
+        return f"{key[0]} block {key[1]} cap {key[2]} regs {key[3]}"
     for r in range(args.repeats):
         tb = pipe.time_base(args.steps)
         res.setdefault("base", []).append(tb)
         u_base = state.particle_u.numpy().astype(np.float64)
         for key, kernel in kernels.items():
             spilled.zero_()
-            res.setdefault(key, []).append(pipe.time_fused(launcher(kernel, key[0]), args.steps))
+            res.setdefault(key, []).append(pipe.time_fused(launcher(kernel, key[1]), args.steps))
             u_arena[key] = state.particle_u.numpy().astype(np.float64)
-        runs = ", ".join(f"block {k[0]} cap {k[1]} regs {k[2]}: {1e3 * v[-1]:.4f}" for k, v in res.items() if k != "base")
+        runs = ", ".join(f"{name(k)}: {1e3 * v[-1]:.4f}" for k, v in res.items() if k != "base")
         print(f"repeat {r}: base {1e3 * tb:.4f} ms, {runs}", flush=True)
     rms = float(np.sqrt((u_base ** 2).sum(1).mean()))
     print(f"u RMS {rms:.6e} m; overrun {int(pipe.overrun.numpy()[0])}; blocks spilled in the last run (over its "
           f"substeps) {int(spilled.numpy()[0])}")
     for key, u in u_arena.items():
         d = float(np.sqrt(((u_base - u) ** 2).sum(1).mean()))
-        print(f"block {key[0]} cap {key[1]} regs {key[2]}: base vs arena RMS difference {d:.3e} m ({d / rms:.2e} of the RMS)")
+        print(f"{name(key)}: base vs arena RMS difference {d:.3e} m ({d / rms:.2e} of the RMS)")
     for k, v in res.items():
-        print(f"{k}: median {1e3 * float(np.median(v)):.4f} ms a substep")
+        print(f"{k if k == 'base' else name(k)}: median {1e3 * float(np.median(v)):.4f} ms a substep")
 
 
 if __name__ == "__main__":
