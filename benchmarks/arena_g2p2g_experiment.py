@@ -101,14 +101,15 @@ def block_sync():
     ...
 
 
-def block_order(X: np.ndarray, dx: float, tile: int, *, interleave: bool = False) -> np.ndarray:
+def block_order(X: np.ndarray, dx: float, tile: int, *, interleave: int = 0) -> np.ndarray:
     """A permutation [N] sorting positions ``X`` [m] by the grid block (``tile`` cells a side)
     of their stencil base cell, x-major, then by the base cell within the block, x-major.
 
-    ``interleave``: within a grid block, first every cell's first particle, then every cell's
-    second, and so on, so a GPU warp's lanes lie in different cells and its shared atomics on
-    one stencil node go to different addresses (in cell order the ~8 lanes of a cell add to the
-    same node, one after the other)."""
+    ``interleave`` (cells, 0: off): within a grid block, the cells in groups of that many (in
+    the block's cell order), and within a group first every cell's first particle, then every
+    cell's second, and so on. With groups of 32 a GPU warp's lanes lie in 32 cells, so its
+    shared atomics on one stencil node go to different addresses (in cell order the ~8 lanes of
+    a cell add to the same node, one after the other)."""
     base = np.floor(X.astype(np.float64) / dx - 0.5).astype(np.int64)
     blk, cell = base // tile, base % tile
     order = np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0], blk[:, 2], blk[:, 1], blk[:, 0]))
@@ -119,7 +120,8 @@ def block_order(X: np.ndarray, dx: float, tile: int, *, interleave: bool = False
     starts = np.flatnonzero(new_cell)
     rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
     k = key.T
-    return order[np.lexsort((k[5], k[4], k[3], rank, k[2], k[1], k[0]))]
+    group = ((k[3] * tile + k[4]) * tile + k[5]) // interleave
+    return order[np.lexsort((k[5], k[4], k[3], rank, group, k[2], k[1], k[0]))]
 
 
 def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles"):
@@ -397,8 +399,9 @@ def main():
     ap.add_argument("--transfer", default="affine_flip", choices=["affine_flip", "apic"])
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--tile", type=int, default=4, help="grid block side [cells] of the particles' order")
-    ap.add_argument("--interleave", action="store_true",
-                    help="within a grid block, the cells' first particles, then their second, ... (block_order)")
+    ap.add_argument("--interleave", type=int, default=0,
+                    help="cells a group: within a grid block's groups of cells, the cells' first particles, then "
+                         "their second, ... (block_order; 0: cell order)")
     ap.add_argument("--warm", type=int, default=40)
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--repeats", type=int, default=3)
