@@ -35,6 +35,7 @@ each block size and arena capacity, ``--repeats`` times, and compares the displa
     python3 benchmarks/arena_g2p2g_experiment.py --object pillow --profile paper --particles OUT/pillow.npz
 """
 import argparse
+import math
 from typing import Any
 
 import numpy as np
@@ -95,6 +96,41 @@ def arena_seti(a: wp.uint64, i: int, x: int):
     ...
 
 
+@wp.func_native(_native("atomicAdd(((unsigned long long*)a) + i, (unsigned long long)x);",
+                        "((long long*)a)[i] += x;"))
+def arena_add64(a: wp.uint64, i: int, x: wp.int64):
+    """Adds ``x`` to int64 ``i`` of the arena at ``a`` (a shared integer atomic on a GPU)."""
+    ...
+
+
+@wp.func_native("return ((long long*)a)[i];")
+def arena_get64(a: wp.uint64, i: int) -> wp.int64:
+    ...
+
+
+@wp.func
+def float_sum_add(a: wp.uint64, slot: int, x: float, scale: float):
+    """Adds ``x`` to the arena's float sum ``slot`` (after the eight header ints)."""
+    arena_add(a, 8 + slot, x)
+
+
+@wp.func
+def float_sum_get(a: wp.uint64, slot: int, scale: float) -> float:
+    return arena_get(a, 8 + slot)
+
+
+@wp.func
+def fixed_sum_add(a: wp.uint64, slot: int, x: float, scale: float):
+    """Adds ``x`` to the arena's int64 sum ``slot`` (after the header's four int64s) in units of
+    ``1 / scale``, rounded to the nearest unit (no overflow check: an experiment)."""
+    arena_add64(a, 4 + slot, wp.int64(wp.round(x * scale)))
+
+
+@wp.func
+def fixed_sum_get(a: wp.uint64, slot: int, scale: float) -> float:
+    return float(wp.float64(arena_get64(a, 4 + slot)) / wp.float64(scale))
+
+
 @wp.func_native(_native("__syncthreads();", ""))
 def block_sync():
     """A barrier across the CUDA block (nothing on the CPU)."""
@@ -124,7 +160,13 @@ def block_order(X: np.ndarray, dx: float, tile: int, *, interleave: int = 0) -> 
     return order[np.lexsort((k[5], k[4], k[3], rank, group, k[2], k[1], k[0]))]
 
 
-def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles"):
+def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles", scales: tuple = (1.0, 1.0)):
+    """The fused kernel: ``arena`` ``"tiles"`` (Warp's tile_scatter_add), ``"atomics"`` (float
+    shared atomics) or ``"fixed"`` (int64 shared atomics in units of 1 / ``scales`` = (mass,
+    momentum) scales, converted back to floats at the flush)."""
+    fixed = arena == "fixed"
+    add, get = (fixed_sum_add, fixed_sum_get) if fixed else (float_sum_add, float_sum_get)
+    scale_m, scale_p = scales
     def g2p2g_arena(
         grid_v: wp.array(dtype=wp.vec3),
         inv_dx: float,
@@ -283,7 +325,7 @@ def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles"):
         p = b * threads + lane
         arena = arena_address()
         big = int(1073741824)
-        for idx in range(lane, wp.static(cap * (7 if affine_flip == 1 else 4)), threads):
+        for idx in range(lane, wp.static(cap * (7 if affine_flip == 1 else 4) * (2 if fixed else 1)), threads):
             arena_set(arena, 8 + idx, 0.0)
         for d in range(lane, 3, threads):
             arena_seti(arena, d, big)
@@ -310,6 +352,8 @@ def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles"):
         fits = any_valid and e0 * e1 * e2 <= wp.static(cap)
         w = bspline_weights(f)
         q4 = wp.vec4(mvp[0], mvp[1], mvp[2], m)
+        sp = float(wp.static(scale_p))
+        sm_ = float(wp.static(scale_m))
         if valid:
             for i in range(3):
                 for j in range(3):
@@ -317,15 +361,15 @@ def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles"):
                         a, am, old = weighted_node_term(w[i, 0] * w[j, 1] * w[k, 2], f, q4, aff, mCp, i, j, k, dx,
                                                         wp.static(affine_flip))
                         if fits:
-                            idx = 8 + ((base[0] + i - o0) * e1 + (base[1] + j - o1)) * e2 + (base[2] + k - o2)
-                            arena_add(arena, idx, a[0])
-                            arena_add(arena, idx + wp.static(cap), a[1])
-                            arena_add(arena, idx + wp.static(2 * cap), a[2])
-                            arena_add(arena, idx + wp.static(3 * cap), am)
+                            idx = ((base[0] + i - o0) * e1 + (base[1] + j - o1)) * e2 + (base[2] + k - o2)
+                            wp.static(add)(arena, idx, a[0], sp)
+                            wp.static(add)(arena, idx + wp.static(cap), a[1], sp)
+                            wp.static(add)(arena, idx + wp.static(2 * cap), a[2], sp)
+                            wp.static(add)(arena, idx + wp.static(3 * cap), am, sm_)
                             if wp.static(affine_flip == 1):
-                                arena_add(arena, idx + wp.static(4 * cap), old[0])
-                                arena_add(arena, idx + wp.static(5 * cap), old[1])
-                                arena_add(arena, idx + wp.static(6 * cap), old[2])
+                                wp.static(add)(arena, idx + wp.static(4 * cap), old[0], sp)
+                                wp.static(add)(arena, idx + wp.static(5 * cap), old[1], sp)
+                                wp.static(add)(arena, idx + wp.static(6 * cap), old[2], sp)
                         else:
                             node = ((base[0] + i) * n_grid + base[1] + j) * n_grid + base[2] + k
                             wp.atomic_add(grid_mv, node, a)
@@ -337,25 +381,25 @@ def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles"):
         block_sync()
         if fits:
             for idx in range(lane, e0 * e1 * e2, threads):
-                sm = arena_get(arena, 8 + wp.static(3 * cap) + idx)
+                sm = wp.static(get)(arena, wp.static(3 * cap) + idx, sm_)
                 if sm != 0.0:
                     gi = o0 + idx // (e1 * e2)
                     gj = o1 + (idx // e2) % e1
                     gk = o2 + idx % e2
                     node = (gi * n_grid + gj) * n_grid + gk
-                    wp.atomic_add(grid_mv, node, wp.vec3(arena_get(arena, 8 + idx),
-                                                         arena_get(arena, 8 + wp.static(cap) + idx),
-                                                         arena_get(arena, 8 + wp.static(2 * cap) + idx)))
+                    wp.atomic_add(grid_mv, node, wp.vec3(wp.static(get)(arena, idx, sp),
+                                                         wp.static(get)(arena, wp.static(cap) + idx, sp),
+                                                         wp.static(get)(arena, wp.static(2 * cap) + idx, sp)))
                     wp.atomic_add(grid_m, node, sm)
                     if wp.static(affine_flip == 1):
-                        wp.atomic_add(grid_mv_old, node, wp.vec3(arena_get(arena, 8 + wp.static(4 * cap) + idx),
-                                                                 arena_get(arena, 8 + wp.static(5 * cap) + idx),
-                                                                 arena_get(arena, 8 + wp.static(6 * cap) + idx)))
+                        wp.atomic_add(grid_mv_old, node, wp.vec3(wp.static(get)(arena, wp.static(4 * cap) + idx, sp),
+                                                                 wp.static(get)(arena, wp.static(5 * cap) + idx, sp),
+                                                                 wp.static(get)(arena, wp.static(6 * cap) + idx, sp)))
 
-    if arena == "atomics":
-        if cap > 1024:
-            raise SystemExit("--cap: the shared-atomics arena holds at most 1024 nodes")
-        return wp.kernel(g2p2g_atomics, name=f"g2p2g_atomics_{cap}_{regs}_{affine_flip}",
+    if arena in ("atomics", "fixed"):
+        if cap > (512 if fixed else 1024):
+            raise SystemExit("--cap: the shared-atomics arena holds at most 1024 float or 512 int64 nodes")
+        return wp.kernel(g2p2g_atomics, name=f"g2p2g_{arena}_{cap}_{regs}_{affine_flip}",
                          cuda_max_registers=regs or None, module="unique", enable_backward=False)
     return wp.kernel(g2p2g_arena, name=f"g2p2g_arena_{cap}_{regs}_{affine_flip}", cuda_max_registers=regs or None,
                      module="unique")
@@ -408,9 +452,10 @@ def main():
     ap.add_argument("--block", type=int, nargs="+", default=[256], help="threads (particles) a CUDA block")
     ap.add_argument("--cap", type=int, nargs="+", default=[1024], help="arena nodes")
     ap.add_argument("--regs", type=int, nargs="+", default=[0], help="register caps (0: none)")
-    ap.add_argument("--arena", nargs="+", choices=["tiles", "atomics"], default=["tiles"],
-                    help="how a block sums into its arena: Warp's tile_scatter_add (a block barrier a scatter) or "
-                         "shared atomics through native snippets (three barriers a block)")
+    ap.add_argument("--arena", nargs="+", choices=["tiles", "atomics", "fixed"], default=["tiles"],
+                    help="how a block sums into its arena: Warp's tile_scatter_add (a block barrier a scatter), "
+                         "float shared atomics through native snippets (three barriers a block), or int64 shared "
+                         "atomics of fixed-point units (the reproducible P2G's)")
     args = ap.parse_args()
     from knockgs_core.sim import MPMSolver, make_state
 
@@ -451,7 +496,10 @@ def main():
                                      D["grid_m"].flatten(), D["grid_mv_old"].flatten()], device=dev)
         return fused
 
-    made = {(ar, cap, regs): make_kernel(cap, regs, pipe.flip, ar) for ar in args.arena for cap in args.cap
+    mass = float(model.particle_mass.numpy().astype(np.float64).sum())  # the solver's fixed-point units
+    scales = (math.ldexp(1.0, 61 - math.ceil(math.log2(mass))),
+              math.ldexp(1.0, 61 - math.ceil(math.log2(mass * 64.0 * p.dx / p.dt))))
+    made = {(ar, cap, regs): make_kernel(cap, regs, pipe.flip, ar, scales) for ar in args.arena for cap in args.cap
             for regs in args.regs}
     kernels = {(ar, bd, cap, regs): made[ar, cap, regs] for ar in args.arena for bd in args.block for cap in args.cap
                for regs in args.regs}
