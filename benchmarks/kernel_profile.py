@@ -55,7 +55,7 @@ def main() -> None:
                          "profiled")
     ap.add_argument("--deterministic", nargs="+", choices=["on", "off", "fixed"], default=["off"],
                     help="the bitwise-reproducible P2G (MPMSolver(deterministic=...); on: by cells, sorted every "
-                         "substep, gathered; fixed: the windows' sums added as fixed-point integers, "
+                         "substep, gathered, reproducible_sums='gather'; fixed: the windows' sums added as fixed-point integers, "
                          "reproducible_sums='fixed_point'), each profiled; list one twice to compare the runs' bits "
                          "(MD5 of u)")
     ap.add_argument("--fast-math", action="store_true",
@@ -121,7 +121,7 @@ def main() -> None:
             continue
         solver = MPMSolver(model, p2g=p2g, graph=graph, fuse=fuse, max_chunk_slots=slots or None, resort_every=resort,
                            cell_chunk=chunk, node_line=line, cell_sums=sums, deterministic=det != "off",
-                           reproducible_sums="fixed_point" if det == "fixed" else None,
+                           reproducible_sums={"on": "gather", "fixed": "fixed_point"}.get(det),
                            polar_update=polar_update, g2p_sums=g2p_sums,
                            **({} if polar_step is None else {"polar_step": polar_step}))
         solver.check(state)

@@ -59,7 +59,7 @@ def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: st
     model.deformation_storage = deformation_storage
     state = make_state(model, X)
     reproducible = p2g in ("cells-reproducible", "cells-fixed")  # MPMSolver(deterministic=True): no float atomics on the grid
-    fixed = {"reproducible_sums": "fixed_point"} if p2g == "cells-fixed" else {}
+    fixed = {"reproducible_sums": "fixed_point" if p2g == "cells-fixed" else "gather"} if reproducible else {}
     solver = MPMSolver(model, graph=graph, p2g="cells" if reproducible else p2g, deterministic=reproducible, **fixed,
                        node_line=line,
                        cell_sums=None if reproducible else sums, g2p_sums=g2p_sums, polar_update=polar_update)
@@ -129,8 +129,9 @@ def main() -> None:
     ap.add_argument("--graph", choices=["auto", "off", "both"], default="auto",
                     help="substeps as CUDA graphs (auto: on a CUDA device); both: each case with and without")
     ap.add_argument("--p2g", nargs="+", choices=["auto", "scatter", "cells", "cells-reproducible", "cells-fixed"],
-                    default=["auto"], help="P2G variants (cells-reproducible: MPMSolver(deterministic=True); cells-fixed: "
-                                           "the same with reproducible_sums='fixed_point')")
+                    default=["auto"], help="P2G variants (cells-reproducible: MPMSolver(deterministic=True, "
+                                           "reproducible_sums='gather'); cells-fixed: the same with "
+                                           "reproducible_sums='fixed_point')")
     ap.add_argument("--order", nargs="+", choices=["lattice", "cell"], default=["lattice"],
                     help="the particles' order: the lattice's, or sorted by stencil base cell")
     ap.add_argument("--ppc", nargs="+", type=int, default=[8], help="particles per cell of the block (cubes: 8, 27, 64)")

@@ -539,15 +539,17 @@ class MPMSolver:
 
     ``deterministic``: a GPU rollout the same bit for bit on every run. Float atomics add a
     node's contributions in the order the GPU schedules its threads, so the last bits of a GPU
-    rollout vary between runs. Deterministic, the P2G by cells (chosen whatever the crowding)
-    sorts every substep, stores each chunk's sums to its 27 nodes and has each node gather
-    them in a fixed order (:func:`~knockgs_core.sim._kernels.p2g_gather`): no float atomics on
-    the grid. The same sums as the other variants, in another order (the CPU's scatter stays
-    the default there); the cost on a GPU is in benchmarks/README.md.
-    ``reproducible_sums="fixed_point"`` makes it reproducible another way: the default path's
-    window sums, each summed in a fixed order, are added to the nodes as int64 fixed-point sums
+    rollout vary between runs. Deterministic, the P2G is by cells (chosen whatever the
+    crowding) and its sums are reproducible in the way ``reproducible_sums`` names (the class
+    attribute documents both): by default (``"fixed_point"``) the default path's window sums,
+    each summed in a fixed order, are added to the nodes as int64 fixed-point sums
     (:func:`~knockgs_core.sim._kernels.window_sums_fixed`), whose integer atomics give one sum
-    in any order (the class attribute documents it).
+    in any order; ``"gather"`` sorts every substep, stores each chunk's sums to its 27 nodes
+    and has each node gather them in a fixed order
+    (:func:`~knockgs_core.sim._kernels.p2g_gather`). Either way no float atomics reach the
+    grid. The same sums as the other variants, in another order and, in fixed point, rounded to
+    its units (the CPU's scatter stays the default there); the cost on a GPU is in
+    benchmarks/README.md.
 
     ``polar_step`` and ``polar_update``: the polar iterations' step near convergence and how it
     is taken, and ``g2p_sums``: how G2P sums its stencil (the class attributes of the same names
@@ -618,16 +620,18 @@ class MPMSolver:
     #: Ficus 0.142 against 0.158-0.163, Vasedeck 0.068 against 0.079, the 681k block 0.429
     #: against 0.448; APIC, the block: 0.377 against 0.349
     cell_sums: str = "auto"
-    #: how the bitwise-reproducible P2G (``deterministic=True``) sums: ``"gather"`` (each chunk's
-    #: sums stored, sorted every substep, gathered by each node in a fixed order) or
-    #: ``"fixed_point"`` (the windows' run sums added as int64 sums in units of a power of two:
-    #: the object's mass, and its mass times 64 dx / dt, at 2^61 units or less, so a unit is
-    #: 4e-19 to 9e-19 of each: of the momenta, 3e-17 to 6e-17 of the mass times dx / dt;
-    #: integer atomics, so the sums and the rollout
-    #: are the same in any order the GPU runs them; the grid update reads and zeroes them). A
-    #: run sum added at or above 2^61 units stops the rollout at the next guard check
-    #: (:meth:`check`). The fixed-point sums hold 56 bytes a grid node
-    reproducible_sums: str = "gather"
+    #: how the bitwise-reproducible P2G (``deterministic=True``) sums: ``"fixed_point"`` (the
+    #: default path's window run sums added as int64 sums in units of a power of two: the
+    #: object's mass, and its mass times 64 dx / dt, at 2^61 units or less, so a unit is 4e-19
+    #: to 9e-19 of each: of the momenta, 3e-17 to 6e-17 of the mass times dx / dt; integer
+    #: atomics, so the sums and the rollout are the same in any order the GPU runs them; the
+    #: grid update reads and zeroes them; a run sum added at or above 2^61 units stops the
+    #: rollout at the next guard check (:meth:`check`); they hold 56 bytes a grid node) or
+    #: ``"gather"`` (each chunk's sums stored, sorted every substep, gathered by each node in a
+    #: fixed order). Measured on a lent H200 (benchmarks/README.md, "fixed-point sums on a
+    #: GPU"): the paper-scale Pillow 0.247 ms a substep by fixed point, 0.448 by gathers, 0.238
+    #: not reproducible; two fixed-point runs give one MD5
+    reproducible_sums: str = "fixed_point"
 
     @classmethod
     def auto_p2g(cls, cuda: bool, crowding: float | None) -> str:
