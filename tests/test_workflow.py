@@ -314,6 +314,18 @@ def test_bad_config_is_a_clear_error(tmp_path):
     assert out.returncode != 0 and "unknown_key" in out.stdout + out.stderr
 
 
+def test_boolean_config_values_are_read_as_yaml_writes_them(tmp_path):
+    # --config deterministic=true: Snakemake reads "true" as a string, which the schema's
+    # boolean refused; YAML's true and false are now read as booleans, other words still refused
+    work = scratch_copy(tmp_path)
+    table = "results/ci/tables/main_pillow.csv"
+    for value in ("true", "false", "True"):
+        out = snakemake(work, "-n", "--configfile=config/ci.yaml", "--config", f"deterministic={value}", "--", table)
+        assert out.returncode == 0, (value, out.stderr[-2000:])
+    bad = snakemake(work, "-n", "--configfile=config/ci.yaml", "--config", "deterministic=maybe", "--", table)
+    assert bad.returncode != 0 and "deterministic" in bad.stdout + bad.stderr and "'maybe'" in bad.stdout + bad.stderr
+
+
 def _planned(work: Path, *args) -> dict:
     out = snakemake(work, "-n", *args)
     assert out.returncode == 0, out.stderr[-3000:]

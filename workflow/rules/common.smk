@@ -26,6 +26,21 @@ from knockgs_core.experiments import (
 from knockgs_core.rollout import theta_tag
 
 
+def _yaml_booleans(config, schema_file):
+    """``--config deterministic=true``: Snakemake reads a command-line value as a number,
+    ``True`` or ``False``, else a string. Where the schema asks for a boolean, YAML's ``true``
+    and ``false`` (as a config file writes them) are read as booleans too; other strings stay,
+    for the schema to refuse."""
+    import yaml
+
+    with open(schema_file) as f:
+        props = yaml.safe_load(f)["properties"]
+    for key, value in config.items():
+        if props.get(key, {}).get("type") == "boolean" and isinstance(value, str) and value.lower() in ("true", "false"):
+            config[key] = value.lower() == "true"
+
+
+_yaml_booleans(config, os.path.join(workflow.current_basedir, "../schemas/config.schema.yaml"))
 validate(config, "../schemas/config.schema.yaml", set_default=True)
 
 PROFILE = config["profile"]
