@@ -14,15 +14,26 @@ equal base cells, stencil node and sum; ~24 a particle on the 8-a-cell block). H
   next P2G terms in registers;
 - the block reduces its particles' stencil base cells to a bounding box; where the box's nodes
   fit the arena (``--cap`` nodes), each thread adds its 27 stencil contributions to the arena
-  in shared memory with shared atomics (``tile_scatter_add``), and the block then adds each
-  arena node that received mass to the next grid with one atomic per sum; a block whose box
-  does not fit adds its particles' contributions to the grid directly (counted: ``spilled``).
+  in shared memory, and the block then adds each arena node that received mass to the next
+  grid with one atomic per sum; a block whose box does not fit adds its particles'
+  contributions to the grid directly (counted: ``spilled``).
+
+How the block sums into its arena (``--arena``): ``tiles``, Warp's ``tile_scatter_add`` (a
+block barrier after every scatter, the box by tile reductions); ``atomics``, float shared
+atomics on a ``__shared__`` array of CUDA snippets (``wp.func_native``: ``arena_address``,
+``arena_add``, ``block_sync``; three barriers a block, the box by shared ``atomicMin`` /
+``atomicMax``); ``fixed``, int64 shared atomics in the reproducible P2G's fixed-point units,
+converted back to floats at the flush. ``--interleave G`` orders each grid block's cells in
+groups of G and, within a group, every cell's first particle, then every cell's second, ..., so
+a warp's lanes lie in different cells and its shared atomics on one stencil node go to
+different addresses.
 
 No stored terms, no sort, no window kernel; the grid is double-buffered (node velocities read
 from one set of grids, sums added to another, swapped every substep), so a substep is: zero the
 other grids, the grid update and supports, the fused kernel. On the CPU (one lane a block) a
-block is one particle, so the arena only checks the indexing: there the pipeline agrees with the
-solver's scatter path to float rounding.
+block is one particle (the snippets' arena a static array, their barrier nothing), so the arena
+only checks the indexing: there the float arenas give the solver's scatter path bit for bit,
+the int64 one to its units' rounding.
 
 Builds the object's model (``block``: ``sim_bench.py``'s 681k jelly block; or a contract's
 object), the particles in grid-block order, runs ``--warm`` substeps, then from one saved state
@@ -30,8 +41,10 @@ times ``--steps`` substeps of the solver's default GPU path (graphs) and of the 
 each block size and arena capacity, ``--repeats`` times, and compares the displacements.
 
     python3 benchmarks/arena_g2p2g_experiment.py --object block --particles-count 20000 --n-grid 32 --device cpu \
-        --warm 20 --steps 10 --repeats 1
+        --warm 20 --steps 10 --repeats 1 --arena tiles atomics fixed --cap 26 512
     python3 benchmarks/arena_g2p2g_experiment.py --object block --device cuda:0 --block 128 256 --cap 512 1024
+    python3 benchmarks/arena_g2p2g_experiment.py --object block --device cuda:0 --transfer apic --interleave 64 \
+        --arena atomics fixed --block 128 256 --cap 512
     python3 benchmarks/arena_g2p2g_experiment.py --object pillow --profile paper --particles OUT/pillow.npz
 """
 import argparse
