@@ -177,9 +177,15 @@ def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles", sca
     """The fused kernel: ``arena`` ``"tiles"`` (Warp's tile_scatter_add), ``"atomics"`` (float
     shared atomics) or ``"fixed"`` (int64 shared atomics in units of 1 / ``scales`` = (mass,
     momentum) scales, converted back to floats at the flush)."""
-    fixed = arena == "fixed"
+    if arena not in ("tiles", "atomics", "fixed"):
+        raise SystemExit(f"--arena: unknown {arena!r}")
+    tiles, fixed = arena == "tiles", arena == "fixed"
+    if not tiles and cap > (512 if fixed else 1024):
+        raise SystemExit("--cap: the shared-atomics arena holds at most 1024 float or 512 int64 nodes")
     add, get = (fixed_sum_add, fixed_sum_get) if fixed else (float_sum_add, float_sum_get)
     scale_m, scale_p = scales
+    sums = 7 if affine_flip == 1 else 4  # an atomics arena's sums a node
+
     def g2p2g_arena(
         grid_v: wp.array(dtype=wp.vec3),
         inv_dx: float,
@@ -217,205 +223,110 @@ def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles", sca
         grid_m: wp.array(dtype=float),
         grid_mv_old: wp.array(dtype=wp.vec3),
     ):
+        # an atomics arena: ints 0-5 the block's box of base cells, then the node sums by
+        # component (momentum 0-2, mass 3, stress-free momentum 4-6), ``cap`` nodes a component
         b, lane = wp.tid()
         threads = wp.block_dim()
         p = b * threads + lane
+        big = int(1073741824)
+        arena = wp.uint64(0)
+        if wp.static(not tiles):
+            arena = arena_address()
+            for idx in range(lane, wp.static(cap * sums * (2 if fixed else 1)), threads):
+                arena_set(arena, 8 + idx, 0.0)
+            for d in range(lane, 3, threads):
+                arena_seti(arena, d, big)
+                arena_seti(arena, 3 + d, -big)
+            block_sync()
         valid, base, f, mvp, m, aff, mCp = g2p_next_terms(p, count, grid_v, inv_dx, dt, trans_mask, trans_velocity,
                                                           trans_on, lo, hi, x0, wp.static(affine_flip), flip_weight,
                                                           grid_v_old, g2p_lines, mass, vol, mu, lam, probe_mask,
                                                           probe_force, probe_on, polar_iters, polar_step, polar_rational,
                                                           retardation, n_grid, u, v, C, F, rot, overrun)
-        big = int(1073741824)
-        l0 = big
-        l1 = big
-        l2 = big
-        h0 = -big
-        h1 = -big
-        h2 = -big
-        if valid:
-            l0 = base[0]
-            l1 = base[1]
-            l2 = base[2]
-            h0 = base[0]
-            h1 = base[1]
-            h2 = base[2]
-        t_l0 = wp.tile_min(wp.tile(l0))
-        t_l1 = wp.tile_min(wp.tile(l1))
-        t_l2 = wp.tile_min(wp.tile(l2))
-        t_h0 = wp.tile_max(wp.tile(h0))
-        t_h1 = wp.tile_max(wp.tile(h1))
-        t_h2 = wp.tile_max(wp.tile(h2))
-        o0 = t_l0[0]
-        o1 = t_l1[0]
-        o2 = t_l2[0]
-        e0 = t_h0[0] - o0 + 3
-        e1 = t_h1[0] - o1 + 3
-        e2 = t_h2[0] - o2 + 3
-        a_mv = wp.tile_zeros(shape=wp.static(cap), dtype=wp.vec4, storage="shared")
-        a_old = wp.tile_zeros(shape=wp.static(cap), dtype=wp.vec3, storage="shared")
+        # the block's box of base cells: origin o, extent e (nodes)
+        o = wp.vec3i(0)
+        e = wp.vec3i(0)
+        if wp.static(tiles):
+            lo_p = wp.vec3i(big)
+            hi_p = wp.vec3i(-big)
+            if valid:
+                lo_p = base
+                hi_p = base
+            for d in range(3):
+                o[d] = wp.tile_min(wp.tile(lo_p[d]))[0]
+                e[d] = wp.tile_max(wp.tile(hi_p[d]))[0] - o[d] + 3
+        else:
+            if valid:
+                for d in range(3):
+                    arena_min(arena, d, base[d])
+                    arena_max(arena, 3 + d, base[d])
+            block_sync()
+            for d in range(3):
+                o[d] = arena_geti(arena, d)
+                e[d] = arena_geti(arena, 3 + d) - o[d] + 3
         dx = 1.0 / inv_dx
-        any_valid = e0 > 0
-        fits = any_valid and e0 * e1 * e2 <= wp.static(cap)
+        any_valid = e[0] > 0
+        fits = any_valid and e[0] * e[1] * e[2] <= wp.static(cap)
         w = bspline_weights(f)
         q4 = wp.vec4(mvp[0], mvp[1], mvp[2], m)  # momentum and mass, as the solver's node terms take them
-        if fits:
-            for i in range(3):
-                for j in range(3):
-                    for k in range(3):
-                        a, am, old = weighted_node_term(w[i, 0] * w[j, 1] * w[k, 2], f, q4, aff, mCp, i, j, k, dx,
-                                                        wp.static(affine_flip))
-                        idx = ((base[0] + i - o0) * e1 + (base[1] + j - o1)) * e2 + (base[2] + k - o2)
-                        wp.tile_scatter_add(a_mv, idx, wp.vec4(a[0], a[1], a[2], am), valid)
-                        if wp.static(affine_flip == 1):
-                            wp.tile_scatter_add(a_old, idx, old, valid)
-            for idx in range(lane, e0 * e1 * e2, threads):
-                s = a_mv[idx]
-                if s[3] != 0.0:
-                    gi = o0 + idx // (e1 * e2)
-                    gj = o1 + (idx // e2) % e1
-                    gk = o2 + idx % e2
-                    node = (gi * n_grid + gj) * n_grid + gk
-                    wp.atomic_add(grid_mv, node, wp.vec3(s[0], s[1], s[2]))
-                    wp.atomic_add(grid_m, node, s[3])
-                    if wp.static(affine_flip == 1):
-                        wp.atomic_add(grid_mv_old, node, a_old[idx])
-        elif any_valid:
-            if lane == 0:
-                wp.atomic_add(spilled, 0, 1)
-            if valid:
-                for i in range(3):
-                    for j in range(3):
-                        for k in range(3):
-                            a, am, old = weighted_node_term(w[i, 0] * w[j, 1] * w[k, 2], f, q4, aff, mCp, i, j, k,
-                                                            dx, wp.static(affine_flip))
-                            node = ((base[0] + i) * n_grid + base[1] + j) * n_grid + base[2] + k
-                            wp.atomic_add(grid_mv, node, a)
-                            wp.atomic_add(grid_m, node, am)
-                            if wp.static(affine_flip == 1):
-                                wp.atomic_add(grid_mv_old, node, old)
-
-    def g2p2g_atomics(
-        grid_v: wp.array(dtype=wp.vec3),
-        inv_dx: float,
-        dt: float,
-        trans_mask: wp.array(dtype=wp.int32),
-        trans_velocity: wp.vec3,
-        trans_on: int,
-        lo: wp.vec3i,
-        hi: wp.vec3i,
-        x0: wp.array(dtype=wp.vec3),
-        flip_weight: float,
-        grid_v_old: wp.array(dtype=wp.vec3),
-        g2p_lines: int,
-        mass: wp.array(dtype=float),
-        vol: wp.array(dtype=float),
-        mu: wp.array(dtype=float),
-        lam: wp.array(dtype=float),
-        probe_mask: wp.array(dtype=wp.int32),
-        probe_force: wp.vec3,
-        probe_on: int,
-        polar_iters: int,
-        polar_step: float,
-        polar_rational: int,
-        retardation: float,
-        n_grid: int,
-        count: int,
-        u: wp.array(dtype=wp.vec3),
-        v: wp.array(dtype=wp.vec3),
-        C: Any,
-        F: Any,
-        rot: wp.array(dtype=wp.quat),
-        overrun: wp.array(dtype=wp.int32),
-        spilled: wp.array(dtype=wp.int32),
-        grid_mv: wp.array(dtype=wp.vec3),
-        grid_m: wp.array(dtype=float),
-        grid_mv_old: wp.array(dtype=wp.vec3),
-    ):
-        # the arena: ints 0-5 the block's box of base cells, then the node sums by component
-        # (momentum 0-2, mass 3, stress-free momentum 4-6), ``cap`` nodes a component
-        b, lane = wp.tid()
-        threads = wp.block_dim()
-        p = b * threads + lane
-        arena = arena_address()
-        big = int(1073741824)
-        for idx in range(lane, wp.static(cap * (7 if affine_flip == 1 else 4) * (2 if fixed else 1)), threads):
-            arena_set(arena, 8 + idx, 0.0)
-        for d in range(lane, 3, threads):
-            arena_seti(arena, d, big)
-            arena_seti(arena, 3 + d, -big)
-        block_sync()
-        valid, base, f, mvp, m, aff, mCp = g2p_next_terms(p, count, grid_v, inv_dx, dt, trans_mask, trans_velocity,
-                                                          trans_on, lo, hi, x0, wp.static(affine_flip), flip_weight,
-                                                          grid_v_old, g2p_lines, mass, vol, mu, lam, probe_mask,
-                                                          probe_force, probe_on, polar_iters, polar_step, polar_rational,
-                                                          retardation, n_grid, u, v, C, F, rot, overrun)
-        if valid:
-            for d in range(3):
-                arena_min(arena, d, base[d])
-                arena_max(arena, 3 + d, base[d])
-        block_sync()
-        o0 = arena_geti(arena, 0)
-        o1 = arena_geti(arena, 1)
-        o2 = arena_geti(arena, 2)
-        e0 = arena_geti(arena, 3) - o0 + 3
-        e1 = arena_geti(arena, 4) - o1 + 3
-        e2 = arena_geti(arena, 5) - o2 + 3
-        dx = 1.0 / inv_dx
-        any_valid = e0 > 0
-        fits = any_valid and e0 * e1 * e2 <= wp.static(cap)
-        w = bspline_weights(f)
-        q4 = wp.vec4(mvp[0], mvp[1], mvp[2], m)
         sp = float(wp.static(scale_p))
-        sm_ = float(wp.static(scale_m))
-        if valid:
-            for i in range(3):
-                for j in range(3):
-                    for k in range(3):
-                        a, am, old = weighted_node_term(w[i, 0] * w[j, 1] * w[k, 2], f, q4, aff, mCp, i, j, k, dx,
-                                                        wp.static(affine_flip))
-                        if fits:
-                            idx = ((base[0] + i - o0) * e1 + (base[1] + j - o1)) * e2 + (base[2] + k - o2)
-                            wp.static(add)(arena, idx, a[0], sp)
-                            wp.static(add)(arena, idx + wp.static(cap), a[1], sp)
-                            wp.static(add)(arena, idx + wp.static(2 * cap), a[2], sp)
-                            wp.static(add)(arena, idx + wp.static(3 * cap), am, sm_)
+        sm = float(wp.static(scale_m))
+        if wp.static(tiles):
+            a_mv = wp.tile_zeros(shape=wp.static(cap), dtype=wp.vec4, storage="shared")
+            a_old = wp.tile_zeros(shape=wp.static(cap), dtype=wp.vec3, storage="shared")
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    a, am, old = weighted_node_term(w[i, 0] * w[j, 1] * w[k, 2], f, q4, aff, mCp, i, j, k, dx,
+                                                    wp.static(affine_flip))
+                    idx = ((base[0] + i - o[0]) * e[1] + (base[1] + j - o[1])) * e[2] + (base[2] + k - o[2])
+                    if wp.static(tiles):
+                        if fits:  # every thread of the block takes part in a tile's scatter
+                            wp.tile_scatter_add(a_mv, idx, wp.vec4(a[0], a[1], a[2], am), valid)
                             if wp.static(affine_flip == 1):
-                                wp.static(add)(arena, idx + wp.static(4 * cap), old[0], sp)
-                                wp.static(add)(arena, idx + wp.static(5 * cap), old[1], sp)
-                                wp.static(add)(arena, idx + wp.static(6 * cap), old[2], sp)
-                        else:
-                            node = ((base[0] + i) * n_grid + base[1] + j) * n_grid + base[2] + k
-                            wp.atomic_add(grid_mv, node, a)
-                            wp.atomic_add(grid_m, node, am)
-                            if wp.static(affine_flip == 1):
-                                wp.atomic_add(grid_mv_old, node, old)
+                                wp.tile_scatter_add(a_old, idx, old, valid)
+                    elif valid and fits:
+                        for c in range(3):
+                            wp.static(add)(arena, idx + c * wp.static(cap), a[c], sp)
+                        wp.static(add)(arena, idx + wp.static(3 * cap), am, sm)
+                        if wp.static(affine_flip == 1):
+                            for c in range(3):
+                                wp.static(add)(arena, idx + (4 + c) * wp.static(cap), old[c], sp)
+                    if valid and not fits:
+                        node = ((base[0] + i) * n_grid + base[1] + j) * n_grid + base[2] + k
+                        wp.atomic_add(grid_mv, node, a)
+                        wp.atomic_add(grid_m, node, am)
+                        if wp.static(affine_flip == 1):
+                            wp.atomic_add(grid_mv_old, node, old)
         if any_valid and not fits and lane == 0:
             wp.atomic_add(spilled, 0, 1)
-        block_sync()
+        if wp.static(not tiles):
+            block_sync()
         if fits:
-            for idx in range(lane, e0 * e1 * e2, threads):
-                sm = wp.static(get)(arena, wp.static(3 * cap) + idx, sm_)
-                if sm != 0.0:
-                    gi = o0 + idx // (e1 * e2)
-                    gj = o1 + (idx // e2) % e1
-                    gk = o2 + idx % e2
-                    node = (gi * n_grid + gj) * n_grid + gk
-                    wp.atomic_add(grid_mv, node, wp.vec3(wp.static(get)(arena, idx, sp),
-                                                         wp.static(get)(arena, wp.static(cap) + idx, sp),
-                                                         wp.static(get)(arena, wp.static(2 * cap) + idx, sp)))
-                    wp.atomic_add(grid_m, node, sm)
+            for idx in range(lane, e[0] * e[1] * e[2], threads):
+                s4 = wp.vec4(0.0)
+                s3 = wp.vec3(0.0)
+                if wp.static(tiles):
+                    s4 = a_mv[idx]
                     if wp.static(affine_flip == 1):
-                        wp.atomic_add(grid_mv_old, node, wp.vec3(wp.static(get)(arena, wp.static(4 * cap) + idx, sp),
-                                                                 wp.static(get)(arena, wp.static(5 * cap) + idx, sp),
-                                                                 wp.static(get)(arena, wp.static(6 * cap) + idx, sp)))
+                        s3 = a_old[idx]
+                else:
+                    for c in range(3):
+                        s4[c] = wp.static(get)(arena, idx + c * wp.static(cap), sp)
+                    s4[3] = wp.static(get)(arena, idx + wp.static(3 * cap), sm)
+                    if wp.static(affine_flip == 1):
+                        for c in range(3):
+                            s3[c] = wp.static(get)(arena, idx + (4 + c) * wp.static(cap), sp)
+                if s4[3] != 0.0:
+                    node = ((o[0] + idx // (e[1] * e[2])) * n_grid + o[1] + (idx // e[2]) % e[1]) * n_grid \
+                        + o[2] + idx % e[2]
+                    wp.atomic_add(grid_mv, node, wp.vec3(s4[0], s4[1], s4[2]))
+                    wp.atomic_add(grid_m, node, s4[3])
+                    if wp.static(affine_flip == 1):
+                        wp.atomic_add(grid_mv_old, node, s3)
 
-    if arena in ("atomics", "fixed"):
-        if cap > (512 if fixed else 1024):
-            raise SystemExit("--cap: the shared-atomics arena holds at most 1024 float or 512 int64 nodes")
-        return wp.kernel(g2p2g_atomics, name=f"g2p2g_{arena}_{cap}_{regs}_{affine_flip}",
-                         cuda_max_registers=regs or None, module="unique", enable_backward=False)
-    return wp.kernel(g2p2g_arena, name=f"g2p2g_arena_{cap}_{regs}_{affine_flip}", cuda_max_registers=regs or None,
-                     module="unique")
+    return wp.kernel(g2p2g_arena, name=f"g2p2g_{arena}_{cap}_{regs}_{affine_flip}", cuda_max_registers=regs or None,
+                     module="unique", enable_backward=False)
 
 
 def build(args):
