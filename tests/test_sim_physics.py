@@ -983,7 +983,8 @@ def test_chunk_sums_by_node_lines_are_the_sums_by_nodes_bit_for_bit(rng, transfe
     # one node: each particle's terms are read once for three nodes. Per node the same terms in
     # the same order, and with a thread per chunk a node still gets its chunks' sums in chunk
     # order: the same bits with float atomics (sorts every 3rd substep, chunks of 5, graphs and
-    # fused substeps), and in the reproducible P2G whatever the threads (chunks shared among two).
+    # fused substeps), and in the reproducible P2G by gathers whatever the threads (chunks shared
+    # among two).
     params, X = shell_scene(rng, transfer, shell=3000, guard_every=10)
     out = {}
     variants = ((False, None, False), (False, None, True), (True, None, False), (True, 2, True))
@@ -991,7 +992,7 @@ def test_chunk_sums_by_node_lines_are_the_sums_by_nodes_bit_for_bit(rng, transfe
         for line in (1, 3):
             model, state, solver = pushed_shell(params, X, 40, p2g="cells", deterministic=deterministic,
                                                 max_chunk_slots=slots, graph=graph, fuse=graph, resort_every=3,
-                                                cell_chunk=5, node_line=line, cell_sums="list")
+                                                cell_chunk=5, node_line=line, cell_sums="list", reproducible_sums="gather")
             assert solver.node_line == line
             out[deterministic, slots, graph, line] = [a.numpy().copy() for a in (state.particle_u, state.particle_F,
                                                                                  state.particle_v, state.grid_mv)]
