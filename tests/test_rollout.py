@@ -75,7 +75,7 @@ def test_rollouts_are_bitwise_deterministic(pillow_ci):
 
 def test_reproducible_rollouts_are_the_default_up_to_rounding_and_say_so(pillow_ci):
     # the reproducible P2G (deterministic=True, for GPU runs) sums the same terms in another
-    # order: the same motion to float rounding, the option recorded in the metadata
+    # order: the same motion to float rounding, the option and its sums recorded in the metadata
     contract, built = pillow_ci
     ps = built.particles
     a = run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps)
@@ -86,6 +86,7 @@ def test_reproducible_rollouts_are_the_default_up_to_rounding_and_say_so(pillow_
     assert disp > 1e-3
     assert np.abs(b.positions - a.positions).max() < 1e-4 * disp
     assert b.meta["deterministic"] is True and "deterministic" not in a.meta
+    assert b.meta["reproducible_sums"] == "fixed_point" and "reproducible_sums" not in a.meta
 
 
 def test_stiffer_heavier_scaling_on_an_asset(pillow_ci):

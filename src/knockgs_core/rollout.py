@@ -39,7 +39,7 @@ from ._long_format import (POSITION_COLUMNS, _has_field, _meta_field, check_roll
                            theta_tag)
 from ._long_writer import GROUP_ROWS, LONG_COMPRESSION, LongFormatStream, long_encoding, long_table
 from .errors import InputError
-from .sim import Probe, SimResult, build_model, make_state, particle_volumes, simulate_many
+from .sim import MPMSolver, Probe, SimResult, build_model, make_state, particle_volumes, simulate_many
 
 __all__ = [
     "Rollout",
@@ -139,7 +139,8 @@ def run_rollouts(
 
     ``deterministic``: the bitwise-reproducible P2G (``MPMSolver(deterministic=True)``): on a
     GPU the same rollout, bit for bit, on every run (the float atomics of the default P2G add
-    in the order the GPU schedules them); recorded in the metadata. CPU rollouts are
+    in the order the GPU schedules them); recorded in the metadata (``deterministic``, and
+    ``reproducible_sums``: how the sums were made reproducible, whose bits differ). CPU rollouts are
     reproducible either way (and differ between the two in the last bits)."""
     with _streamed(streams, len(runs), export_F) as on_frame:
         out = _simulate_rollouts(contract, runs, particles=particles, device=device, export_F=export_F, probe=probe,
@@ -273,6 +274,7 @@ def _simulate_rollouts(contract, runs, *, particles, device, export_F, probe, pr
             meta["particle_order"] = "cell"
         if deterministic:
             meta["deterministic"] = True
+            meta["reproducible_sums"] = MPMSolver.reproducible_sums  # how: their bits differ
         out.append(Rollout(positions=result.positions, F=result.F, meta=meta))
     return out
 
