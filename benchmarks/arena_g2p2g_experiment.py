@@ -48,7 +48,6 @@ each block size and arena capacity, ``--repeats`` times, and compares the displa
     python3 benchmarks/arena_g2p2g_experiment.py --object pillow --profile paper --particles OUT/pillow.npz
 """
 import argparse
-import math
 from typing import Any
 
 import numpy as np
@@ -56,6 +55,7 @@ import warp as wp
 from _fused_pipeline import FusedPipeline, g2p_next_terms
 
 from knockgs_core.sim._kernels import bspline_weights, weighted_node_term
+from knockgs_core.sim._solver import _FixedScratch
 
 #: floats of the shared-atomics arena: six int bounds (and two spare) and seven sums a node, up to 1,024 nodes
 ARENA_FLOATS = 8 + 7 * 1024
@@ -420,9 +420,8 @@ def main():
                                      D["grid_m"].flatten(), D["grid_mv_old"].flatten()], device=dev)
         return fused
 
-    mass = float(model.particle_mass.numpy().astype(np.float64).sum())  # the solver's fixed-point units
-    scales = (math.ldexp(1.0, 61 - math.ceil(math.log2(mass))),
-              math.ldexp(1.0, 61 - math.ceil(math.log2(mass * 64.0 * p.dx / p.dt))))
+    units = _FixedScratch(model)  # the solver's fixed-point units
+    scales = (units.scale_m, units.scale_p)
     made = {(ar, cap, regs): make_kernel(cap, regs, pipe.flip, ar, scales) for ar in args.arena for cap in args.cap
             for regs in args.regs}
     kernels = {(ar, bd, cap, regs): made[ar, cap, regs] for ar in args.arena for bd in args.block for cap in args.cap
