@@ -1,8 +1,11 @@
 """Same code on CPU and CUDA: a knocked jelly block simulated on both devices, and a random
 Gaussian scene rendered on both, compared. Float atomics make GPU sums order-dependent, so
-the simulator comparison is a tolerance on the response, not bitwise.
+the simulator comparison is a tolerance on the response, not bitwise. With ``--effects``, the
+reproducible P2G (fixed-point sums, as the paper profile runs) under each effect of the
+discrepancy loop's worlds: two runs on the device bit for bit, and their response against
+the device's default P2G and the CPU's.
 
-    python3 benchmarks/gpu_parity.py --device cuda:0
+    python3 benchmarks/gpu_parity.py --device cuda:0 --effects
 """
 
 from __future__ import annotations
@@ -33,6 +36,49 @@ def sim_parity(device: str) -> dict:
     return {"particles": len(X), "max_abs_diff": err, "max_displacement": scale, "relative": err / scale}
 
 
+def effects_reproducible(device: str) -> dict:
+    """A crowded block (8 particles a cell) knocked on a support, under each effect, for 30
+    substeps: per effect, whether two reproducible runs on ``device`` give one MD5, and the
+    largest differences (relative to the largest displacement) of a reproducible run against
+    the device's default P2G and against the CPU's (the scatter)."""
+    import hashlib
+
+    from knockgs_core.sim import (BodyForcePulse, Box, DomainWalls, FixedCuboid, Gravity, HiddenMass,
+                                  MaterialViscosity, PoissonShift, Probe, SimParams, StiffnessGradient, SupportFriction,
+                                  SupportSlip, VelocityDamping, VonMisesPlasticity, build_model, make_state,
+                                  simulate_many)
+
+    h = 1 / 64
+    axis = np.arange(0.85 + h / 2, 1.15, h)
+    zaxis = np.arange(0.8 + h / 2, 1.2, h)
+    X = np.stack(np.meshgrid(axis, axis, zaxis, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
+    params = SimParams(n_grid=32, dt=5e-4, guard_every=10,
+                       boundaries=(DomainWalls(), FixedCuboid(Box((1.0, 1.0, 0.78), (0.3, 0.3, 0.05)))))
+    effects = [None, VelocityDamping(rate=2.0), Gravity(g=9.8), VonMisesPlasticity(yield_stress=30.0),
+               MaterialViscosity(retardation_time=1e-3), SupportFriction(mu=0.3), SupportSlip(slip_time=0.01),
+               StiffnessGradient(slope=0.5), PoissonShift(delta_nu=0.05),
+               BodyForcePulse(accel=0.6, direction=(0.0, 0.0, -1.0), box=Box((1.0, 1.0, 1.0), (1.0, 1.0, 1.0)),
+                              start=0.0, end=0.01),
+               HiddenMass(fraction=1.0, box=Box((1.0, 1.0, 1.0), (0.05, 0.05, 0.05)))]
+    out = {"particles": len(X)}
+    for effect in effects:
+        p = params if effect is None else effect.configure(params)
+        runs = {}
+        for name, dev, det in (("cpu", "cpu", False), ("default", device, False), ("fixed1", device, True),
+                               ("fixed2", device, True)):
+            model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=p, device=dev,
+                                probe=Probe("knock", (-2.0, 0.0, 0.0), n_steps=4, dt_ref=5e-4))
+            r = simulate_many([(model, make_state(model, X))], frame_dt=30 * p.dt, n_frames=2, deterministic=det)[0]
+            runs[name] = r.positions[-1] - r.positions[0]
+        scale = float(np.abs(runs["cpu"]).max())
+        out[type(effect).__name__ if effect else "none"] = {
+            "same_bits": hashlib.md5(runs["fixed1"].tobytes()).hexdigest() == hashlib.md5(runs["fixed2"].tobytes()).hexdigest(),
+            "vs_default": float(np.abs(runs["fixed1"] - runs["default"]).max()) / scale,
+            "vs_cpu": float(np.abs(runs["fixed1"] - runs["cpu"]).max()) / scale,
+            "max_displacement": scale}
+    return out
+
+
 def render_parity(device: str) -> dict:
     from knockgs_core.render import Camera, render
 
@@ -54,8 +100,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--json")
+    ap.add_argument("--effects", action="store_true",
+                    help="also the reproducible P2G under each effect of the discrepancy loop's worlds")
     args = ap.parse_args()
     res = {"sim": sim_parity(args.device)}
+    if args.effects:
+        res["effects"] = effects_reproducible(args.device)
     try:
         res["render"] = render_parity(args.device)
     except ImportError as exc:  # renderer not installed in this tree

@@ -808,6 +808,22 @@ def test_no_kernel_is_made_at_a_launch(rng):
     assert [m.hash_module() for m in modules] == before
 
 
+def test_results_say_how_a_deterministic_run_summed(rng):
+    # SimResult.reproducible_sums is the run's solver's choice (what rollout metadata records):
+    # the fixed-point sums by default, None for a run that was not deterministic
+    from knockgs_core.sim import simulate_many
+
+    params, X = shell_scene(rng, "affine_flip", shell=800, guard_every=10)
+    out = {}
+    for det in (False, True):
+        model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, device="cpu")
+        out[det] = simulate_many([(model, make_state(model, X))], frame_dt=4 * params.dt, n_frames=2,
+                                 deterministic=det)[0]
+    assert out[False].reproducible_sums is None
+    assert out[True].reproducible_sums == MPMSolver.reproducible_sums == "fixed_point"
+    assert np.abs(out[True].positions[-1] - out[False].positions[-1]).max() < 1e-6
+
+
 @pytest.mark.parametrize("per_frame", [20, 5])
 def test_frames_copied_behind_the_next_substeps_are_handed_over_in_order(rng, monkeypatch, per_frame):
     # On a GPU a frame is gathered and copied into pinned host memory without waiting, and handed
@@ -953,6 +969,38 @@ def test_fixed_point_p2g_gives_the_same_bits_in_any_thread_order(rng, transfer):
         MPMSolver(model, deterministic=True, reproducible_sums="fixed_point", cell_sums="list")
     solver = MPMSolver(model, deterministic=True)  # the default: measured on a GPU at 1.04x the windows, gathers 1.9x
     assert (solver.reproducible_sums, solver.cell_sums, solver._fixed is not None) == ("fixed_point", "windows", True)
+
+
+def test_every_effect_keeps_its_response_through_the_fixed_point_sums(rng):
+    # The paper profile runs every rollout job with the fixed-point sums on a GPU, the
+    # discrepancy loop's worlds with their effects among them. Each effect acts on the grid after
+    # the update, on the particles after G2P, or on the materials and stress, never inside P2G:
+    # through the fixed-point sums each gives the scatter's response to rounding (1e-6 of the
+    # RMS displacement), where the effect itself moves it by 2e-3 to 0.2.
+    from knockgs_core.sim import (BodyForcePulse, Gravity, HiddenMass, MaterialViscosity, PoissonShift,
+                                  StiffnessGradient, SupportFriction, SupportSlip, VelocityDamping)
+
+    params, X = shell_scene(rng, "affine_flip", shell=1500, guard_every=10)
+    base = pushed_shell(params, X, 30, p2g="scatter")[1].particle_u.numpy().astype(np.float64)
+    scale = np.sqrt((base ** 2).sum(-1).mean())
+    effects = [VelocityDamping(rate=2.0), Gravity(g=9.8), VonMisesPlasticity(yield_stress=30.0),
+               MaterialViscosity(retardation_time=1e-3), SupportFriction(mu=0.3), SupportSlip(slip_time=0.01),
+               StiffnessGradient(slope=0.5), PoissonShift(delta_nu=0.05),
+               BodyForcePulse(accel=0.6, direction=(0.0, 0.0, -1.0), box=Box((1.0, 1.0, 1.0), (1.0, 1.0, 1.0)),
+                              start=0.0, end=0.01),
+               HiddenMass(fraction=1.0, box=Box((1.0, 1.0, 1.0), (0.05, 0.05, 0.05)))]
+    for effect in effects:
+        p = effect.configure(params)
+        scatter = pushed_shell(p, X, 30, p2g="scatter")[1].particle_u.numpy().astype(np.float64)
+        model, state, solver = pushed_shell(p, X, 30, deterministic=True)
+        assert solver._fixed is not None
+        fixed = state.particle_u.numpy()
+
+        def rms(d):
+            return np.sqrt((d ** 2).sum(-1).mean()) / scale
+
+        assert rms(scatter - base) > 1e-3, effect  # the effect acts
+        assert rms(fixed - scatter) < 1e-5, effect
 
 
 def test_fixed_point_p2g_stops_a_rollout_whose_sums_overflow(rng):

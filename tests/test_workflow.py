@@ -17,6 +17,7 @@ from _workflow import scratch_copy, snakemake
 from knockgs_core.audits import audit_completion, audit_duplicates, audit_leakage
 from knockgs_core.calibration import METHOD_NAMES, METHOD_OPTIONS
 from knockgs_core.contract import load_candidates, load_targets
+from knockgs_core.rollout import read_rollout
 
 ROOT = Path(__file__).resolve().parents[1]
 METHODS = ["fixed_default", "response_nearest", "response_knn", "global_ridge", "local_ridge", "parameter_nearest_oracle"]
@@ -403,14 +404,16 @@ def test_a_library_without_deformation_gradients_moves_them_to_the_evaluation_jo
     # render.library_deformation_gradients: false (the paper profile's setting): the library
     # writes positions only, and the evaluation job of a theta on a candidate simulates Probe A
     # too, with F, so the renders read positions and F of one run; the ladder, which renders the
-    # library, stops with the setting named
+    # library, stops with the setting named. Run with deterministic: true, which on the CPU (its
+    # rollouts reproducible either way) keeps the scatter: the rollouts say they are not the
+    # fixed-point ones
     work = scratch_copy(tmp_path)
     first = load_candidates().iloc[0]
     tag = f"sE{first.E_scale:.6f}_sR{first.density_scale:.6f}"
     cfg = yaml.safe_load((ROOT / "config/ci.yaml").read_text())
     cfg["render"]["library_deformation_gradients"] = False
     (work / "config/ci_no_library_F.yaml").write_text(yaml.safe_dump(cfg))
-    flag = ["--configfile=config/ci_no_library_F.yaml", "--config", "objects=[pillow]"]
+    flag = ["--configfile=config/ci_no_library_F.yaml", "--config", "objects=[pillow]", "deterministic=true"]
     run = snakemake(work, f"{CI}/rollouts/pillow/lib/chunk0", f"{CI}/rollouts/pillow/eval/{tag}", "--cores", "2", *flag)
     assert run.returncode == 0, run.stderr[-3000:]
     lib = sorted(p.name for p in (work / f"{CI}/rollouts/pillow/lib/chunk0").glob("*.parquet"))
@@ -422,6 +425,8 @@ def test_a_library_without_deformation_gradients_moves_them_to_the_evaluation_jo
     a = pd.read_parquet(work / f"{CI}/rollouts/pillow/lib/chunk0/{tag}.parquet")
     b = pd.read_parquet(work / f"{CI}/rollouts/pillow/eval/{tag}/standard_x.parquet")
     pd.testing.assert_frame_equal(a, b)
+    meta = read_rollout(work / f"{CI}/rollouts/pillow/lib/chunk0/{tag}.parquet").meta
+    assert meta["device"] == "cpu" and "deterministic" not in meta and "reproducible_sums" not in meta
     ladder = snakemake(work, "-n", f"{CI}/ladder/observations/pillow/lib/chunk0.csv", *flag)
     assert ladder.returncode != 0 and "library_deformation_gradients" in ladder.stdout + ladder.stderr
 

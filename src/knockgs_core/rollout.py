@@ -39,7 +39,7 @@ from ._long_format import (POSITION_COLUMNS, _has_field, _meta_field, check_roll
                            theta_tag)
 from ._long_writer import GROUP_ROWS, LONG_COMPRESSION, LongFormatStream, long_encoding, long_table
 from .errors import InputError
-from .sim import MPMSolver, Probe, SimResult, build_model, make_state, particle_volumes, simulate_many
+from .sim import Probe, SimResult, build_model, make_state, particle_volumes, simulate_many
 
 __all__ = [
     "Rollout",
@@ -274,7 +274,7 @@ def _simulate_rollouts(contract, runs, *, particles, device, export_F, probe, pr
             meta["particle_order"] = "cell"
         if deterministic:
             meta["deterministic"] = True
-            meta["reproducible_sums"] = MPMSolver.reproducible_sums  # how: their bits differ
+            meta["reproducible_sums"] = result.reproducible_sums  # how: their bits differ
         out.append(Rollout(positions=result.positions, F=result.F, meta=meta))
     return out
 

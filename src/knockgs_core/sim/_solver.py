@@ -236,12 +236,15 @@ def matrices(a: wp.array, n: int) -> np.ndarray:
 class SimResult:
     """Exported frames: ``times`` [s] (T,), ``positions`` [m] (T, N, 3) float32, and the
     deformation gradient ``F`` (T, n_F, 3, 3) float32 of the first ``n_F`` particles when
-    asked for. ``stats`` holds guard statistics (max CFL number, min det F, steps)."""
+    asked for. ``stats`` holds guard statistics (max CFL number, min det F, steps).
+    ``reproducible_sums``: how the solver made a deterministic run's P2G sums reproducible
+    (:attr:`MPMSolver.reproducible_sums`, whose bits differ); None for a run that was not."""
 
     times: np.ndarray
     positions: np.ndarray
     F: np.ndarray | None
     stats: dict
+    reproducible_sums: str | None = None
 
 
 def _as_particle_array(value, n: int, name: str) -> np.ndarray:
@@ -1301,6 +1304,7 @@ def simulate_many(
     return [
         SimResult(times=times.copy(), positions=positions[i], F=Fs[i],
                   stats={"max_cfl": solver.max_cfl, "min_det_F": solver.min_det_F, "steps": state.step,
-                         "steps_per_frame": steps_per_frame})
+                         "steps_per_frame": steps_per_frame},
+                  reproducible_sums=solver.reproducible_sums if solver.deterministic else None)
         for i, (solver, (_, state)) in enumerate(zip(solvers, runs))
     ]
