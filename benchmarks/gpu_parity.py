@@ -1,8 +1,8 @@
 """Same code on CPU and CUDA: a knocked jelly block simulated on both devices, and a random
 Gaussian scene rendered on both, compared. Float atomics make GPU sums order-dependent, so
 the simulator comparison is a tolerance on the response, not bitwise. With ``--effects``, the
-reproducible P2G (fixed-point sums, as the paper profile runs) under each effect of the
-discrepancy loop's worlds: two runs on the device bit for bit, and their response against
+reproducible P2G (fixed-point sums, as the paper profile's rollout jobs run) under each effect
+the discrepancy loop plants: two runs on the device bit for bit, and their response against
 the device's default P2G and the CPU's.
 
     python3 benchmarks/gpu_parity.py --device cuda:0 --effects
@@ -101,7 +101,7 @@ def main() -> None:
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--json")
     ap.add_argument("--effects", action="store_true",
-                    help="also the reproducible P2G under each effect of the discrepancy loop's worlds")
+                    help="also the reproducible P2G under each effect the discrepancy loop plants")
     args = ap.parse_args()
     res = {"sim": sim_parity(args.device)}
     if args.effects:
