@@ -1,7 +1,7 @@
 """Same code on CPU and CUDA: a knocked jelly block simulated on both devices, and a random
 Gaussian scene rendered on both, compared. Float atomics make GPU sums order-dependent, so
 the simulator comparison is a tolerance on the response, not bitwise. With ``--effects``, the
-reproducible P2G (fixed-point sums, as the paper profile's rollout jobs run) under each effect
+reproducible P2G (fixed-point sums, as the paper profile runs) under each effect
 the discrepancy loop plants: two runs on the device bit for bit, and their response against
 the device's default P2G and the CPU's.
 

@@ -87,6 +87,18 @@ def test_reproducible_rollouts_are_the_default_up_to_rounding_and_say_so(pillow_
     assert np.abs(b.positions - a.positions).max() < 1e-4 * disp
     assert b.meta["deterministic"] is True and "deterministic" not in a.meta
     assert b.meta["reproducible_sums"] == "fixed_point" and "reproducible_sums" not in a.meta
+    # a study's rollouts take the setting of the enclosing config_context (a workflow job's
+    # set_config), unless a call says otherwise; the former setting comes back after the block
+    from knockgs_core.sim import config_context, set_config
+
+    with config_context(deterministic=True):
+        d = run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps)
+        e = run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps, deterministic=False)
+    assert d.positions.tobytes() == b.positions.tobytes() and d.meta["reproducible_sums"] == "fixed_point"
+    assert e.positions.tobytes() == a.positions.tobytes() and "deterministic" not in e.meta
+    assert "deterministic" not in run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps).meta
+    with pytest.raises(InputError, match="deterministic"):
+        set_config(deterministic="yes")
 
 
 def test_stiffer_heavier_scaling_on_an_asset(pillow_ci):

@@ -972,11 +972,11 @@ def test_fixed_point_p2g_gives_the_same_bits_in_any_thread_order(rng, transfer):
 
 
 def test_every_effect_keeps_its_response_through_the_fixed_point_sums(rng):
-    # A deterministic rollout may carry effects (the discrepancy loop's models and worlds). Each
-    # effect acts on the grid after the update, on the particles after G2P, or on the materials
-    # and stress, never inside P2G: through the fixed-point sums each gives the scatter's
-    # response to rounding (1e-6 of the RMS displacement), where the effect itself moves it by
-    # 2e-3 to 0.2.
+    # The paper profile's discrepancy loop simulates its worlds and models, effects included,
+    # with the fixed-point sums on a GPU. Each effect acts on the grid after the update, on the
+    # particles after G2P, or on the materials and stress, never inside P2G: through the
+    # fixed-point sums each gives the scatter's response to rounding (1e-6 of the RMS
+    # displacement), where the effect itself moves it by 2e-3 to 0.2.
     from knockgs_core.sim import (BodyForcePulse, Gravity, HiddenMass, MaterialViscosity, PoissonShift,
                                   StiffnessGradient, SupportFriction, SupportSlip, VelocityDamping)
 

@@ -327,6 +327,31 @@ def test_boolean_config_values_are_read_as_yaml_writes_them(tmp_path):
     assert bad.returncode != 0 and "deterministic" in bad.stdout + bad.stderr and "'maybe'" in bad.stdout + bad.stderr
 
 
+def test_every_simulating_rule_takes_the_reproducible_setting():
+    # deterministic (on a GPU: every simulation of the job by fixed-point P2G sums) reaches every
+    # rule that simulates: its params carry DETERMINISTIC and its script passes it on, to the
+    # rollouts (rollout.py) or as the job's setting for all of a study's simulations
+    # (set_config); rules with a device that only render are listed
+    render_only = {"render.py", "ladder_observe.py"}
+    seen = set()
+    for f in sorted((ROOT / "workflow/rules").glob("*.smk")):
+        text = f.read_text()
+        for m in re.finditer(r"^(?:rule|checkpoint) (\w+):\n(.*?)(?=^(?:rule|checkpoint) |\Z)", text, re.S | re.M):
+            name, body = m.groups()
+            if "device=DEVICE" not in body:
+                continue
+            script = Path(re.search(r'script:\s*\n\s*"([^"]+)"', body).group(1)).name
+            seen.add(script)
+            if script in render_only:
+                assert "deterministic=" not in body, name
+                continue
+            assert "deterministic=DETERMINISTIC" in body, f"{f.name}: rule {name} simulates without the setting"
+            code = (ROOT / "workflow/scripts" / script).read_text()
+            assert ("set_config(deterministic=p.deterministic)" in code
+                    or "deterministic=p.deterministic" in code), f"{script} drops the setting"
+    assert {"rollout.py", "convergence.py", "discrepancy_run.py", "verification_fem.py"} <= seen and render_only <= seen
+
+
 def _planned(work: Path, *args) -> dict:
     out = snakemake(work, "-n", *args)
     assert out.returncode == 0, out.stderr[-3000:]

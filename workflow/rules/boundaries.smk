@@ -77,6 +77,7 @@ rule boundary_rollout_library:
         runs=lambda wc: library_runs(wc.chunk, calibration_probe(wc.object), boundary_library_root(wc.object, wc.condition),
                                      export_F=False),
         device=DEVICE,
+        deterministic=DETERMINISTIC,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
         runtime=rollout_minutes(LIBRARY_CHUNK),
@@ -106,6 +107,7 @@ rule boundary_rollout_eval:
         settings=BOUNDARIES,
         runs=boundary_eval_runs,
         device=DEVICE,
+        deterministic=DETERMINISTIC,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
         runtime=lambda wc: rollout_minutes(len(boundary_eval_runs(wc))),

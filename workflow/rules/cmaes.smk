@@ -47,6 +47,7 @@ checkpoint cmaes_estimate:
         height=CMAES["height"],
         depth_weight=CMAES["depth_weight"],
         device=DEVICE,
+        deterministic=DETERMINISTIC,
         config_hash=config_hash(),
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,

@@ -39,6 +39,7 @@ rule convergence_study:
         theta=CONVERGENCE["theta"],
         n_frames=None if CONVERGENCE["n_frames"] == "all" else CONVERGENCE["n_frames"],
         device=DEVICE,
+        deterministic=DETERMINISTIC,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
         runtime=120 if PROFILE == "paper" else 30,

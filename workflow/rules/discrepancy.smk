@@ -124,6 +124,7 @@ rule discrepancy_case:
         object=DISCREPANCY_OBJECT,
         profile=DISCREPANCY_RES,
         device=DEVICE,
+        deterministic=DETERMINISTIC,
     resources:
         gpu=1 if ON_GPU else 0,
     threads: 1
@@ -153,6 +154,7 @@ rule discrepancy_run:
         object=DISCREPANCY_OBJECT,
         profile=DISCREPANCY_RES,
         device=DEVICE,
+        deterministic=DETERMINISTIC,
         probe=_DISCREPANCY_CONTRACT.roles["calibration"],
         heldout_probe=_DISCREPANCY_CONTRACT.roles["heldout"][0],
         library=DISCREPANCY_LIBRARY,

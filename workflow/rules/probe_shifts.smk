@@ -99,6 +99,7 @@ rule passive_protocol:
         profile=PROFILE,
         object=lambda wc: wc.object,
         device=DEVICE,
+        deterministic=DETERMINISTIC,
     resources:
         gpu=1 if ON_GPU else 0,
     script:

@@ -26,6 +26,7 @@ rule verification_fem:
         profile=PROFILE,
         settings={k: v for k, v in VERIFICATION.items() if k != "enabled"},
         device=DEVICE,
+        deterministic=DETERMINISTIC,
     resources:
         mem_mb=8000 if PROFILE == "paper" else 2000,
         runtime=60 if PROFILE == "paper" else 10,

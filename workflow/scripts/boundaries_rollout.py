@@ -10,10 +10,12 @@ from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.experiments import BoundarySettings, condition_world
 from knockgs_core.rollout import write_rollout
+from knockgs_core.sim import set_config
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
 p = snakemake.params
+set_config(deterministic=p.deterministic)  # the GPU's reproducible P2G for every simulation of the job
 folder = Path(snakemake.output.folder)
 for run in p.runs:
     if Path(run["rollout"]).parent != folder or run["F"] is not None:

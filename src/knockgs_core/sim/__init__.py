@@ -36,8 +36,8 @@ from ._effects import (
     with_effects,
 )
 from ._protocol import Effect
-from ._solver import (MPMSolver, Model, SimResult, State, build_model, cell_crowding, default_device, make_state,
-                      particle_volumes, simulate, simulate_many)
+from ._solver import (MPMSolver, Model, SimResult, State, build_model, cell_crowding, config_context, default_device,
+                      make_state, particle_volumes, set_config, simulate, simulate_many)
 
 __all__ = [
     "BoundaryCondition",
@@ -61,6 +61,8 @@ __all__ = [
     "cell_crowding",
     "simulate",
     "simulate_many",
+    "config_context",
+    "set_config",
     "Effect",
     "VelocityDamping",
     "Gravity",

@@ -8,6 +8,7 @@ region rather than with ``n_grid^3``.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 from dataclasses import dataclass, field
@@ -1107,6 +1108,33 @@ for _flip in (0, 1):
         K.p2g_windows(MPMSolver.cell_chunk, _flip, _fixed)
 
 
+#: the settings a simulation takes where its caller does not say (:func:`config_context`)
+_CONFIG = {"deterministic": False}
+
+
+def set_config(*, deterministic: bool) -> None:
+    """Set the simulations' default ``deterministic`` (see :func:`config_context`) for the rest
+    of the process, as a workflow job does once from its rule's parameters."""
+    if deterministic not in (True, False):
+        raise InputError("set_config", "deterministic", f"must be True or False, got {deterministic!r}")
+    _CONFIG["deterministic"] = bool(deterministic)
+
+
+@contextlib.contextmanager
+def config_context(*, deterministic: bool):
+    """Within the block, every simulation whose ``deterministic`` is not given
+    (:func:`simulate`, :func:`simulate_many`, and the rollouts built on them) takes this one,
+    as scikit-learn's ``config_context`` sets its options: a study that simulates through
+    many calls (a convergence study, the discrepancy loop) takes a workflow's setting once.
+    Process-wide (threads included); the former setting comes back when the block ends."""
+    before = dict(_CONFIG)
+    set_config(deterministic=deterministic)
+    try:
+        yield
+    finally:
+        _CONFIG.update(before)
+
+
 def simulate(
     model: Model,
     state: State,
@@ -1115,13 +1143,15 @@ def simulate(
     n_frames: int,
     export_F: int = 0,
     progress: Callable[[int, int, dict], None] | None = None,
+    deterministic: bool | None = None,
 ) -> SimResult:
     """Run from ``state`` (at step 0) and export ``n_frames`` frames every ``frame_dt`` [s],
     the first at t = 0. ``export_F`` > 0 also exports the deformation gradient of the first
     ``export_F`` particles (the Gaussian-associated ones). ``progress(frame, n_frames, stats)``
-    is called after each exported frame."""
+    is called after each exported frame. ``deterministic``: as in :func:`simulate_many`."""
     report = None if progress is None else (lambda run, frame, n, stats: progress(frame, n, stats))
-    return simulate_many([(model, state)], frame_dt=frame_dt, n_frames=n_frames, export_F=export_F, progress=report)[0]
+    return simulate_many([(model, state)], frame_dt=frame_dt, n_frames=n_frames, export_F=export_F, progress=report,
+                         deterministic=deterministic)[0]
 
 
 class _Exporter:
@@ -1202,7 +1232,7 @@ def simulate_many(
     concurrent: bool = False,
     export_index: np.ndarray | None = None,
     on_frame: Callable[[int, int, np.ndarray, np.ndarray | None], None] | None = None,
-    deterministic: bool = False,
+    deterministic: bool | None = None,
 ) -> list[SimResult]:
     """Run several independent simulations (``runs``: (model, state) pairs, all with the same
     time step) in lockstep and export the same frames from each, as :func:`simulate` does.
@@ -1224,10 +1254,11 @@ def simulate_many(
     frame's rows of the result's arrays, final once handed over (a consumer may keep them
     without a copy, and must not write to them), e.g. to write the frame while the next one
     is simulated. ``deterministic``: each run's solver with the bitwise-reproducible P2G
-    (:class:`MPMSolver`'s option: a GPU rollout the same bit for bit on every run). Returns
-    one :class:`SimResult` per run, in order."""
-    import contextlib
-
+    (:class:`MPMSolver`'s option: a GPU rollout the same bit for bit on every run); None: the
+    setting of the enclosing :func:`config_context` (False outside one). Returns one
+    :class:`SimResult` per run, in order."""
+    if deterministic is None:
+        deterministic = _CONFIG["deterministic"]
     if not runs:
         return []
     dts = {m.params.dt for m, _ in runs}
