@@ -47,7 +47,7 @@ PROFILE = config["profile"]
 P = f"results/{PROFILE}"
 DEVICE = config["device"]
 ON_GPU = DEVICE.startswith("cuda")
-# the rollout jobs' bitwise-reproducible P2G, on a GPU: CPU rollouts are reproducible either way,
+# every simulating job's bitwise-reproducible P2G, on a GPU: CPU rollouts are reproducible either way,
 # and keep the scatter, 1.4x faster there than the fixed-point sums (benchmarks/README.md)
 DETERMINISTIC = config["deterministic"] and ON_GPU
 # the paper profile's rollouts are large (0.2-0.9 GB each): the jobs that read many of them
