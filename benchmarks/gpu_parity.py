@@ -43,10 +43,8 @@ def effects_reproducible(device: str) -> dict:
     the device's default P2G and against the CPU's (the scatter)."""
     import hashlib
 
-    from knockgs_core.sim import (BodyForcePulse, Box, DomainWalls, FixedCuboid, Gravity, HiddenMass,
-                                  MaterialViscosity, PoissonShift, Probe, SimParams, StiffnessGradient, SupportFriction,
-                                  SupportSlip, VelocityDamping, VonMisesPlasticity, build_model, make_state,
-                                  simulate_many)
+    from knockgs_core.sim import (Box, DomainWalls, FixedCuboid, Probe, SimParams, build_model, effect_examples,
+                                  make_state, simulate_many)
 
     h = 1 / 64
     axis = np.arange(0.85 + h / 2, 1.15, h)
@@ -54,12 +52,7 @@ def effects_reproducible(device: str) -> dict:
     X = np.stack(np.meshgrid(axis, axis, zaxis, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
     params = SimParams(n_grid=32, dt=5e-4, guard_every=10,
                        boundaries=(DomainWalls(), FixedCuboid(Box((1.0, 1.0, 0.78), (0.3, 0.3, 0.05)))))
-    effects = [None, VelocityDamping(rate=2.0), Gravity(g=9.8), VonMisesPlasticity(yield_stress=30.0),
-               MaterialViscosity(retardation_time=1e-3), SupportFriction(mu=0.3), SupportSlip(slip_time=0.01),
-               StiffnessGradient(slope=0.5), PoissonShift(delta_nu=0.05),
-               BodyForcePulse(accel=0.6, direction=(0.0, 0.0, -1.0), box=Box((1.0, 1.0, 1.0), (1.0, 1.0, 1.0)),
-                              start=0.0, end=0.01),
-               HiddenMass(fraction=1.0, box=Box((1.0, 1.0, 1.0), (0.05, 0.05, 0.05)))]
+    effects = [None, *effect_examples(centre=(1.0, 1.0, 1.0))]
     out = {"particles": len(X)}
     for effect in effects:
         p = params if effect is None else effect.configure(params)

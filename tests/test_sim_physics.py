@@ -11,8 +11,8 @@ import pytest
 import warp as wp
 
 from knockgs_core.errors import InputError, SimulationError
-from knockgs_core.sim import (Box, DomainWalls, FixedCuboid, MPMSolver, Probe, SimParams, VonMisesPlasticity, build_model,
-                              make_state, simulate)
+from knockgs_core.sim import (Box, DomainWalls, Effect, FixedCuboid, MPMSolver, Probe, SimParams, VonMisesPlasticity,
+                              build_model, effect_examples, make_state, simulate)
 
 
 def block(lo, hi, spacing, jitter=0.0, rng=None):
@@ -977,18 +977,14 @@ def test_every_effect_keeps_its_response_through_the_fixed_point_sums(rng):
     # particles after G2P, or on the materials and stress, never inside P2G: through the
     # fixed-point sums each gives the scatter's response to rounding (1e-6 of the RMS
     # displacement), where the effect itself moves it by 2e-3 to 0.2.
-    from knockgs_core.sim import (BodyForcePulse, Gravity, HiddenMass, MaterialViscosity, PoissonShift,
-                                  StiffnessGradient, SupportFriction, SupportSlip, VelocityDamping)
-
     params, X = shell_scene(rng, "affine_flip", shell=1500, guard_every=10)
     base = pushed_shell(params, X, 30, p2g="scatter")[1].particle_u.numpy().astype(np.float64)
     scale = np.sqrt((base ** 2).sum(-1).mean())
-    effects = [VelocityDamping(rate=2.0), Gravity(g=9.8), VonMisesPlasticity(yield_stress=30.0),
-               MaterialViscosity(retardation_time=1e-3), SupportFriction(mu=0.3), SupportSlip(slip_time=0.01),
-               StiffnessGradient(slope=0.5), PoissonShift(delta_nu=0.05),
-               BodyForcePulse(accel=0.6, direction=(0.0, 0.0, -1.0), box=Box((1.0, 1.0, 1.0), (1.0, 1.0, 1.0)),
-                              start=0.0, end=0.01),
-               HiddenMass(fraction=1.0, box=Box((1.0, 1.0, 1.0), (0.05, 0.05, 0.05)))]
+    effects = effect_examples()
+    # every effect the simulator has: a new one joins this check (and the GPU parity's)
+    from knockgs_core.sim import _effects
+    every = {c for c in vars(_effects).values() if isinstance(c, type) and issubclass(c, Effect) and c is not Effect}
+    assert {type(e) for e in effects} == every and len(every) == 10
     for effect in effects:
         p = effect.configure(params)
         scatter = pushed_shell(p, X, 30, p2g="scatter")[1].particle_u.numpy().astype(np.float64)

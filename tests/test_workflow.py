@@ -329,9 +329,9 @@ def test_boolean_config_values_are_read_as_yaml_writes_them(tmp_path):
 
 def test_every_simulating_rule_takes_the_reproducible_setting():
     # deterministic (on a GPU: every simulation of the job by fixed-point P2G sums) reaches every
-    # rule that simulates: its params carry DETERMINISTIC and its script passes it on, to the
-    # rollouts (rollout.py) or as the job's setting for all of a study's simulations
-    # (set_config); rules with a device that only render are listed
+    # rule that simulates: its params carry DETERMINISTIC and its script sets it once as the
+    # job's setting for all its simulations (set_config); rules with a device that only
+    # render are listed
     render_only = {"render.py", "ladder_observe.py"}
     seen = set()
     for f in sorted((ROOT / "workflow/rules").glob("*.smk")):
@@ -347,8 +347,9 @@ def test_every_simulating_rule_takes_the_reproducible_setting():
                 continue
             assert "deterministic=DETERMINISTIC" in body, f"{f.name}: rule {name} simulates without the setting"
             code = (ROOT / "workflow/scripts" / script).read_text()
-            assert ("set_config(deterministic=p.deterministic)" in code
-                    or "deterministic=p.deterministic" in code), f"{script} drops the setting"
+            # one way in: the job's setting, set once before anything simulates
+            assert "set_config(deterministic=p.deterministic)" in code, f"{script} drops the setting"
+            assert code.count("deterministic=") == 1, f"{script} passes the setting twice"
     assert {"rollout.py", "convergence.py", "discrepancy_run.py", "verification_fem.py"} <= seen and render_only <= seen
 
 

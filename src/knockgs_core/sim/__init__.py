@@ -32,6 +32,7 @@ from ._effects import (
     SupportSlip,
     VelocityDamping,
     VonMisesPlasticity,
+    effect_examples,
     viscous_stability_limit,
     with_effects,
 )
@@ -76,4 +77,5 @@ __all__ = [
     "BodyForcePulse",
     "HiddenMass",
     "with_effects",
+    "effect_examples",
 ]

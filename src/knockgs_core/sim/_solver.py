@@ -259,6 +259,13 @@ def _as_particle_array(value, n: int, name: str) -> np.ndarray:
     return arr
 
 
+def _flag(where: str, field: str, value) -> bool:
+    """``value`` as a bool, where only True or False (or NumPy's) is accepted."""
+    if value not in (True, False):
+        raise InputError(where, field, f"must be True or False, got {value!r}")
+    return bool(value)
+
+
 def _check_params(params: SimParams) -> None:
     """What the solver supports beyond the dataclasses' own checks: effects following the
     :class:`Effect` protocol, and particle translations active one at a time (the
@@ -650,9 +657,7 @@ class MPMSolver:
                  polar_step: float | str | None = None, polar_update: str | None = None, g2p_sums: str | None = None,
                  crowding: float | None = None, reproducible_sums: str | None = None):
         self.model = model
-        if deterministic not in (True, False):
-            raise InputError("MPMSolver", "deterministic", f"must be True or False, got {deterministic!r}")
-        self.deterministic = bool(deterministic)
+        self.deterministic = _flag("MPMSolver", "deterministic", deterministic)
         if resort_every is not None:
             self.resort_every = resort_every
         if cell_chunk is not None:
@@ -1115,9 +1120,7 @@ _CONFIG = {"deterministic": False}
 def set_config(*, deterministic: bool) -> None:
     """Set the simulations' default ``deterministic`` (see :func:`config_context`) for the rest
     of the process, as a workflow job does once from its rule's parameters."""
-    if deterministic not in (True, False):
-        raise InputError("set_config", "deterministic", f"must be True or False, got {deterministic!r}")
-    _CONFIG["deterministic"] = bool(deterministic)
+    _CONFIG["deterministic"] = _flag("set_config", "deterministic", deterministic)
 
 
 @contextlib.contextmanager
