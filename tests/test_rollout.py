@@ -122,6 +122,17 @@ def test_simulate_cli_writes_the_rollout_format(tmp_path, capsys):
     assert rc == 0 and out.exists()
     ro = read_rollout(out)
     assert ro.meta["probe"]["name"] == "standard_y" and ro.positions.shape[0] == 31
+    assert "reproducible_sums" not in ro.meta
+    # --deterministic: the fixed-point sums (a GPU's reproducible rollouts), recorded; the same
+    # motion to float rounding
+    det = tmp_path / "det.parquet"
+    rc = cli_main(["simulate", "--object", "pillow", "--profile", "ci", "--theta", "1.05,1.1", "--probe", "standard_y",
+                   "-o", str(det), "--quiet", "--deterministic"])
+    assert rc == 0
+    rd = read_rollout(det)
+    assert rd.meta["deterministic"] is True and rd.meta["reproducible_sums"] == "fixed_point"
+    disp = np.abs(ro.positions - ro.positions[0]).max()
+    assert disp > 1e-3 and 0 < np.abs(rd.positions - ro.positions).max() < 1e-4 * disp
 
 
 def test_simulate_cli_bad_input_is_a_message(tmp_path, capsys):

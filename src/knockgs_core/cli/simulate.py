@@ -31,6 +31,10 @@ def register(sub) -> None:
                    help="also write the GS particles' deformation gradients here (needed by `knockgs render`)")
     p.add_argument("--device",
                    help="Warp device (cpu; cuda: a GPU no other process holds; cuda:0); default $KNOCKGS_DEVICE or cpu")
+    p.add_argument("--deterministic", action="store_true",
+                   help="sum P2G in int64 fixed point, so that a GPU gives the same rollout bit for bit on every run "
+                        "(1.01-1.13x a substep there; the paper profile's setting). CPU rollouts are reproducible "
+                        "without it, and it makes them ~1.4x slower and changes their last bits")
     p.add_argument("--config-dir", help="folder holding objects/ (default: the project's config/)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=run)
@@ -63,7 +67,8 @@ def run(args) -> int:
     # the files are written frame by frame while the rollout runs (atomically: none on a failure)
     stream = RolloutStream(args.output, args.export_F)
     rollout = run_rollout(contract, args.theta, args.probe, particles=particles, device=args.device,
-                          export_F=bool(args.export_F), progress=progress, stream=stream)
+                          deterministic=args.deterministic or None, export_F=bool(args.export_F), progress=progress,
+                          stream=stream)
     try:
         stream.wait()
     except BaseException:  # an interrupt while the last frames are written: no file either
