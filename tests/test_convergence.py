@@ -116,14 +116,21 @@ def _bar_run(transfer: str, dt: float, *, n_frames: int = 31, deformation_storag
     """Displacements (T, N, 3) [m] every 20 ms and the final total energy [J] of the bar, F
     stored as ``deformation_storage`` (``Model.deformation_storage``; its displacement gradient
     in float32 component by component, as on a GPU)."""
-    x, v = _bar()
-    params = SimParams(n_grid=32, dt=dt, boundaries=(), transfer=transfer)
-    model = build_model(x, E=BAR_E, nu=BAR_NU, rho=BAR_RHO, params=params)
-    if deformation_storage == "displacement":
-        model.matrix_layout, model.deformation_storage = "components", "displacement"
+    model, x, v = _bar_model(transfer, dt, gpu_storage=deformation_storage == "displacement")
     state = make_state(model, x, v)
     out = simulate(model, state, frame_dt=0.02, n_frames=n_frames)
     return out.positions.astype(np.float64) - x[None], _energy(model, state), _energy0(model, v)
+
+
+def _bar_model(transfer: str, dt: float, *, gpu_storage: bool):
+    """The bar's model, F stored as on a GPU where ``gpu_storage`` (F - I in float32, matrices
+    component by component), its positions and initial velocities."""
+    x, v = _bar()
+    model = build_model(x, E=BAR_E, nu=BAR_NU, rho=BAR_RHO,
+                        params=SimParams(n_grid=32, dt=dt, boundaries=(), transfer=transfer))
+    if gpu_storage:
+        model.matrix_layout, model.deformation_storage = "components", "displacement"
+    return model, x, v
 
 
 def _energy0(model, v) -> float:
@@ -174,12 +181,8 @@ def _bar_displacements(dt: float, solver_options: dict, *, gpu_storage: bool, n_
     """The bar stepped by ``MPMSolver(model, **solver_options)``, F stored as on a GPU where
     ``gpu_storage`` (F - I in float32, matrices component by component): the particles'
     displacements (T, N, 3) [m] every 20 ms, read as the state holds them, the final and the
-    initial total energy [J]."""
-    x, v = _bar()
-    params = SimParams(n_grid=32, dt=dt, boundaries=(), transfer="affine_flip")
-    model = build_model(x, E=BAR_E, nu=BAR_NU, rho=BAR_RHO, params=params)
-    if gpu_storage:
-        model.matrix_layout, model.deformation_storage = "components", "displacement"
+    initial total energy [J], and the solver."""
+    model, x, v = _bar_model("affine_flip", dt, gpu_storage=gpu_storage)
     state = make_state(model, x, v)
     solver = MPMSolver(model, **solver_options)
     frames = [state.particle_u.numpy().astype(np.float64)]
@@ -187,10 +190,10 @@ def _bar_displacements(dt: float, solver_options: dict, *, gpu_storage: bool, n_
     for _ in range(n_frames - 1):
         for _ in range(int(round(0.02 / dt))):
             solver.step(state)
-            if state.step % params.guard_every == 0:
+            if state.step % model.params.guard_every == 0:
                 solver.check(state)
         frames.append(state.particle_u.numpy().astype(np.float64))
-    return np.asarray(frames), _energy(model, state), _energy0(model, v)
+    return np.asarray(frames), _energy(model, state), _energy0(model, v), solver
 
 
 def test_the_gpu_configuration_keeps_the_first_order_in_dt():
@@ -204,12 +207,11 @@ def test_the_gpu_configuration_keeps_the_first_order_in_dt():
     small strain's stress 2 mu (F - R) F^T takes it in; every other choice alone moves the bar
     by 3e-7 to 5e-7."""
     runs = [_bar_displacements(BAR_DT / 2**k, GPU_CONFIGURATION, gpu_storage=True) for k in range(5)]
-    solver = MPMSolver(build_model(_bar()[0], E=BAR_E, nu=BAR_NU, rho=BAR_RHO,
-                                   params=SimParams(n_grid=32, dt=BAR_DT, boundaries=())), **GPU_CONFIGURATION)
+    solver = runs[0][3]
     assert (solver.p2g, solver.cell_sums, solver._fixed is not None, solver.fuse) == ("cells", "windows", True, True)
     _first_order([r[0] for r in runs])
-    cpu, e_cpu, e0 = _bar_displacements(BAR_DT, {}, gpu_storage=False)
-    gpu, e_gpu, _ = runs[0]
+    cpu, e_cpu, e0, _ = _bar_displacements(BAR_DT, {}, gpu_storage=False)
+    gpu, e_gpu, _, _ = runs[0]
     assert np.linalg.norm(gpu - cpu) / np.linalg.norm(cpu) < 3e-4
     assert abs(e_gpu - e_cpu) / e0 < 5e-4 and 0.02 < 1 - e_cpu / e0 < 0.08
 
