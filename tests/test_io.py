@@ -166,25 +166,84 @@ def test_ply_and_particle_writers_are_atomic(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("error", [RuntimeError("render failed"), KeyboardInterrupt()])
-def test_outputs_of_a_failed_or_interrupted_job_are_removed(tmp_path, error):
+def test_a_failed_or_interrupted_job_leaves_no_output_folder(tmp_path, error):
     import io
 
-    from knockgs_core._io import removed_on_failure
+    from knockgs_core._io import staged_folders
 
-    folder, single, never = tmp_path / "frames", tmp_path / "table.csv", tmp_path / "absent"
+    folder, F_folder = tmp_path / "eval" / "theta", tmp_path / "evalF" / "theta"
     log = io.StringIO()
     with pytest.raises(type(error)):
-        with removed_on_failure(folder, single, never, log=log):
-            folder.mkdir()
-            (folder / "standard_x.npz").write_bytes(b"written")  # the first probe's file, then the failure
-            single.write_text("a,b\n")
+        with staged_folders(folder, F_folder, log=log) as (stage, F_stage):
+            (stage / "standard_x.parquet").write_bytes(b"written")  # the first probe's file, then the failure
+            (F_stage / "standard_x.F.parquet").write_bytes(b"written")
             raise error
-    assert not folder.exists() and not single.exists()
-    assert log.getvalue().splitlines() == [f"removed the partial output {folder}", f"removed the partial output {single}"]
-    with removed_on_failure(folder, log=log):  # success: kept
-        folder.mkdir()
-        (folder / "standard_x.npz").write_bytes(b"written")
-    assert (folder / "standard_x.npz").read_bytes() == b"written"
+    assert not folder.exists() and not F_folder.exists()
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["eval", "evalF"]  # no staging folder either
+    assert log.getvalue().splitlines() == [f"removed the partial output {stage}", f"removed the partial output {F_stage}"]
+
+
+def test_output_folders_appear_only_when_the_job_ends(tmp_path):
+    from knockgs_core._io import staged_folders, staging_folder
+
+    folder, F_folder = tmp_path / "lib" / "chunk0", tmp_path / "libF" / "chunk0"
+    with staged_folders(folder, F_folder, folder) as stages:
+        assert stages == [tmp_path / "lib" / ".chunk0.partial", tmp_path / "libF" / ".chunk0.partial",
+                          tmp_path / "lib" / ".chunk0.partial"]  # a folder named twice is built once
+        assert stages[0] == staging_folder(folder) and stages[0].is_dir() and list(stages[0].iterdir()) == []
+        (stages[0] / "a.parquet").write_bytes(b"a")
+        (stages[1] / "a.F.parquet").write_bytes(b"F")
+        assert not folder.exists() and not F_folder.exists()  # nothing in place while the job runs
+    assert (folder / "a.parquet").read_bytes() == b"a" and (F_folder / "a.F.parquet").read_bytes() == b"F"
+    assert not stages[0].exists() and not stages[1].exists()
+    # a job run again (its rule forced) replaces its older folder whole: no file of the old one is kept
+    (folder / "stale.parquet").write_bytes(b"old")
+    with staged_folders(folder) as (stage,):
+        (stage / "b.parquet").write_bytes(b"b")
+        assert (folder / "stale.parquet").exists()  # the old output stays until the new one is whole
+    assert sorted(p.name for p in folder.iterdir()) == ["b.parquet"]
+    # an output path that is a file is refused, naming it, before anything is written
+    (tmp_path / "taken").write_text("a file")
+    with pytest.raises(InputError, match="taken.*exists and is not a folder"):
+        with staged_folders(tmp_path / "taken"):
+            pass
+    assert (tmp_path / "taken").read_text() == "a file" and not (tmp_path / ".taken.partial").exists()
+
+
+_KILLED_JOB = """
+import os, signal, sys
+from pathlib import Path
+from knockgs_core._io import staged_folders
+folder = Path(sys.argv[1])
+with staged_folders(folder) as (stage,):
+    (stage / "standard_x.parquet").write_bytes(b"written")
+    os.kill(os.getpid(), getattr(signal, sys.argv[2]))  # no handler: Python runs no clean-up
+    (stage / "standard_y.parquet").write_bytes(b"written")
+"""
+
+
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGKILL"])
+def test_a_killed_job_leaves_no_output_folder_and_its_rerun_clears_the_staging(tmp_path, sig):
+    import io
+    import subprocess
+    import sys
+
+    from knockgs_core._io import staged_folders
+
+    folder = tmp_path / "frames" / "theta"
+    out = subprocess.run([sys.executable, "-c", _KILLED_JOB, str(folder), sig], capture_output=True, text=True)
+    assert out.returncode == -getattr(__import__("signal"), sig), out.stderr
+    assert not folder.exists()  # what a workflow manager checks: the output is missing, so the job runs again
+    stage = tmp_path / "frames" / ".theta.partial"
+    assert sorted(p.name for p in stage.iterdir()) == ["standard_x.parquet"]  # the killed attempt's half
+    log = io.StringIO()
+    with staged_folders(folder, log=log) as (new_stage,):
+        assert new_stage == stage and list(stage.iterdir()) == []  # the rerun starts from an empty folder
+        for name in ("standard_x.parquet", "standard_y.parquet"):
+            (stage / name).write_bytes(b"rerun")
+    assert log.getvalue().splitlines() == [f"removed the partial output {stage}"]
+    assert sorted(p.name for p in folder.iterdir()) == ["standard_x.parquet", "standard_y.parquet"]
+    assert not stage.exists()
 
 
 def _frames(t=6, n=700, c=3, seed=0):

@@ -353,6 +353,27 @@ def test_every_simulating_rule_takes_the_reproducible_setting():
     assert {"rollout.py", "convergence.py", "discrepancy_run.py", "verification_fem.py"} <= seen and render_only <= seen
 
 
+def test_every_folder_output_is_built_in_a_staging_folder():
+    # a rule whose output is a folder appears whole or not at all: its script builds the folder
+    # under a hidden name and moves it into place at the end (_io.staged_folders), so a job
+    # killed at any point (after which Snakemake may have recorded it as finished) leaves no
+    # partial folder for a resumed run to trust (test_workflow_faults: SIGKILL-jobs-recorded)
+    seen = {}
+    for f in sorted((ROOT / "workflow/rules").glob("*.smk")):
+        text = f.read_text()
+        for m in re.finditer(r"^(?:rule|checkpoint) (\w+):\n(.*?)(?=^(?:rule|checkpoint) |\Z)", text, re.S | re.M):
+            name, body = m.groups()
+            output = re.search(r"^    output:\n(.*?)(?=^    \w+:|\Z)", body, re.S | re.M)
+            if output is None or "directory(" not in output.group(1):
+                continue
+            script = Path(re.search(r'script:\s*\n\s*"([^"]+)"', body).group(1)).name
+            seen[name] = script
+            code = (ROOT / "workflow/scripts" / script).read_text()
+            assert "staged_folders(" in code, f"{f.name}: rule {name}'s script {script} writes its folder in place"
+    assert set(seen.values()) == {"rollout.py", "render.py", "boundaries_rollout.py"}, seen
+    assert len(seen) == 8, seen  # rollout_eval has two folders
+
+
 def _planned(work: Path, *args) -> dict:
     out = snakemake(work, "-n", *args)
     assert out.returncode == 0, out.stderr[-3000:]

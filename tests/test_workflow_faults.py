@@ -1,5 +1,5 @@
-"""Workflow faults on the ci profile (issue 17): an interrupted run (Ctrl-C or SIGKILL of the
-whole process group) resumes to byte-identical tables, and the audits catch a cached
+"""Workflow faults on the ci profile (issue 17): an interrupted run (Ctrl-C, SIGTERM or SIGKILL of
+the whole process group) resumes to byte-identical tables, and the audits catch a cached
 rollout that was swapped for another or truncated behind Snakemake's back, with a verdict
 naming the file (not a crash). One object (Pillow), the descriptor table of its candidate
 library: the asset job and nine library jobs.
@@ -52,22 +52,35 @@ def _interrupt(work: Path, sig: int) -> bool:
     lib = work / P / "rollouts/pillow/lib"
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and proc.poll() is None:
-        if len(list(lib.glob("chunk*/*.F.parquet"))) >= 3:  # library jobs under way, some rollouts written
+        if len(list(lib.glob("*chunk*/*.F.parquet"))) >= 3:  # library jobs under way (staged), some rollouts written
             break
         time.sleep(0.05)
     assert proc.poll() is None, "the run ended before it could be interrupted"
-    os.killpg(proc.pid, sig)  # Ctrl-C reaches the whole foreground group; SIGKILL: a power cut
+    # Ctrl-C reaches the whole foreground group; SIGTERM: a batch system's time limit or cancel
+    # (Python's default: the job runs no clean-up; Snakemake records the lost jobs, removes
+    # their outputs and stops); SIGKILL: a power cut
+    os.killpg(proc.pid, sig)
     proc.communicate(timeout=120)
     return not (work / TABLE).exists()
 
 
-def _interrupt_and_resume(work: Path, sig: int) -> subprocess.CompletedProcess:
+def _interrupt_and_resume(work: Path, sig: int, *, recorded: bool = False) -> subprocess.CompletedProcess:
+    """Interrupt a run (:func:`_interrupt`) and resume it. ``recorded``: then remove
+    Snakemake's marks of the jobs under way, as though it had recorded them as finished: the
+    state a Snakemake leaves when it is killed after it records a lost job and before it
+    removes the job's output (it does both on a SIGTERM; seen on a GPU node whose run got a
+    SIGTERM and a SIGKILL moments later). A resumed run then trusts any output folder it
+    finds, so a job's folder must not exist before the job has written all of it."""
     for _ in range(3):
         if _interrupt(work, sig):
             break
         shutil.rmtree(work / P, ignore_errors=True)
         shutil.rmtree(work / ".snakemake", ignore_errors=True)
     assert not (work / TABLE).exists(), "three runs finished before the signal stopped them"
+    if recorded:
+        marks = work / ".snakemake" / "incomplete"
+        assert any(marks.iterdir()), "no job was under way at the signal"
+        shutil.rmtree(marks)
     if sig == signal.SIGKILL:  # a killed Snakemake leaves its lock: the documented first step is --unlock
         unlock = snakemake(work, "--unlock", *ARGS, TABLE)
         assert unlock.returncode == 0, unlock.stderr[-2000:]
@@ -75,14 +88,16 @@ def _interrupt_and_resume(work: Path, sig: int) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL], ids=["SIGINT", "SIGKILL"])
-def test_an_interrupted_run_resumes_to_the_same_bytes(reference, tmp_path, sig):
+@pytest.mark.parametrize(("sig", "recorded"), [(signal.SIGINT, False), (signal.SIGTERM, False), (signal.SIGKILL, False),
+                                              (signal.SIGKILL, True)],
+                         ids=["SIGINT", "SIGTERM", "SIGKILL", "SIGKILL-jobs-recorded"])
+def test_an_interrupted_run_resumes_to_the_same_bytes(reference, tmp_path, sig, recorded):
     work = scratch_copy(tmp_path / "wf")
-    out = _interrupt_and_resume(work, sig)
+    out = _interrupt_and_resume(work, sig, recorded=recorded)
     assert out.returncode == 0, out.stderr[-3000:]
     assert (work / TABLE).read_bytes() == (reference / TABLE).read_bytes()
-    # no temporary file of the atomic writer is left anywhere in the results
-    assert [p for p in (work / P).rglob("*") if ".tmp" in p.name] == []
+    # no temporary file of the atomic writer and no staging folder is left anywhere in the results
+    assert [p for p in (work / P).rglob("*") if ".tmp" in p.name or p.name.endswith(".partial")] == []
 
 
 def _cache_copy(reference: Path, dest: Path) -> Path:

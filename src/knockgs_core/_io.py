@@ -35,7 +35,8 @@ __all__ = [
     "check_outputs",
     "json_safe",
     "remove_outputs",
-    "removed_on_failure",
+    "staged_folders",
+    "staging_folder",
     "write_bytes",
     "write_json",
     "write_npz",
@@ -206,7 +207,7 @@ def atomic_write(path, *, mode: str = "wb", suffix: str | None = None) -> Iterat
 
 def remove_outputs(*paths, log: IO | None = None) -> None:
     """Remove ``paths`` (a failed job's output files or folders) where they exist, each
-    removal reported to ``log``."""
+    removal reported to ``log`` as ``removed the partial output PATH``."""
     import shutil
 
     for path in map(Path, paths):
@@ -221,17 +222,53 @@ def remove_outputs(*paths, log: IO | None = None) -> None:
             print(f"removed the partial output {path}", file=log, flush=True)
 
 
+def staging_folder(folder) -> Path:
+    """The hidden sibling in which :func:`staged_folders` builds ``folder``: ``.NAME.partial``."""
+    folder = Path(folder)
+    return folder.with_name(f".{folder.name}.partial")
+
+
 @contextlib.contextmanager
-def removed_on_failure(*paths, log: IO | None = None) -> Iterator[None]:
-    """Remove ``paths`` (a job's output files or folders, :func:`remove_outputs`) when the
-    block raises or is interrupted (``KeyboardInterrupt`` included), then re-raise: a job that
-    writes several files into its output leaves none of them behind, so a resumed run redoes
-    it instead of taking a partial output for a finished one."""
+def staged_folders(*folders, log: IO | None = None) -> Iterator[list[Path]]:
+    """Build a job's output folders under hidden names and move them into place at the end.
+
+    Parameters
+    ----------
+    folders:
+        The job's output folders (a folder named twice is built once).
+    log:
+        Where the removal of a stale or failed staging folder is reported.
+
+    Yields the staging folders (:func:`staging_folder`), one for each of ``folders``, created
+    empty; a staging folder left by an earlier attempt that was killed is removed first. When
+    the block ends without error each is renamed onto its folder (a folder already there, an
+    older output of the same job, is removed just before); when it raises or is interrupted
+    (``KeyboardInterrupt`` included) the staging folders are removed and the exception
+    re-raised. So an output folder appears whole or not at all, whatever stops the job and
+    when: an uncaught SIGTERM (a batch system's time limit) or SIGKILL runs no clean-up in
+    the job, and a workflow manager stopped at the same time may record the job as finished
+    before it removes the job's outputs; a resumed run then finds the folder missing and
+    redoes the job.
+    """
+    import shutil
+
+    finals = list(dict.fromkeys(Path(f) for f in folders))
+    stages = {final: staging_folder(final) for final in finals}
+    for final, stage in stages.items():
+        check_output(final, directory=True)
+        check_output(stage, directory=True)
+        if os.path.lexists(stage):
+            remove_outputs(stage, log=log)  # an earlier attempt's, killed before its end
+        stage.mkdir(parents=True)
     try:
-        yield
+        yield [stages[Path(f)] for f in folders]
     except BaseException:
-        remove_outputs(*paths, log=log)
+        remove_outputs(*stages.values(), log=log)
         raise
+    for final, stage in stages.items():
+        if final.is_dir():
+            shutil.rmtree(final)
+        os.rename(stage, final)
 
 
 def write_bytes(path, data: bytes) -> None:

@@ -5,7 +5,7 @@ import json
 import sys
 from pathlib import Path
 
-from knockgs_core._io import removed_on_failure
+from knockgs_core._io import staged_folders
 from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.experiments import BoundarySettings, condition_world
@@ -27,11 +27,11 @@ world = condition_world(load_contract(p.object, p.profile), p.condition, Boundar
 if world.contract.hash != summary["contract_hash"]:
     raise SystemExit(f"{snakemake.input.summary}: field 'contract_hash': the condition's contract changed since "
                      "its asset was built; rebuild the asset")
-folder.mkdir(parents=True, exist_ok=True)
-with removed_on_failure(folder, log=log):  # no partial folder outlives a failed or interrupted job
+# built in a staging folder moved into place at the end: a job stopped at any point leaves no folder
+with staged_folders(folder, log=log) as (stage,):
     for i, run in enumerate(p.runs):
         theta, probe = run["theta"], run["probe"]
         tag = f"[{i + 1}/{len(p.runs)}] {p.condition}: theta ({theta[0]:.6f}, {theta[1]:.6f}) probe {probe}"
         ro = world.rollout(theta, probe, device=p.device)
-        write_rollout(run["rollout"], ro)
+        write_rollout(stage / Path(run["rollout"]).name, ro)
         print(f"{tag}: done, {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s", file=log, flush=True)

@@ -3,10 +3,11 @@
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 
-from knockgs_core._io import removed_on_failure, write_npz
+from knockgs_core._io import staged_folders, write_npz
 from knockgs_core.assets import load_scene, read_ply
 from knockgs_core.experiments import camera_from_contract, render_rollout
 from knockgs_core.rollout import read_deformation, read_rollout
@@ -23,17 +24,22 @@ def load(job):
     return read_rollout(job["rollout"]), read_deformation(job["F"])
 
 
-def write(job, rgb, alpha, t0):
-    write_npz(job["frames"], rgb=rgb.astype(np.float16), alpha=alpha.astype(np.float16))
+def write(job, rgb, alpha, t0, stage):
+    write_npz(stage / Path(job["frames"]).name, rgb=rgb.astype(np.float16), alpha=alpha.astype(np.float16))
     print(f"{job['frames']}: {len(rgb)} frames, {time.perf_counter() - t0:.2f} s", file=log, flush=True)
 
 
-# one file per probe: a failed or interrupted job removes the ones it wrote (once the writes
-# under way have finished), so a resumed run renders the theta again instead of taking a
-# partial folder. While a probe renders, the next probe's rollout is read and the last one's
-# frames are compressed and written, on two threads (the same files as in turn)
+# one file per probe, in a staging folder moved into place once all are written
+# (staged_folders): a job stopped at any point leaves no folder, so a resumed run renders the
+# theta again instead of taking a partial folder. While a probe renders, the next probe's
+# rollout is read and the last one's frames are compressed and written, on two threads (the
+# same files as in turn)
+folder = Path(snakemake.output.folder)
 jobs = list(p.jobs)
-with removed_on_failure(snakemake.output.folder, log=log), ThreadPoolExecutor(max_workers=2) as pool:
+for job in jobs:
+    if Path(job["frames"]).parent != folder:
+        raise SystemExit(f"render job: {job['frames']} lies outside the job's output folder {folder}")
+with staged_folders(folder, log=log) as (stage,), ThreadPoolExecutor(max_workers=2) as pool:
     reading = pool.submit(load, jobs[0]) if jobs else None
     writes = []
     for i, job in enumerate(jobs):
@@ -42,6 +48,6 @@ with removed_on_failure(snakemake.output.folder, log=log), ThreadPoolExecutor(ma
         reading = pool.submit(load, jobs[i + 1]) if i + 1 < len(jobs) else None
         rgb, alpha = render_rollout(gaussians, static_mask, gaussian_index, ro.positions, F, cam, device=p.device)
         del ro, F
-        writes.append(pool.submit(write, job, rgb, alpha, t0))
+        writes.append(pool.submit(write, job, rgb, alpha, t0, stage))
     for w in writes:
         w.result()

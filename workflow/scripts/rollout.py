@@ -2,10 +2,12 @@
 job's output folder (+ deformation gradients). The contract, particles and Warp kernels are
 loaded once. With an input ``protocol`` (a passive protocol's JSON), every run is under that
 protocol instead of a contract probe."""
+import contextlib
 import json
 import sys
 from pathlib import Path
 
+from knockgs_core._io import staged_folders
 from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.experiments import PassiveProtocol
@@ -24,8 +26,6 @@ for run in p.runs:
     for key, where in (("rollout", folder), ("F", F_folder)):
         if run[key] is not None and Path(run[key]).parent != where:
             raise SystemExit(f"rollout job: {run[key]} lies outside the job's output folder {where}")
-folder.mkdir(parents=True, exist_ok=True)
-F_folder.mkdir(parents=True, exist_ok=True)
 contract = load_contract(p.object, p.profile)
 particles = load_particles(snakemake.input.particles)
 passive = None
@@ -49,10 +49,23 @@ groups = batches(p.runs, schedule, together=p.device.startswith("cuda"))
 extra = {} if passive is None else passive.run_kwargs()
 
 
-# a failed or interrupted job leaves no output (the writer removes it once its writes have
-# stopped), so a resumed run simulates it again instead of taking a partial folder
-output = sorted({folder, F_folder}) if "folder" in snakemake.output.keys() else [Path(snakemake.output.rollout)]
-with BackgroundWriter(output=output) as writer:
+# A job's output folders are built under hidden names and moved into place once every file
+# is written (staged_folders): a job stopped at any point, by an exception, Ctrl-C, a batch
+# system's SIGTERM or a SIGKILL, leaves no folder, so a resumed run simulates it again
+# instead of taking a partial folder. The writer removes the staging folders of a failed
+# block once its writes have stopped. A single rollout file is written atomically.
+single = "folder" not in snakemake.output.keys()
+if single:
+    folder.mkdir(parents=True, exist_ok=True)
+staging = contextlib.nullcontext([folder, F_folder]) if single else staged_folders(folder, F_folder, log=log)
+with staging as (stage, F_stage), BackgroundWriter(output=[Path(snakemake.output.rollout)] if single else
+                                                   sorted({stage, F_stage})) as writer:
+    where = {folder: stage, F_folder: F_stage}
+
+    def staged(path):
+        """A run's file in the staging folder of its output folder."""
+        return None if path is None else where[Path(path).parent] / Path(path).name
+
     for group in groups:
         tags = [f"[{i + 1}/{len(p.runs)}] theta ({run['theta'][0]:.6f}, {run['theta'][1]:.6f}) probe {run['probe']}"
                 for i, run in group]
@@ -61,7 +74,7 @@ with BackgroundWriter(output=output) as writer:
             if frame % 5 == 0 or frame == n_frames - 1:
                 print(f"{tags[k]}: frame {frame}/{n_frames - 1} cfl {stats['cfl']:.3g}", file=log, flush=True)
 
-        streams = [writer.stream(run["rollout"], run["F"]) for _, run in group]
+        streams = [writer.stream(staged(run["rollout"]), staged(run["F"])) for _, run in group]
         rollouts = run_rollouts(contract, [(run["theta"], run["probe"]) for _, run in group], particles=particles,
                                 device=p.device, export_F=group[0][1]["F"] is not None,
                                 progress=progress, streams=streams, **extra)
