@@ -3,9 +3,12 @@ Gaussian scene rendered on both, compared. Float atomics make GPU sums order-dep
 the simulator comparison is a tolerance on the response, not bitwise. With ``--effects``, the
 reproducible P2G (fixed-point sums, as the paper profile runs) under each effect
 the discrepancy loop plants: two runs on the device bit for bit, and their response against
-the device's default P2G and the CPU's.
+the device's default P2G and the CPU's. With ``--choices``, the solver's ``"auto"`` on the
+device is checked against ``GPU_SOLVER_OPTIONS`` and ``GPU_STORAGE`` (what the CPU replays of
+a GPU's substep), and the verification block (the ci levels' finest, `deterministic: true`)
+simulated on the device is compared with that replay and with the CPU's own substep.
 
-    python3 benchmarks/gpu_parity.py --device cuda:0 --effects
+    python3 benchmarks/gpu_parity.py --device cuda:0 --effects --choices
 """
 
 from __future__ import annotations
@@ -72,6 +75,50 @@ def effects_reproducible(device: str) -> dict:
     return out
 
 
+def gpu_choices(device: str) -> dict:
+    """What ``"auto"`` chooses on ``device`` for the verification block (8 particles a cell, no
+    effects) against ``GPU_SOLVER_OPTIONS`` / ``GPU_STORAGE``, and the block's displacements on
+    the device against the CPU's replay of the GPU's substep and the CPU's own substep, each
+    relative to the RMS displacement (all three with the reproducible sums)."""
+    from pathlib import Path
+
+    import yaml
+
+    from knockgs_core.fem import VerificationSettings, mpm_block_rollout
+    from knockgs_core.fem import _verification as V
+    from knockgs_core.sim import (GPU_SOLVER_OPTIONS, GPU_STORAGE, FixedCuboid, MPMSolver, SimParams, build_model,
+                                  config_context, make_state)
+
+    root = Path(__file__).resolve().parents[1]
+    block = yaml.safe_load((root / "config/ci.yaml").read_text())["verification"]
+    settings = VerificationSettings.from_config({k: v for k, v in block.items() if k != "enabled"})
+    n_grid = settings.n_grid[-1]
+    x = V.block_particles(n_grid, settings.particles_per_axis)
+    params = SimParams(n_grid=n_grid, grid_lim=V.GRID_LIM, dt=V.mpm_dt(n_grid, settings),
+                       boundaries=(FixedCuboid(V.SUPPORT),))
+    model = build_model(x, **V.MATERIAL, params=params, device=device)
+    state = make_state(model, x)
+    solver = MPMSolver(model)
+    chosen = {key: getattr(solver, key) for key in GPU_SOLVER_OPTIONS}
+    storage = {"matrix_layout": "components" if state.particle_C.ndim == 2 else "records",
+               "deformation_storage": "displacement" if state.particle_F.ndim == 3 else "float64"}
+    with config_context(deterministic=True):
+        u = {"device": mpm_block_rollout(n_grid, settings, device=device)["u"],
+             "cpu_replay": mpm_block_rollout(n_grid, settings, device="cpu", solver_options=GPU_SOLVER_OPTIONS,
+                                             storage=GPU_STORAGE)["u"],
+             "cpu": mpm_block_rollout(n_grid, settings, device="cpu")["u"]}
+    rms = float(np.sqrt(np.mean(np.sum(u["cpu"] ** 2, axis=-1))))
+
+    def differs(a, b):
+        return float(np.sqrt(np.mean(np.sum((u[a] - u[b]) ** 2, axis=-1)))) / rms
+
+    return {"auto": chosen, "auto_storage": storage,
+            "matches": chosen == dict(GPU_SOLVER_OPTIONS) and storage == dict(GPU_STORAGE),
+            "n_grid": n_grid, "rms_displacement_m": rms,
+            "device_vs_cpu_replay": differs("device", "cpu_replay"), "device_vs_cpu": differs("device", "cpu"),
+            "cpu_replay_vs_cpu": differs("cpu_replay", "cpu")}
+
+
 def render_parity(device: str) -> dict:
     from knockgs_core.render import Camera, render
 
@@ -95,10 +142,14 @@ def main() -> None:
     ap.add_argument("--json")
     ap.add_argument("--effects", action="store_true",
                     help="also the reproducible P2G under each effect the discrepancy loop plants")
+    ap.add_argument("--choices", action="store_true",
+                    help="also the device's choices against what the CPU replays of a GPU's substep")
     args = ap.parse_args()
     res = {"sim": sim_parity(args.device)}
     if args.effects:
         res["effects"] = effects_reproducible(args.device)
+    if args.choices:
+        res["choices"] = gpu_choices(args.device)
     try:
         res["render"] = render_parity(args.device)
     except ImportError as exc:  # renderer not installed in this tree

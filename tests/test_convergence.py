@@ -30,7 +30,8 @@ from scipy.spatial import cKDTree
 from knockgs_core.assets import build_asset
 from knockgs_core.contract import load_contract
 from knockgs_core.rollout import run_rollout
-from knockgs_core.sim import ExportSchedule, MPMSolver, SimParams, build_model, make_state, simulate
+from knockgs_core.sim import (GPU_SOLVER_OPTIONS, GPU_STORAGE, ExportSchedule, MPMSolver, SimParams, build_model, make_state,
+                              simulate)
 
 OBJECTS = ("pillow", "ficus", "vasedeck")
 LINK_CELLS = 1.5       # particles closer than this many cells belong to one body
@@ -127,9 +128,8 @@ def _bar_model(transfer: str, dt: float, *, gpu_storage: bool):
     component by component), its positions and initial velocities."""
     x, v = _bar()
     model = build_model(x, E=BAR_E, nu=BAR_NU, rho=BAR_RHO,
-                        params=SimParams(n_grid=32, dt=dt, boundaries=(), transfer=transfer))
-    if gpu_storage:
-        model.matrix_layout, model.deformation_storage = "components", "displacement"
+                        params=SimParams(n_grid=32, dt=dt, boundaries=(), transfer=transfer),
+                        **(GPU_STORAGE if gpu_storage else {}))
     return model, x, v
 
 
@@ -171,10 +171,9 @@ def test_displacement_storage_keeps_the_first_order_in_dt():
     _first_order([_bar_run("affine_flip", BAR_DT / 2**k, deformation_storage="displacement")[0] for k in range(5)])
 
 
-#: every choice a GPU makes where the CPU makes another (``"auto"`` in :class:`MPMSolver` and
-#: :class:`Model`), and the paper profile's ``deterministic: true``
-GPU_CONFIGURATION = dict(p2g="cells", graph=True, fuse=True, deterministic=True, polar_step=1.5,
-                         polar_update="rational", g2p_sums="lines")
+#: every choice a GPU makes where the CPU makes another (``"auto"`` in :class:`MPMSolver`), and
+#: the paper profile's ``deterministic: true``
+GPU_CONFIGURATION = dict(GPU_SOLVER_OPTIONS, deterministic=True)
 
 
 def _bar_displacements(dt: float, solver_options: dict, *, gpu_storage: bool, n_frames: int = 31):

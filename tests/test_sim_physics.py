@@ -824,6 +824,42 @@ def test_results_say_how_a_deterministic_run_summed(rng):
     assert np.abs(out[True].positions[-1] - out[False].positions[-1]).max() < 1e-6
 
 
+def test_simulations_take_solver_options_and_storage_by_name(rng):
+    # simulate_many passes solver_options on to each run's MPMSolver and build_model takes the
+    # storage: the GPU's substep replayed on the CPU (tests/test_verification_fem.py meets the
+    # FEM reference with it); an unknown option or storage is refused by name
+    from knockgs_core.sim import GPU_SOLVER_OPTIONS, GPU_STORAGE, simulate_many
+
+    params, X = shell_scene(rng, "affine_flip", shell=800, guard_every=10)
+    V = (X - X.mean(axis=0)) @ np.array([[0.0, 0.8, 0.1], [-0.8, 0.2, 0.0], [0.1, 0.0, -0.3]], dtype=np.float32)
+
+    def run(solver_options=None, **storage):
+        model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, device="cpu", **storage)
+        assert (model.matrix_layout, model.deformation_storage) == (storage.get("matrix_layout", "auto"),
+                                                                    storage.get("deformation_storage", "auto"))
+        return simulate_many([(model, make_state(model, X, V))], frame_dt=6 * params.dt, n_frames=3,
+                             solver_options=solver_options)[0].positions
+
+    default = run()
+    stepped = run({"polar_step": 1.5})
+    assert not np.array_equal(stepped, default) and np.abs(stepped - default).max() < 1e-5
+    assert np.array_equal(run({"polar_step": 1.5, "polar_update": "axis_angle"}), stepped)   # the CPU's update
+    assert np.array_equal(run({"polar_step": 1.0, "p2g": "scatter"}), default)
+    gpu = run(GPU_SOLVER_OPTIONS, **GPU_STORAGE)
+    assert not np.array_equal(gpu, default) and np.abs(gpu - default).max() < 1e-5
+    model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, device="cpu")
+    for options in ({"p2g_mode": "cells"}, {"deterministic": True}, ["p2g"]):
+        with pytest.raises(InputError) as exc:
+            simulate_many([(model, make_state(model, X))], frame_dt=params.dt, n_frames=2, solver_options=options)
+        assert exc.value.field == "solver_options" and "\n" not in str(exc.value), str(exc.value)
+    for storage, field in (({"matrix_layout": "rows"}, "matrix_layout"),
+                           ({"deformation_storage": "float16"}, "deformation_storage"),
+                           ({"matrix_layout": "records", "deformation_storage": "displacement"}, "deformation_storage")):
+        with pytest.raises(InputError) as exc:
+            build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, device="cpu", **storage)
+        assert exc.value.field == field and "\n" not in str(exc.value), str(exc.value)
+
+
 @pytest.mark.parametrize("per_frame", [20, 5])
 def test_frames_copied_behind_the_next_substeps_are_handed_over_in_order(rng, monkeypatch, per_frame):
     # On a GPU a frame is gathered and copied into pinned host memory without waiting, and handed

@@ -153,10 +153,15 @@ def mpm_dt(n_grid: int, settings: VerificationSettings) -> float:
     return settings.frame_dt / math.ceil(settings.frame_dt / dt_max - 1e-9)
 
 
-def mpm_block_rollout(n_grid: int, settings: VerificationSettings, *, device: str | None = None) -> dict:
+def mpm_block_rollout(n_grid: int, settings: VerificationSettings, *, device: str | None = None,
+                      solver_options: Mapping | None = None, storage: Mapping | None = None) -> dict:
     """One MPM rollout of the block at ``n_grid``: ``x0`` rest positions [m] (n, 3), ``u``
     displacements [m] (frames, n, 3), ``dt`` [s], ``cpu_s`` CPU seconds of the rollout, and
-    the probe's total impulse [N s] as the simulator accounts it (``impulse``)."""
+    the probe's total impulse [N s] as the simulator accounts it (``impulse``).
+    ``solver_options`` (:func:`~knockgs_core.sim.simulate_many`'s) and ``storage``
+    (:func:`~knockgs_core.sim.build_model`'s ``matrix_layout`` and ``deformation_storage``):
+    the substep's choices where not the device's, e.g. a GPU's replayed on the CPU
+    (:data:`~knockgs_core.sim.GPU_SOLVER_OPTIONS`, :data:`~knockgs_core.sim.GPU_STORAGE`)."""
     x = block_particles(n_grid, settings.particles_per_axis)
     dx = GRID_LIM / n_grid
     dt = mpm_dt(n_grid, settings)
@@ -165,12 +170,21 @@ def mpm_block_rollout(n_grid: int, settings: VerificationSettings, *, device: st
                   n_steps=1, dt_ref=PROBE_DURATION)
     params = SimParams(n_grid=n_grid, grid_lim=GRID_LIM, dt=dt, boundaries=(FixedCuboid(SUPPORT),))
     cpu0 = time.process_time()
-    model = build_model(x, **MATERIAL, params=params, probe=probe, device=device)
+    model = build_model(x, **MATERIAL, params=params, probe=probe, device=device, **_storage(storage))
     state = make_state(model, x)
-    out = simulate(model, state, frame_dt=settings.frame_dt, n_frames=settings.n_frames)
+    out = simulate(model, state, frame_dt=settings.frame_dt, n_frames=settings.n_frames, solver_options=solver_options)
     cpu = time.process_time() - cpu0
     u = out.positions.astype(np.float64) - x[None].astype(np.float32).astype(np.float64)
     return {"x0": x, "u": u, "dt": dt, "cpu_s": cpu, "impulse": float(model.probe_impulse[0])}
+
+
+def _storage(storage: Mapping | None) -> dict:
+    """``storage`` checked as :func:`~knockgs_core.sim.build_model`'s storage keywords."""
+    storage = dict(storage or {})
+    for key in storage:
+        if key not in ("matrix_layout", "deformation_storage"):
+            raise InputError(_SOURCE, "storage", f"unknown key {key!r}; takes matrix_layout and deformation_storage")
+    return storage
 
 
 def fem_block_reference(settings: VerificationSettings, *, cells: int | None = None, degree: int | None = None) -> dict:
@@ -259,7 +273,8 @@ def _order(e_coarse: float, e_fine: float, h_coarse: float, h_fine: float) -> st
 
 
 def verification_study(settings: VerificationSettings, *, device: str | None = None,
-                       log: Callable[[str], None] | None = None) -> pd.DataFrame:
+                       log: Callable[[str], None] | None = None, solver_options: Mapping | None = None,
+                       storage: Mapping | None = None) -> pd.DataFrame:
     """The verification table: one row per MPM level (coarsest first), then the FEM on a
     coarser mesh (3/4 of ``fem_cells``: the reference's own discretization change) and the
     reference itself, every row compared with the reference at the row's points (the MPM
@@ -267,7 +282,9 @@ def verification_study(settings: VerificationSettings, *, device: str | None = N
     ``resolution`` (words), ``h_m`` (dx or mesh size), ``dt_s``, ``unknowns`` (particles or
     DOFs), the :func:`response_gap` columns, observed orders between successive MPM levels of
     the trajectory RMSE and of the period difference (text; ``-`` on the first level and the
-    FEM rows) and ``cpu_s`` (CPU seconds of the rollout or of assembly plus integration)."""
+    FEM rows) and ``cpu_s`` (CPU seconds of the rollout or of assembly plus integration).
+    ``solver_options`` and ``storage``: the MPM substep's choices, as in
+    :func:`mpm_block_rollout`."""
     say = log or (lambda msg: None)
     ref = fem_block_reference(settings)
     say(f"FEM reference: P{ref['degree']}, {ref['cells']} cells per 0.5 m, {ref['system'].n_dofs} DOFs, "
@@ -276,7 +293,7 @@ def verification_study(settings: VerificationSettings, *, device: str | None = N
     rows = []
     x_last = None
     for level, n_grid in enumerate(settings.n_grid):
-        run = mpm_block_rollout(n_grid, settings, device=device)
+        run = mpm_block_rollout(n_grid, settings, device=device, solver_options=solver_options, storage=storage)
         if not math.isclose(run["impulse"], ref["impulse"], rel_tol=1e-5):
             raise RuntimeError(f"MPM impulse {run['impulse']:.6g} N s differs from the FEM's {ref['impulse']:.6g} N s")
         P = interpolation_matrix(ref["system"], run["x0"])

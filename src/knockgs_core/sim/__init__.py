@@ -37,8 +37,8 @@ from ._effects import (
     with_effects,
 )
 from ._protocol import Effect
-from ._solver import (MPMSolver, Model, SimResult, State, build_model, cell_crowding, config_context, default_device,
-                      make_state, particle_volumes, set_config, simulate, simulate_many)
+from ._solver import (GPU_SOLVER_OPTIONS, GPU_STORAGE, MPMSolver, Model, SimResult, State, build_model, cell_crowding,
+                      config_context, default_device, make_state, particle_volumes, set_config, simulate, simulate_many)
 
 __all__ = [
     "BoundaryCondition",
@@ -51,6 +51,8 @@ __all__ = [
     "Probe",
     "SimParams",
     "is_still_sticky",
+    "GPU_SOLVER_OPTIONS",
+    "GPU_STORAGE",
     "MPMSolver",
     "Model",
     "SimResult",

@@ -9,9 +9,12 @@ region rather than with ``n_grid^3``.
 from __future__ import annotations
 
 import contextlib
+import inspect
 import math
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Callable
 
 import numpy as np
@@ -293,6 +296,8 @@ def build_model(
     probe: Probe | None = None,
     probe_force_scale: float = 1.0,
     device: str | None = None,
+    matrix_layout: str = "auto",
+    deformation_storage: str = "auto",
 ) -> Model:
     """Build the static model for particles at ``positions`` [m] (N, 3).
 
@@ -302,11 +307,15 @@ def build_model(
     ``probe_force_scale`` and rescaled so its impulse is kept at ``params.dt``; its contact
     box selects particles once, here. ``params.effects`` must be :class:`Effect` instances
     and at most one :class:`ParticleTranslation` may be active at any time.
+    ``matrix_layout`` and ``deformation_storage``: how states made for the model store the
+    per-particle matrices and F (:class:`Model`; ``"auto"``: the device's choice,
+    :data:`GPU_STORAGE` on a GPU).
     """
     _check_params(params)
     # starts Warp (quiet on a CPU run); one line naming an unavailable device; "cuda" is the
     # card this process claimed (knockgs_core._warp.resolve_device)
     device = warp_device(device or default_device()).alias
+    deformation_array(1, device, storage=deformation_storage, layout=matrix_layout)  # one line naming a bad choice
     x = np.ascontiguousarray(positions, dtype=np.float32)
     if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] == 0:
         raise InputError("positions", "shape", f"expected (N, 3) with N > 0, got {x.shape}")
@@ -368,6 +377,8 @@ def build_model(
         mass_host=mass,
         max_wave_speed=wave,
         particle_x0_host=x,
+        matrix_layout=matrix_layout,
+        deformation_storage=deformation_storage,
     )
 
 
@@ -1138,6 +1149,36 @@ def config_context(*, deterministic: bool):
         _CONFIG.update(before)
 
 
+#: the substep a CUDA device runs where the CPU runs another, as :class:`MPMSolver`'s options
+#: (what their ``"auto"`` chooses on a GPU for a model without effects whose particles crowd
+#: their cells, as the paper's objects and the verification block do). Given to
+#: :func:`simulate_many` on the CPU (``solver_options=GPU_SOLVER_OPTIONS``, the model built with
+#: :data:`GPU_STORAGE`), they replay a GPU's substep there: the same sums, in the order the CPU
+#: adds them. The paper profile adds ``deterministic=True``.
+GPU_SOLVER_OPTIONS: Mapping = MappingProxyType(dict(p2g="cells", graph=True, fuse=True, polar_step=1.5,
+                                                    polar_update="rational", g2p_sums="lines"))
+#: how a CUDA device stores a model's per-particle matrices and F (:func:`build_model`'s
+#: keywords; ``"auto"`` there chooses these on a GPU)
+GPU_STORAGE: Mapping = MappingProxyType(dict(matrix_layout="components", deformation_storage="displacement"))
+
+
+def _solver_options(options: Mapping | None) -> dict:
+    """``options`` checked as :class:`MPMSolver` keywords that :func:`simulate_many` passes on
+    (``deterministic`` and ``crowding`` it sets itself)."""
+    if options is None:
+        return {}
+    if not isinstance(options, Mapping):
+        raise InputError("simulation", "solver_options", f"must be a mapping of MPMSolver options, got {type(options).__name__}")
+    known = [k for k in inspect.signature(MPMSolver.__init__).parameters if k not in ("self", "model", "crowding")]
+    for key in options:
+        if key == "deterministic":
+            raise InputError("simulation", "solver_options", "pass deterministic= to the simulation, not as a solver option")
+        if key not in known:
+            raise InputError("simulation", "solver_options",
+                             f"unknown option {key!r}; MPMSolver takes {', '.join(k for k in known if k != 'deterministic')}")
+    return dict(options)
+
+
 def simulate(
     model: Model,
     state: State,
@@ -1147,14 +1188,16 @@ def simulate(
     export_F: int = 0,
     progress: Callable[[int, int, dict], None] | None = None,
     deterministic: bool | None = None,
+    solver_options: Mapping | None = None,
 ) -> SimResult:
     """Run from ``state`` (at step 0) and export ``n_frames`` frames every ``frame_dt`` [s],
     the first at t = 0. ``export_F`` > 0 also exports the deformation gradient of the first
     ``export_F`` particles (the Gaussian-associated ones). ``progress(frame, n_frames, stats)``
-    is called after each exported frame. ``deterministic``: as in :func:`simulate_many`."""
+    is called after each exported frame. ``deterministic`` and ``solver_options``: as in
+    :func:`simulate_many`."""
     report = None if progress is None else (lambda run, frame, n, stats: progress(frame, n, stats))
     return simulate_many([(model, state)], frame_dt=frame_dt, n_frames=n_frames, export_F=export_F, progress=report,
-                         deterministic=deterministic)[0]
+                         deterministic=deterministic, solver_options=solver_options)[0]
 
 
 class _Exporter:
@@ -1236,6 +1279,7 @@ def simulate_many(
     export_index: np.ndarray | None = None,
     on_frame: Callable[[int, int, np.ndarray, np.ndarray | None], None] | None = None,
     deterministic: bool | None = None,
+    solver_options: Mapping | None = None,
 ) -> list[SimResult]:
     """Run several independent simulations (``runs``: (model, state) pairs, all with the same
     time step) in lockstep and export the same frames from each, as :func:`simulate` does.
@@ -1258,8 +1302,11 @@ def simulate_many(
     without a copy, and must not write to them), e.g. to write the frame while the next one
     is simulated. ``deterministic``: each run's solver with the bitwise-reproducible P2G
     (:class:`MPMSolver`'s option: a GPU rollout the same bit for bit on every run); None: the
-    setting of the enclosing :func:`config_context` (False outside one). Returns one
-    :class:`SimResult` per run, in order."""
+    setting of the enclosing :func:`config_context` (False outside one). ``solver_options``:
+    further keywords of each run's :class:`MPMSolver` (e.g. :data:`GPU_SOLVER_OPTIONS`; None:
+    the device's choices); an unknown key is refused by name. Returns one :class:`SimResult`
+    per run, in order."""
+    options = _solver_options(solver_options)
     if deterministic is None:
         deterministic = _CONFIG["deterministic"]
     if not runs:
@@ -1287,7 +1334,7 @@ def simulate_many(
     for i, (model, state) in enumerate(runs):
         with on(i):
             shared = (id(model.particle_x0_host), model.params.dx)
-            solver = MPMSolver(model, deterministic=deterministic, crowding=crowding.get(shared))
+            solver = MPMSolver(model, deterministic=deterministic, crowding=crowding.get(shared), **options)
             crowding[shared] = solver.crowding
             n = model.particle_count
             X = np.empty((n_frames, n, 3), dtype=np.float32)
