@@ -210,6 +210,28 @@ def test_output_folders_appear_only_when_the_job_ends(tmp_path):
     assert (tmp_path / "taken").read_text() == "a file" and not (tmp_path / ".taken.partial").exists()
 
 
+
+def test_a_jobs_files_map_into_the_staging_folders_of_their_folders(tmp_path):
+    from knockgs_core._io import StagedFolders, check_files_in, staged_folders
+
+    folder, F_folder = tmp_path / "eval" / "theta", tmp_path / "evalF" / "theta"
+    with staged_folders(folder, F_folder) as stages:
+        assert stages.path(folder / "standard_x.parquet") == tmp_path / "eval" / ".theta.partial" / "standard_x.parquet"
+        assert stages.path(str(F_folder / "standard_x.F.parquet")) == stages[1] / "standard_x.F.parquet"
+        assert stages.path(None) is None
+        # a file outside the folders, or in a subfolder of one, is refused by name: a job writes its folders' files
+        for outside in (tmp_path / "eval" / "other" / "a.parquet", folder / "deeper" / "a.parquet"):
+            with pytest.raises(InputError) as exc:
+                stages.path(outside)
+            assert exc.value.field == "output" and str(outside) in str(exc.value) and "\n" not in str(exc.value)
+    # the same check, up front, for all of a job's files; written in place, files map to themselves
+    check_files_in([folder / "a.parquet", None, F_folder / "a.F.parquet"], [folder, F_folder], source="rollout job")
+    with pytest.raises(InputError, match=r"^rollout job: field 'output': .*b\.parquet lies outside"):
+        check_files_in([folder / "a.parquet", tmp_path / "b.parquet"], [folder], source="rollout job")
+    in_place = StagedFolders([folder, F_folder], [folder, F_folder])
+    assert in_place == [folder, F_folder] and in_place.path(folder / "a.parquet") == folder / "a.parquet"
+
+
 _KILLED_JOB = """
 import os, signal, sys
 from pathlib import Path

@@ -239,6 +239,34 @@ def test_duplicates_and_completion_audits(tmp_path):
     assert not audit_completion([tmp_path / "nope.csv"])["passed"]
 
 
+def test_the_completion_audit_lists_staging_folders_left_by_stopped_jobs(tmp_path):
+    # a job killed by SIGKILL leaves its hidden staging folder; if the job never runs again
+    # nothing removes it, so the completion audit (run when every job has ended) lists it, warns
+    # with the command that removes it, and still passes: no output is read from such a folder
+    from knockgs_core._io import staging_folder
+
+    results = tmp_path / "results" / "ci"
+    table = results / "tables" / "main_pillow.csv"
+    table.parent.mkdir(parents=True)
+    table.write_text("method,x\nlocal_ridge,1\n")
+    clean = audit_completion([table], [table], ["local_ridge"], results=results)
+    assert clean["passed"] and clean["stale_staging"] == [] and clean["warnings"] == []
+    stale = [staging_folder(results / "rollouts" / "pillow" / "lib" / "chunk3"),
+             staging_folder(results / "frames" / "ficus" / "sE1.050000_sR1.200000")]
+    for folder in stale:
+        (folder / "inner" / ".nested.partial").mkdir(parents=True)   # a staging folder's contents are not searched
+        (folder / "standard_x.parquet").write_bytes(b"half")
+    (results / "rollouts" / "pillow" / "lib" / "chunk0").mkdir()     # a finished folder is not listed
+    verdict = audit_completion([table], [table], ["local_ridge"], results=results)
+    assert verdict["passed"] and verdict["problems"] == []
+    assert verdict["stale_staging"] == sorted(str(f) for f in stale)
+    assert len(verdict["warnings"]) == 1 and verdict["warnings"][0].startswith("2 staging folder(s)")
+    assert all(str(f) in verdict["warnings"][0] for f in stale) and "rm -r" in verdict["warnings"][0]
+    assert "stale_staging" not in audit_completion([table])   # without the results folder, as before
+    rules = (ROOT / "workflow/rules/audit.smk").read_text()
+    assert "results=P," in rules.split("rule audit_completion:")[1]
+
+
 def _planned_paths(dry_run_stdout: str) -> list[str]:
     """Every output, log and benchmark file of the jobs a dry run plans."""
     paths = []

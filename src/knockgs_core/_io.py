@@ -228,8 +228,41 @@ def staging_folder(folder) -> Path:
     return folder.with_name(f".{folder.name}.partial")
 
 
+class StagedFolders(list):
+    """The folders a job writes its files into, one for each output folder it was made with,
+    in that order (a list of paths), and the map of the job's files into them
+    (:meth:`path`). :func:`staged_folders` yields one whose folders are staging folders; made
+    with the output folders themselves, it writes in place."""
+
+    def __init__(self, folders: Sequence, writes_into: Sequence):
+        super().__init__(Path(f) for f in writes_into)
+        self._into = dict(zip((Path(f) for f in folders), self))
+
+    def path(self, path) -> Path | None:
+        """``path``, a file directly in one of the output folders, in the folder it is written
+        into (the same name); None stays None. A path elsewhere is refused as
+        :func:`check_files_in` refuses it (a job checks all its files so before it starts)."""
+        if path is None:
+            return None
+        path = Path(path)
+        check_files_in([path], self._into, source="staged folders")
+        return self._into[path.parent] / path.name
+
+
+def check_files_in(files, folders, *, source: str) -> None:
+    """Raise an :class:`InputError` of ``source``'s field ``output`` naming the first of
+    ``files`` (paths; None entries are skipped) that does not lie directly in one of
+    ``folders``: a job's files must be in its output folders, where :func:`staged_folders`
+    builds them."""
+    folders = [Path(f) for f in folders]
+    for f in files:
+        if f is not None and Path(f).parent not in folders:
+            raise InputError(source, "output", f"{f} lies outside the job's output folders "
+                             f"({', '.join(str(d) for d in dict.fromkeys(folders))})")
+
+
 @contextlib.contextmanager
-def staged_folders(*folders, log: IO | None = None) -> Iterator[list[Path]]:
+def staged_folders(*folders, log: IO | None = None) -> Iterator[StagedFolders]:
     """Build a job's output folders under hidden names and move them into place at the end.
 
     Parameters
@@ -240,7 +273,9 @@ def staged_folders(*folders, log: IO | None = None) -> Iterator[list[Path]]:
         Where the removal of a stale or failed staging folder is reported.
 
     Yields the staging folders (:func:`staging_folder`), one for each of ``folders``, created
-    empty; a staging folder left by an earlier attempt that was killed is removed first. When
+    empty, as a :class:`StagedFolders` (its :meth:`~StagedFolders.path` maps a file of an
+    output folder into its staging folder); a staging folder left by an earlier attempt that was
+    killed is removed first. When
     the block ends without error each is renamed onto its folder (a folder already there, an
     older output of the same job, is removed just before); when it raises or is interrupted
     (``KeyboardInterrupt`` included) the staging folders are removed and the exception
@@ -261,7 +296,7 @@ def staged_folders(*folders, log: IO | None = None) -> Iterator[list[Path]]:
             remove_outputs(stage, log=log)  # an earlier attempt's, killed before its end
         stage.mkdir(parents=True)
     try:
-        yield [stages[Path(f)] for f in folders]
+        yield StagedFolders(folders, [stages[Path(f)] for f in folders])
     except BaseException:
         remove_outputs(*stages.values(), log=log)
         raise

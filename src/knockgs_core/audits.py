@@ -17,7 +17,9 @@
 from __future__ import annotations
 
 import json
+import os
 import re
+import shlex
 from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
@@ -337,8 +339,30 @@ def audit_duplicates(candidates: pd.DataFrame, targets: pd.DataFrame, library_ta
     return {"passed": not problems, "candidates": len(candidates), "targets": len(targets), "problems": problems}
 
 
-def audit_completion(expected: Iterable, main_tables: Iterable = (), methods: Sequence[str] = ()) -> dict:
-    """Every expected output exists (non-empty) and every main table lists every method."""
+def stale_staging_folders(root) -> list[str]:
+    """The staging folders (``.NAME.partial``, :func:`knockgs_core._io.staging_folder`) under
+    ``root``, sorted; their contents are not searched. A job builds its output folder in one and
+    renames it into place when whole; a job stopped by SIGKILL leaves it, and only that job's
+    next attempt removes it."""
+    found = []
+    for top, dirs, _ in os.walk(root):
+        for d in list(dirs):
+            if d.startswith(".") and d.endswith(".partial"):
+                found.append(os.path.join(top, d))
+                dirs.remove(d)
+    return sorted(found)
+
+
+def audit_completion(expected: Iterable, main_tables: Iterable = (), methods: Sequence[str] = (), *,
+                     results=None) -> dict:
+    """Every expected output exists (non-empty) and every main table lists every method.
+
+    With ``results`` (the profile's results folder) the verdict also lists, as
+    ``stale_staging``, the staging folders left under it (:func:`stale_staging_folders`). The
+    audit runs once every job of the run has ended, so no job owns them any more: a job
+    stopped by SIGKILL left each, and a job that is not run again (its outputs no longer
+    asked for) never removes it. They are reported, with ``warnings``, and do not fail the
+    audit: no output is read from them, they only hold disk space."""
     expected = [str(e) for e in expected]
     missing = [e for e in expected if not Path(e).exists() or Path(e).stat().st_size == 0]
     problems = [f"missing output {m}" for m in missing]
@@ -347,4 +371,10 @@ def audit_completion(expected: Iterable, main_tables: Iterable = (), methods: Se
         lost = [m for m in methods if m not in got]
         if lost:
             problems.append(f"{f}: methods missing {lost}")
-    return {"passed": not problems, "expected": len(expected), "problems": problems}
+    verdict = {"passed": not problems, "expected": len(expected), "problems": problems}
+    if results is not None:
+        stale = stale_staging_folders(results)
+        verdict["stale_staging"] = stale
+        verdict["warnings"] = [f"{len(stale)} staging folder(s) of jobs stopped before their end, no output read "
+                               f"from them; remove them with: rm -r {' '.join(shlex.quote(f) for f in stale)}"] if stale else []
+    return verdict

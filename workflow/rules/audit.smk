@@ -143,5 +143,6 @@ rule audit_completion:
                              + STUDIES_IN_ALL if not path.startswith(f"{P}/audits/")],
         methods=METHODS,
         mains=[f"{P}/tables/main_{o}.csv" for o in OBJECTS],
+        results=P,
     script:
         "../scripts/audit.py"

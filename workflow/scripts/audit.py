@@ -25,7 +25,9 @@ elif name == "rollout_metadata":
 elif name == "duplicates":
     verdict = audits.audit_duplicates(load_candidates(), load_targets(p.split), snakemake.input.libraries)
 elif name == "completion":
-    verdict = audits.audit_completion(p.expected, p.mains, p.methods)
+    verdict = audits.audit_completion(p.expected, p.mains, p.methods, results=p.results)
+    for warning in verdict["warnings"]:
+        print(f"warning: {warning}", file=sys.stderr)
 else:
     raise SystemExit(f"unknown audit {name}")
 verdict["audit"] = name

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from knockgs_core._io import staged_folders, write_npz
+from knockgs_core._io import check_files_in, staged_folders, write_npz
 from knockgs_core.assets import load_scene, read_ply
 from knockgs_core.experiments import camera_from_contract, render_rollout
 from knockgs_core.rollout import read_deformation, read_rollout
@@ -24,8 +24,8 @@ def load(job):
     return read_rollout(job["rollout"]), read_deformation(job["F"])
 
 
-def write(job, rgb, alpha, t0, stage):
-    write_npz(stage / Path(job["frames"]).name, rgb=rgb.astype(np.float16), alpha=alpha.astype(np.float16))
+def write(job, rgb, alpha, t0, stages):
+    write_npz(stages.path(job["frames"]), rgb=rgb.astype(np.float16), alpha=alpha.astype(np.float16))
     print(f"{job['frames']}: {len(rgb)} frames, {time.perf_counter() - t0:.2f} s", file=log, flush=True)
 
 
@@ -36,10 +36,8 @@ def write(job, rgb, alpha, t0, stage):
 # same files as in turn)
 folder = Path(snakemake.output.folder)
 jobs = list(p.jobs)
-for job in jobs:
-    if Path(job["frames"]).parent != folder:
-        raise SystemExit(f"render job: {job['frames']} lies outside the job's output folder {folder}")
-with staged_folders(folder, log=log) as (stage,), ThreadPoolExecutor(max_workers=2) as pool:
+check_files_in([job["frames"] for job in jobs], [folder], source="render job")
+with staged_folders(folder, log=log) as stages, ThreadPoolExecutor(max_workers=2) as pool:
     reading = pool.submit(load, jobs[0]) if jobs else None
     writes = []
     for i, job in enumerate(jobs):
@@ -48,6 +46,6 @@ with staged_folders(folder, log=log) as (stage,), ThreadPoolExecutor(max_workers
         reading = pool.submit(load, jobs[i + 1]) if i + 1 < len(jobs) else None
         rgb, alpha = render_rollout(gaussians, static_mask, gaussian_index, ro.positions, F, cam, device=p.device)
         del ro, F
-        writes.append(pool.submit(write, job, rgb, alpha, t0, stage))
+        writes.append(pool.submit(write, job, rgb, alpha, t0, stages))
     for w in writes:
         w.result()

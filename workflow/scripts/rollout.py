@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from knockgs_core._io import staged_folders
+from knockgs_core._io import StagedFolders, check_files_in, staged_folders
 from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.experiments import PassiveProtocol
@@ -22,10 +22,8 @@ set_config(deterministic=p.deterministic)  # the GPU's reproducible P2G for ever
 folder = Path(snakemake.output.folder) if "folder" in snakemake.output.keys() else Path(snakemake.output.rollout).parent
 # the deformation gradients: in the same folder, or in a folder of their own (output "F_folder")
 F_folder = Path(snakemake.output.F_folder) if "F_folder" in snakemake.output.keys() else folder
-for run in p.runs:
-    for key, where in (("rollout", folder), ("F", F_folder)):
-        if run[key] is not None and Path(run[key]).parent != where:
-            raise SystemExit(f"rollout job: {run[key]} lies outside the job's output folder {where}")
+check_files_in([run["rollout"] for run in p.runs], [folder], source="rollout job")
+check_files_in([run["F"] for run in p.runs], [F_folder], source="rollout job")
 contract = load_contract(p.object, p.profile)
 particles = load_particles(snakemake.input.particles)
 passive = None
@@ -57,15 +55,10 @@ extra = {} if passive is None else passive.run_kwargs()
 single = "folder" not in snakemake.output.keys()
 if single:
     folder.mkdir(parents=True, exist_ok=True)
-staging = contextlib.nullcontext([folder, F_folder]) if single else staged_folders(folder, F_folder, log=log)
-with staging as (stage, F_stage), BackgroundWriter(output=[Path(snakemake.output.rollout)] if single else
-                                                   sorted({stage, F_stage})) as writer:
-    where = {folder: stage, F_folder: F_stage}
-
-    def staged(path):
-        """A run's file in the staging folder of its output folder."""
-        return None if path is None else where[Path(path).parent] / Path(path).name
-
+staging = (contextlib.nullcontext(StagedFolders([folder, F_folder], [folder, F_folder])) if single else
+           staged_folders(folder, F_folder, log=log))
+with staging as stages, BackgroundWriter(output=[Path(snakemake.output.rollout)] if single else
+                                         sorted(set(stages))) as writer:
     for group in groups:
         tags = [f"[{i + 1}/{len(p.runs)}] theta ({run['theta'][0]:.6f}, {run['theta'][1]:.6f}) probe {run['probe']}"
                 for i, run in group]
@@ -74,7 +67,7 @@ with staging as (stage, F_stage), BackgroundWriter(output=[Path(snakemake.output
             if frame % 5 == 0 or frame == n_frames - 1:
                 print(f"{tags[k]}: frame {frame}/{n_frames - 1} cfl {stats['cfl']:.3g}", file=log, flush=True)
 
-        streams = [writer.stream(staged(run["rollout"]), staged(run["F"])) for _, run in group]
+        streams = [writer.stream(stages.path(run["rollout"]), stages.path(run["F"])) for _, run in group]
         rollouts = run_rollouts(contract, [(run["theta"], run["probe"]) for _, run in group], particles=particles,
                                 device=p.device, export_F=group[0][1]["F"] is not None,
                                 progress=progress, streams=streams, **extra)
