@@ -143,6 +143,6 @@ rule audit_completion:
                              + STUDIES_IN_ALL if not path.startswith(f"{P}/audits/")],
         methods=METHODS,
         mains=[f"{P}/tables/main_{o}.csv" for o in OBJECTS],
-        results=P,
+        results=lambda wc, output: os.path.dirname(os.path.dirname(output[0])),  # the profile's results folder
     script:
         "../scripts/audit.py"
