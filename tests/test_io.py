@@ -210,7 +210,6 @@ def test_output_folders_appear_only_when_the_job_ends(tmp_path):
     assert (tmp_path / "taken").read_text() == "a file" and not (tmp_path / ".taken.partial").exists()
 
 
-
 def test_a_jobs_files_map_into_the_staging_folders_of_their_folders(tmp_path):
     from knockgs_core._io import StagedFolders, check_files_in, staged_folders
 

@@ -30,7 +30,9 @@ import numpy as np
 from .errors import InputError
 
 __all__ = [
+    "StagedFolders",
     "atomic_write",
+    "check_files_in",
     "check_output",
     "check_outputs",
     "json_safe",

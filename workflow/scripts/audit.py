@@ -26,8 +26,9 @@ elif name == "duplicates":
     verdict = audits.audit_duplicates(load_candidates(), load_targets(p.split), snakemake.input.libraries)
 elif name == "completion":
     verdict = audits.audit_completion(p.expected, p.mains, p.methods, results=p.results)
-    for warning in verdict["warnings"]:
-        print(f"warning: {warning}", file=sys.stderr)
+    for warning in verdict["warnings"]:  # in the job's log, and on the console of the run
+        for out in (sys.stderr, sys.__stderr__):
+            print(f"warning: audit completion: {warning}", file=out, flush=True)
 else:
     raise SystemExit(f"unknown audit {name}")
 verdict["audit"] = name
