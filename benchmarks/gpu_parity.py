@@ -85,18 +85,14 @@ def gpu_choices(device: str) -> dict:
     import yaml
 
     from knockgs_core.fem import VerificationSettings, mpm_block_rollout
-    from knockgs_core.fem import _verification as V
-    from knockgs_core.sim import (GPU_SOLVER_OPTIONS, GPU_STORAGE, FixedCuboid, MPMSolver, SimParams, build_model,
-                                  config_context, make_state)
+    from knockgs_core.fem._verification import mpm_block_model
+    from knockgs_core.sim import GPU_SOLVER_OPTIONS, GPU_STORAGE, MPMSolver, config_context, make_state
 
     root = Path(__file__).resolve().parents[1]
     block = yaml.safe_load((root / "config/ci.yaml").read_text())["verification"]
     settings = VerificationSettings.from_config({k: v for k, v in block.items() if k != "enabled"})
     n_grid = settings.n_grid[-1]
-    x = V.block_particles(n_grid, settings.particles_per_axis)
-    params = SimParams(n_grid=n_grid, grid_lim=V.GRID_LIM, dt=V.mpm_dt(n_grid, settings),
-                       boundaries=(FixedCuboid(V.SUPPORT),))
-    model = build_model(x, **V.MATERIAL, params=params, device=device)
+    model, x = mpm_block_model(n_grid, settings, device=device)
     state = make_state(model, x)
     solver = MPMSolver(model)
     chosen = {key: getattr(solver, key) for key in GPU_SOLVER_OPTIONS}

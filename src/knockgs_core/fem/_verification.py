@@ -162,20 +162,27 @@ def mpm_block_rollout(n_grid: int, settings: VerificationSettings, *, device: st
     (:func:`~knockgs_core.sim.build_model`'s ``matrix_layout`` and ``deformation_storage``):
     the substep's choices where not the device's, e.g. a GPU's replayed on the CPU
     (:data:`~knockgs_core.sim.GPU_SOLVER_OPTIONS`, :data:`~knockgs_core.sim.GPU_STORAGE`)."""
-    x = block_particles(n_grid, settings.particles_per_axis)
-    dx = GRID_LIM / n_grid
-    dt = mpm_dt(n_grid, settings)
-    m_p = MATERIAL["rho"] * dx**3 / settings.particles_per_axis**3
-    probe = Probe("verification", force=(m_p * settings.impulse_velocity / PROBE_DURATION, 0.0, 0.0), box=None,
-                  n_steps=1, dt_ref=PROBE_DURATION)
-    params = SimParams(n_grid=n_grid, grid_lim=GRID_LIM, dt=dt, boundaries=(FixedCuboid(SUPPORT),))
     cpu0 = time.process_time()
-    model = build_model(x, **MATERIAL, params=params, probe=probe, device=device, **_storage(storage))
+    model, x = mpm_block_model(n_grid, settings, device=device, storage=storage)
     state = make_state(model, x)
     out = simulate(model, state, frame_dt=settings.frame_dt, n_frames=settings.n_frames, solver_options=solver_options)
     cpu = time.process_time() - cpu0
     u = out.positions.astype(np.float64) - x[None].astype(np.float32).astype(np.float64)
-    return {"x0": x, "u": u, "dt": dt, "cpu_s": cpu, "impulse": float(model.probe_impulse[0])}
+    return {"x0": x, "u": u, "dt": model.params.dt, "cpu_s": cpu, "impulse": float(model.probe_impulse[0])}
+
+
+def mpm_block_model(n_grid: int, settings: VerificationSettings, *, device: str | None = None,
+                    storage: Mapping | None = None):
+    """The MPM model of the knocked block at ``n_grid`` (substep :func:`mpm_dt`, the probe's
+    impulse ``settings.impulse_velocity`` per unit mass, the support held) and its particles'
+    rest positions [m] (n, 3); ``storage`` as in :func:`mpm_block_rollout`."""
+    x = block_particles(n_grid, settings.particles_per_axis)
+    dx = GRID_LIM / n_grid
+    m_p = MATERIAL["rho"] * dx**3 / settings.particles_per_axis**3
+    probe = Probe("verification", force=(m_p * settings.impulse_velocity / PROBE_DURATION, 0.0, 0.0), box=None,
+                  n_steps=1, dt_ref=PROBE_DURATION)
+    params = SimParams(n_grid=n_grid, grid_lim=GRID_LIM, dt=mpm_dt(n_grid, settings), boundaries=(FixedCuboid(SUPPORT),))
+    return build_model(x, **MATERIAL, params=params, probe=probe, device=device, **_storage(storage)), x
 
 
 def _storage(storage: Mapping | None) -> dict:

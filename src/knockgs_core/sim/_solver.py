@@ -211,18 +211,24 @@ def deformation_array(n: int, device, *, storage: str = "auto", layout: str = "a
     bits stay those of F in float64 (benchmarks/README.md, "F as its displacement gradient").
     """
     dev = wp.get_device(device)
+    if _deformation_storage(storage, layout, dev) == "float64":
+        return matrix_array(n, wp.float64, dev, layout=layout)
+    return wp.zeros((3, 3, matrix_pitch(n)), dtype=float, device=dev)
+
+
+def _deformation_storage(storage: str, layout: str, dev) -> str:
+    """The deformation storage ``storage`` means on device ``dev`` beside the matrix layout
+    ``layout`` (see :func:`deformation_array`), both checked."""
     if storage == "auto":
         storage = "displacement" if dev.is_cuda else "float64"
     if storage not in DEFORMATION_STORAGES:
         raise InputError("Model", "deformation_storage",
                          f"must be 'auto' or one of {list(DEFORMATION_STORAGES)}, got {storage!r}")
-    if storage == "float64":
-        return matrix_array(n, wp.float64, dev, layout=layout)
-    if _matrix_layout(layout, dev) != "components":
+    if _matrix_layout(layout, dev) != "components" and storage == "displacement":
         raise InputError("Model", "deformation_storage",
                          "'displacement' is stored component by component: it needs matrix_layout 'components' "
                          f"(or 'auto' on a GPU), got {layout!r}")
-    return wp.zeros((3, 3, matrix_pitch(n)), dtype=float, device=dev)
+    return storage
 
 
 def matrices(a: wp.array, n: int) -> np.ndarray:
@@ -315,7 +321,7 @@ def build_model(
     # starts Warp (quiet on a CPU run); one line naming an unavailable device; "cuda" is the
     # card this process claimed (knockgs_core._warp.resolve_device)
     device = warp_device(device or default_device()).alias
-    deformation_array(1, device, storage=deformation_storage, layout=matrix_layout)  # one line naming a bad choice
+    _deformation_storage(deformation_storage, matrix_layout, wp.get_device(device))  # one line naming a bad choice
     x = np.ascontiguousarray(positions, dtype=np.float32)
     if x.ndim != 2 or x.shape[1] != 3 or x.shape[0] == 0:
         raise InputError("positions", "shape", f"expected (N, 3) with N > 0, got {x.shape}")
