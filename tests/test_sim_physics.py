@@ -860,6 +860,44 @@ def test_simulations_take_solver_options_and_storage_by_name(rng):
         assert exc.value.field == field and "\n" not in str(exc.value), str(exc.value)
 
 
+def test_the_devices_auto_choices_are_made_in_one_place(rng, monkeypatch):
+    # MPMSolver's and build_model's "auto" ask MPMSolver.auto_options and device_storage, and
+    # GPU_SOLVER_OPTIONS / GPU_STORAGE are their answers for a GPU: with both answering as on a
+    # GPU, a CPU run of all "auto" is bit for bit the CPU's replay of the GPU's substep
+    from knockgs_core.sim import GPU_SOLVER_OPTIONS, GPU_STORAGE, _solver, device_storage, simulate_many
+
+    assert dict(GPU_SOLVER_OPTIONS) == dict(p2g="cells", graph=True, fuse=True, polar_step=1.5, polar_update="rational",
+                                            g2p_sums="lines")
+    assert dict(GPU_STORAGE) == dict(matrix_layout="components", deformation_storage="displacement")
+    assert MPMSolver.auto_options(True, crowding=1.0)["p2g"] == "scatter"
+    assert MPMSolver.auto_options(True, crowding=1.0, deterministic=True)["p2g"] == "cells"
+    hooked = MPMSolver.auto_options(True, hooks=True)
+    assert (hooked["graph"], hooked["fuse"]) == (False, False)
+    params, X = shell_scene(rng, "affine_flip", shell=800, guard_every=10)
+    V = (X - X.mean(axis=0)) @ np.array([[0.0, 0.8, 0.1], [-0.8, 0.2, 0.0], [0.1, 0.0, -0.3]], dtype=np.float32)
+
+    def run(solver_options=None, **storage):
+        model = build_model(X, E=2e4, nu=0.3, rho=1000.0, params=params, device="cpu", **storage)
+        res = simulate_many([(model, make_state(model, X, V))], frame_dt=6 * params.dt, n_frames=3,
+                            solver_options=solver_options)[0]
+        return model, res.positions
+
+    model, cpu = run()
+    solver = MPMSolver(model)
+    chosen = {key: getattr(solver, key) for key in GPU_SOLVER_OPTIONS}
+    assert chosen == MPMSolver.auto_options(False, crowding=solver.crowding) != dict(GPU_SOLVER_OPTIONS)
+    assert _solver._matrix_layout("auto", wp.get_device("cpu")) == device_storage(False)["matrix_layout"]
+    replay = run(GPU_SOLVER_OPTIONS, **GPU_STORAGE)[1]
+    assert not np.array_equal(replay, cpu)
+    as_gpu = MPMSolver.auto_options
+    monkeypatch.setattr(MPMSolver, "auto_options", classmethod(lambda cls, cuda, **kw: as_gpu(True, **kw)))
+    monkeypatch.setattr(_solver, "device_storage", lambda cuda: dict(GPU_STORAGE))
+    model, auto = run()
+    assert {key: getattr(MPMSolver(model), key) for key in GPU_SOLVER_OPTIONS} == dict(GPU_SOLVER_OPTIONS)
+    assert make_state(model, X).particle_F.shape[:2] == (3, 3)  # F - I, component by component
+    assert np.array_equal(auto, replay)
+
+
 @pytest.mark.parametrize("per_frame", [20, 5])
 def test_frames_copied_behind_the_next_substeps_are_handed_over_in_order(rng, monkeypatch, per_frame):
     # On a GPU a frame is gathered and copied into pinned host memory without waiting, and handed

@@ -38,7 +38,8 @@ from ._effects import (
 )
 from ._protocol import Effect
 from ._solver import (GPU_SOLVER_OPTIONS, GPU_STORAGE, MPMSolver, Model, SimResult, State, build_model, cell_crowding,
-                      config_context, default_device, make_state, particle_volumes, set_config, simulate, simulate_many)
+                      config_context, default_device, device_storage, make_state, particle_volumes, set_config, simulate,
+                      simulate_many)
 
 __all__ = [
     "BoundaryCondition",
@@ -58,6 +59,7 @@ __all__ = [
     "SimResult",
     "State",
     "build_model",
+    "device_storage",
     "default_device",
     "make_state",
     "particle_volumes",

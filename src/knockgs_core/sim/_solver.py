@@ -166,10 +166,19 @@ def matrix_pitch(n: int) -> int:
     return max(32, -(-n // 32) * 32)
 
 
+def device_storage(cuda: bool) -> dict:
+    """What :func:`build_model`'s ``"auto"`` storage chooses on a CUDA device (``cuda``) or the
+    CPU: ``matrix_layout`` (:func:`matrix_array`) and ``deformation_storage``
+    (:func:`deformation_array`). The one place these choices are made; :data:`GPU_STORAGE` is
+    its answer for a GPU."""
+    return dict(matrix_layout="components" if cuda else "records",
+                deformation_storage="displacement" if cuda else "float64")
+
+
 def _matrix_layout(layout: str, dev) -> str:
     """The matrix layout ``layout`` means on device ``dev`` (see :func:`matrix_array`), checked."""
     if layout == "auto":
-        layout = "components" if dev.is_cuda else "records"
+        layout = device_storage(dev.is_cuda)["matrix_layout"]
     if layout not in K.MATRIX_ARRAYS:
         raise InputError("Model", "matrix_layout", f"must be 'auto' or one of {sorted(K.MATRIX_ARRAYS)}, got {layout!r}")
     return layout
@@ -220,7 +229,7 @@ def _deformation_storage(storage: str, layout: str, dev) -> str:
     """The deformation storage ``storage`` means on device ``dev`` beside the matrix layout
     ``layout`` (see :func:`deformation_array`), both checked."""
     if storage == "auto":
-        storage = "displacement" if dev.is_cuda else "float64"
+        storage = device_storage(dev.is_cuda)["deformation_storage"]
     if storage not in DEFORMATION_STORAGES:
         raise InputError("Model", "deformation_storage",
                          f"must be 'auto' or one of {list(DEFORMATION_STORAGES)}, got {storage!r}")
@@ -668,6 +677,25 @@ class MPMSolver:
         the CPU."""
         return "cells" if cuda and crowding is not None and crowding >= cls.CELLS_CROWDING else "scatter"
 
+    @staticmethod
+    def auto_fuse(graph: bool, p2g: str) -> bool:
+        """``fuse="auto"``'s choice: where substeps are graphs and P2G is by cells."""
+        return bool(graph) and p2g == "cells"
+
+    @classmethod
+    def auto_options(cls, cuda: bool, *, crowding: float | None = math.inf, hooks: bool = False,
+                     deterministic: bool = False) -> dict:
+        """What the device-dependent options' ``"auto"`` chooses on a CUDA device (``cuda``) or
+        the CPU: ``p2g``, ``graph``, ``fuse``, ``polar_step``, ``polar_update`` and
+        ``g2p_sums``, for particles crowding their cells by ``crowding`` (:func:`cell_crowding`),
+        a model with host-side hooks (``hooks``: effects or particle translations) or not, and
+        the bitwise-reproducible P2G or not. The one place these choices are made (the
+        constructor asks it); :data:`GPU_SOLVER_OPTIONS` is its answer for a GPU."""
+        p2g = "cells" if deterministic else cls.auto_p2g(cuda, crowding)
+        graph = bool(cuda) and not hooks
+        return dict(p2g=p2g, graph=graph, fuse=cls.auto_fuse(graph, p2g), polar_step=1.5 if cuda else 1.0,
+                    polar_update="rational" if cuda else "axis_angle", g2p_sums="lines" if cuda else "nodes")
+
     def __init__(self, model: Model, *, p2g: str = "auto", graph: bool | str = "auto", fuse: bool | str = "auto",
                  resort_every: int | None = None, cell_chunk: int | None = None, max_chunk_slots: int | None = None,
                  node_line: int | None = None, cell_sums: str | None = None, deterministic: bool = False,
@@ -704,10 +732,12 @@ class MPMSolver:
             self.cell_sums = "windows" if (model.params.transfer == "affine_flip" and not deterministic) or fixed else "list"
         p = model.params
         cuda = wp.get_device(model.device).is_cuda
+        hooks = bool(p.effects or model.translations)
+        auto = self.auto_options(cuda, hooks=hooks, deterministic=self.deterministic)  # p2g's crowding below
         if polar_step is not None:
             self.polar_step = polar_step
         if self.polar_step == "auto":
-            self.polar_step = 1.5 if cuda else 1.0
+            self.polar_step = auto["polar_step"]
         if isinstance(self.polar_step, bool) or not isinstance(self.polar_step, (int, float)) \
                 or not 1.0 <= self.polar_step <= 1.9:
             raise InputError("MPMSolver", "polar_step", f"must be 'auto' or a number in [1, 1.9], got {self.polar_step!r}")
@@ -715,7 +745,7 @@ class MPMSolver:
         if polar_update is not None:
             self.polar_update = polar_update
         if self.polar_update == "auto":
-            self.polar_update = "rational" if cuda else "axis_angle"
+            self.polar_update = auto["polar_update"]
         if self.polar_update not in ("axis_angle", "rational"):
             raise InputError("MPMSolver", "polar_update",
                              f"must be 'auto', 'axis_angle' or 'rational', got {self.polar_update!r}")
@@ -723,37 +753,37 @@ class MPMSolver:
         if g2p_sums is not None:
             self.g2p_sums = g2p_sums
         if self.g2p_sums == "auto":
-            self.g2p_sums = "lines" if cuda else "nodes"
+            self.g2p_sums = auto["g2p_sums"]
         if self.g2p_sums not in ("nodes", "lines"):
             raise InputError("MPMSolver", "g2p_sums", f"must be 'auto', 'nodes' or 'lines', got {self.g2p_sums!r}")
         self._g2p_lines = int(self.g2p_sums == "lines")
         if graph == "auto":
-            graph = cuda and not p.effects and not model.translations
+            graph = auto["graph"]
         if graph not in (True, False):
             raise InputError("MPMSolver", "graph", f"must be 'auto', True or False, got {graph!r}")
-        if graph and (p.effects or model.translations):
+        if graph and hooks:
             raise InputError("MPMSolver", "graph", "substep graphs take models without effects and particle translations")
         self.graph = bool(graph)
         self._graphs: dict = {}
         self.crowding = None
-        if p2g == "auto" and self.deterministic:
-            p2g = "cells"
-        if p2g == "auto":
+        if p2g == "auto" and not self.deterministic:  # the crowding is counted only where it chooses
             x0 = model.particle_x0_host
             if crowding is None:
                 crowding = cell_crowding(x0, p.dx) if x0 is not None else math.inf
             self.crowding = float(crowding)
-            p2g = self.auto_p2g(cuda, self.crowding)
+            auto = self.auto_options(cuda, crowding=self.crowding, hooks=hooks)
+        if p2g == "auto":
+            p2g = auto["p2g"]
         if p2g not in ("scatter", "cells"):
             raise InputError("MPMSolver", "p2g", f"must be 'auto', 'scatter' or 'cells', got {p2g!r}")
         self.p2g = p2g
         if self.deterministic and p2g != "cells":
             raise InputError("MPMSolver", "deterministic", "the bitwise-reproducible P2G sums by cells (p2g='cells' or 'auto')")
         if fuse == "auto":
-            fuse = self.graph and p2g == "cells"
+            fuse = self.auto_fuse(self.graph, p2g)
         if fuse not in (True, False):
             raise InputError("MPMSolver", "fuse", f"must be 'auto', True or False, got {fuse!r}")
-        if fuse and (p2g != "cells" or p.effects or model.translations):
+        if fuse and (p2g != "cells" or hooks):
             raise InputError("MPMSolver", "fuse", "fused substeps take the P2G by cells and models without effects "
                              "and particle translations")
         self.fuse = bool(fuse)
@@ -1155,17 +1185,16 @@ def config_context(*, deterministic: bool):
         _CONFIG.update(before)
 
 
-#: the substep a CUDA device runs where the CPU runs another, as :class:`MPMSolver`'s options
-#: (what their ``"auto"`` chooses on a GPU for a model without effects whose particles crowd
-#: their cells, as the paper's objects and the verification block do). Given to
+#: the substep a CUDA device runs where the CPU runs another, as :class:`MPMSolver`'s options:
+#: :meth:`MPMSolver.auto_options` for a CUDA device and a model without effects whose particles
+#: crowd their cells, as the paper's objects and the verification block are. Given to
 #: :func:`simulate_many` on the CPU (``solver_options=GPU_SOLVER_OPTIONS``, the model built with
 #: :data:`GPU_STORAGE`), they replay a GPU's substep there: the same sums, in the order the CPU
 #: adds them. The paper profile adds ``deterministic=True``.
-GPU_SOLVER_OPTIONS: Mapping = MappingProxyType(dict(p2g="cells", graph=True, fuse=True, polar_step=1.5,
-                                                    polar_update="rational", g2p_sums="lines"))
+GPU_SOLVER_OPTIONS: Mapping = MappingProxyType(MPMSolver.auto_options(True))
 #: how a CUDA device stores a model's per-particle matrices and F (:func:`build_model`'s
-#: keywords; ``"auto"`` there chooses these on a GPU)
-GPU_STORAGE: Mapping = MappingProxyType(dict(matrix_layout="components", deformation_storage="displacement"))
+#: keywords): :func:`device_storage` for a CUDA device
+GPU_STORAGE: Mapping = MappingProxyType(device_storage(True))
 
 
 def _solver_options(options: Mapping | None) -> dict:
