@@ -54,7 +54,7 @@ import numpy as np
 import warp as wp
 from _fused_pipeline import FusedPipeline, g2p_next_terms
 
-from knockgs_core.sim._kernels import bspline_weights, weighted_node_term
+from knockgs_core.sim._kernels import bspline_weight, bspline_weights, weighted_node_term
 from knockgs_core.sim._solver import _FixedScratch
 
 #: floats of the shared-atomics arena: six int bounds (and two spare) and seven sums a node, up to 1,024 nodes
@@ -96,6 +96,23 @@ def arena_min(a: wp.uint64, i: int, x: int):
 
 @wp.func_native(_native("atomicMax(((int*)a) + i, x);", "if (x > ((int*)a)[i]) ((int*)a)[i] = x;"))
 def arena_max(a: wp.uint64, i: int, x: int):
+    ...
+
+
+@wp.func_native(_native("unsigned mask = __activemask();\nint m = __reduce_min_sync(mask, x);\n"
+                        "if ((threadIdx.x & 31) == __ffs(mask) - 1) atomicMin(((int*)a) + i, m);",
+                        "if (x < ((int*)a)[i]) ((int*)a)[i] = x;"))
+def arena_min_warp(a: wp.uint64, i: int, x: int):
+    """Int ``i`` of the arena at ``a`` lowered to ``x``: the warp's least ``x`` first (one
+    ``redux.sync``), then one shared atomic a warp, so its lanes do not queue on one address."""
+    ...
+
+
+@wp.func_native(_native("unsigned mask = __activemask();\nint m = __reduce_max_sync(mask, x);\n"
+                        "if ((threadIdx.x & 31) == __ffs(mask) - 1) atomicMax(((int*)a) + i, m);",
+                        "if (x > ((int*)a)[i]) ((int*)a)[i] = x;"))
+def arena_max_warp(a: wp.uint64, i: int, x: int):
+    """:func:`arena_min_warp`'s maximum."""
     ...
 
 
@@ -173,13 +190,23 @@ def block_order(X: np.ndarray, dx: float, tile: int, *, interleave: int = 0) -> 
     return order[np.lexsort((k[5], k[4], k[3], rank, group, k[2], k[1], k[0]))]
 
 
-def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles", scales: tuple = (1.0, 1.0)):
+def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles", scales: tuple = (1.0, 1.0), *,
+                rotate: int = 0, warp_box: int = 0):
     """The fused kernel: ``arena`` ``"tiles"`` (Warp's tile_scatter_add), ``"atomics"`` (float
     shared atomics) or ``"fixed"`` (int64 shared atomics in units of 1 / ``scales`` = (mass,
-    momentum) scales, converted back to floats at the flush)."""
+    momentum) scales, converted back to floats at the flush).
+
+    ``rotate`` (shared-atomics arenas): particle ``p`` visits its 27 stencil nodes starting
+    from node ``p mod 27`` (in the stencil's x-major order, wrapping), so the lanes of a warp in
+    one cell add to 27 different nodes at once instead of queueing on one, with the particles
+    kept in cell order (G2P's reads of the node velocities stay coalesced). ``warp_box``: the
+    block's box of base cells reduced in each warp first (:func:`arena_min_warp`)."""
     if arena not in ("tiles", "atomics", "fixed"):
         raise SystemExit(f"--arena: unknown {arena!r}")
     tiles, fixed = arena == "tiles", arena == "fixed"
+    if tiles and (rotate or warp_box):
+        raise SystemExit("--rotate and --box warp take the shared-atomics arenas")
+    box_min, box_max = (arena_min_warp, arena_max_warp) if warp_box else (arena_min, arena_max)
     if not tiles and cap > (512 if fixed else 1024):
         raise SystemExit("--cap: the shared-atomics arena holds at most 1024 float or 512 int64 nodes")
     add, get = (fixed_sum_add, fixed_sum_get) if fixed else (float_sum_add, float_sum_get)
@@ -256,10 +283,14 @@ def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles", sca
                 o[d] = wp.tile_min(wp.tile(lo_p[d]))[0]
                 e[d] = wp.tile_max(wp.tile(hi_p[d]))[0] - o[d] + 3
         else:
-            if valid:
+            if wp.static(warp_box):  # every lane takes part in its warp's reduction
                 for d in range(3):
-                    arena_min(arena, d, base[d])
-                    arena_max(arena, 3 + d, base[d])
+                    box_min(arena, d, wp.where(valid, base[d], big))
+                    box_max(arena, 3 + d, wp.where(valid, base[d], -big))
+            elif valid:
+                for d in range(3):
+                    box_min(arena, d, base[d])
+                    box_max(arena, 3 + d, base[d])
             block_sync()
             for d in range(3):
                 o[d] = arena_geti(arena, d)
@@ -274,12 +305,20 @@ def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles", sca
         if wp.static(tiles):
             a_mv = wp.tile_zeros(shape=wp.static(cap), dtype=wp.vec4, storage="shared")
             a_old = wp.tile_zeros(shape=wp.static(cap), dtype=wp.vec3, storage="shared")
-        for i in range(3):
+        start = int(0)
+        if wp.static(rotate):
+            start = p % 27
+        for i in range(3):  # unrolled; rotated, node (i, j, k) of the loop is node n of the stencil
             for j in range(3):
                 for k in range(3):
-                    a, am, old = weighted_node_term(w[i, 0] * w[j, 1] * w[k, 2], f, q4, aff, mCp, i, j, k, dx,
-                                                    wp.static(affine_flip))
-                    idx = ((base[0] + i - o[0]) * e[1] + (base[1] + j - o[1])) * e[2] + (base[2] + k - o[2])
+                    wt = w[i, 0] * w[j, 1] * w[k, 2]
+                    ii, jj, kk = i, j, k
+                    if wp.static(rotate):
+                        n = (start + (i * 3 + j) * 3 + k) % 27
+                        ii, jj, kk = n // 9, (n // 3) % 3, n % 3
+                        wt = bspline_weight(f[0], ii) * bspline_weight(f[1], jj) * bspline_weight(f[2], kk)
+                    a, am, old = weighted_node_term(wt, f, q4, aff, mCp, ii, jj, kk, dx, wp.static(affine_flip))
+                    idx = ((base[0] + ii - o[0]) * e[1] + (base[1] + jj - o[1])) * e[2] + (base[2] + kk - o[2])
                     if wp.static(tiles):
                         if fits:  # every thread of the block takes part in a tile's scatter
                             wp.tile_scatter_add(a_mv, idx, wp.vec4(a[0], a[1], a[2], am), valid)
@@ -293,7 +332,7 @@ def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles", sca
                             for c in range(3):
                                 wp.static(add)(arena, idx + (4 + c) * wp.static(cap), old[c], sp)
                     if valid and not fits:
-                        node = ((base[0] + i) * n_grid + base[1] + j) * n_grid + base[2] + k
+                        node = ((base[0] + ii) * n_grid + base[1] + jj) * n_grid + base[2] + kk
                         wp.atomic_add(grid_mv, node, a)
                         wp.atomic_add(grid_m, node, am)
                         if wp.static(affine_flip == 1):
@@ -380,6 +419,10 @@ def main():
                     help="how a block sums into its arena: Warp's tile_scatter_add (a block barrier a scatter), "
                          "float shared atomics through native snippets (three barriers a block), or int64 shared "
                          "atomics of fixed-point units (the reproducible P2G's)")
+    ap.add_argument("--rotate", type=int, nargs="+", choices=[0, 1], default=[0],
+                    help="1: each particle visits its stencil nodes from node p mod 27 on (shared-atomics arenas)")
+    ap.add_argument("--box", nargs="+", choices=["atomics", "warp"], default=["atomics"],
+                    help="the block's box of base cells by shared atomics of every lane, or reduced in each warp first")
     args = ap.parse_args()
     from knockgs_core.sim import MPMSolver, make_state
 
@@ -422,15 +465,18 @@ def main():
 
     units = _FixedScratch(model)  # the solver's fixed-point units
     scales = (units.scale_m, units.scale_p)
-    made = {(ar, cap, regs): make_kernel(cap, regs, pipe.flip, ar, scales) for ar in args.arena for cap in args.cap
-            for regs in args.regs}
-    kernels = {(ar, bd, cap, regs): made[ar, cap, regs] for ar in args.arena for bd in args.block for cap in args.cap
+    variants = [(ar, rot, bx) for ar in args.arena for rot in args.rotate for bx in args.box
+                if ar != "tiles" or (rot == 0 and bx == "atomics")]
+    made = {(v, cap, regs): make_kernel(cap, regs, pipe.flip, v[0], scales, rotate=v[1], warp_box=int(v[2] == "warp"))
+            for v in variants for cap in args.cap for regs in args.regs}
+    kernels = {(v, bd, cap, regs): made[v, cap, regs] for v in variants for bd in args.block for cap in args.cap
                for regs in args.regs}
     res = {}
     u_arena = {}
 
     def name(key):
-        return f"{key[0]} block {key[1]} cap {key[2]} regs {key[3]}"
+        (ar, rot, bx), bd, cap, regs = key
+        return f"{ar}{' rotated' if rot else ''}{' warp box' if bx == 'warp' else ''} block {bd} cap {cap} regs {regs}"
     for r in range(args.repeats):
         tb = pipe.time_base(args.steps)
         res.setdefault("base", []).append(tb)
