@@ -48,6 +48,7 @@ each block size and arena capacity, ``--repeats`` times, and compares the displa
     python3 benchmarks/arena_g2p2g_experiment.py --object pillow --profile paper --particles OUT/pillow.npz
 """
 import argparse
+import os
 from typing import Any
 
 import numpy as np
@@ -57,8 +58,10 @@ from _fused_pipeline import FusedPipeline, g2p_next_terms
 from knockgs_core.sim._kernels import bspline_weight, bspline_weights, weighted_node_term
 from knockgs_core.sim._solver import _FixedScratch
 
-#: floats of the shared-atomics arena: six int bounds (and two spare) and seven sums a node, up to 1,024 nodes
-ARENA_FLOATS = 8 + 7 * 1024
+#: floats of the shared-atomics arena: six int bounds (and two spare) and the sums, by default seven a node for up
+#: to 1,024 nodes. The array is the block's static shared memory, so its size bounds the blocks an SM holds (29 KB
+#: held an H200's SM to 5 blocks of 128): the environment's ``ARENA_SUM_FLOATS`` sizes it for a run
+ARENA_FLOATS = 8 + int(os.environ.get("ARENA_SUM_FLOATS", 7 * 1024))
 
 
 def _native(cuda: str, cpu: str) -> str:
@@ -207,11 +210,12 @@ def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles", sca
     if tiles and (rotate or warp_box):
         raise SystemExit("--rotate and --box warp take the shared-atomics arenas")
     box_min, box_max = (arena_min_warp, arena_max_warp) if warp_box else (arena_min, arena_max)
-    if not tiles and cap > (512 if fixed else 1024):
-        raise SystemExit("--cap: the shared-atomics arena holds at most 1024 float or 512 int64 nodes")
     add, get = (fixed_sum_add, fixed_sum_get) if fixed else (float_sum_add, float_sum_get)
     scale_m, scale_p = scales
     sums = 7 if affine_flip == 1 else 4  # an atomics arena's sums a node
+    if not tiles and cap * sums * (2 if fixed else 1) > ARENA_FLOATS - 8:
+        raise SystemExit(f"--cap: the shared-atomics arena holds {ARENA_FLOATS - 8} floats (ARENA_SUM_FLOATS), "
+                         f"{cap} nodes of {sums} {'int64' if fixed else 'float'} sums need more")
 
     def g2p2g_arena(
         grid_v: wp.array(dtype=wp.vec3),
@@ -421,6 +425,8 @@ def main():
                          "atomics of fixed-point units (the reproducible P2G's)")
     ap.add_argument("--rotate", type=int, nargs="+", choices=[0, 1], default=[0],
                     help="1: each particle visits its stencil nodes from node p mod 27 on (shared-atomics arenas)")
+    ap.add_argument("--merge-zero", action="store_true",
+                    help="zero the other grids in the grid update's pass (one launch a substep less)")
     ap.add_argument("--box", nargs="+", choices=["atomics", "warp"], default=["atomics"],
                     help="the block's box of base cells by shared atomics of every lane, or reduced in each warp first")
     args = ap.parse_args()
@@ -445,6 +451,7 @@ def main():
           f"probe steps {model.probe_first}..{model.probe_first + model.probe_steps}, tile {args.tile}, "
           f"interleaved {args.interleave}", flush=True)
     pipe = FusedPipeline(model, state, solver)
+    pipe.merge_zero = args.merge_zero
     b = pipe.base
     print(f"baseline: p2g {b.p2g}, sums {b.cell_sums}, fuse {b.fuse}, graph {b.graph}", flush=True)
     spilled = wp.zeros(1, dtype=wp.int32, device=dev)
