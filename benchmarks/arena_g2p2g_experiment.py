@@ -26,7 +26,12 @@ atomics on a ``__shared__`` array of CUDA snippets (``wp.func_native``: ``arena_
 converted back to floats at the flush. ``--interleave G`` orders each grid block's cells in
 groups of G and, within a group, every cell's first particle, then every cell's second, ..., so
 a warp's lanes lie in different cells and its shared atomics on one stencil node go to
-different addresses.
+different addresses. ``--rotate 1`` does that in cell order instead: each particle visits its
+stencil nodes from node ``p mod 27`` on. ``--box warp`` reduces the box in each warp first.
+``--gather box`` has G2P read the node velocities from the block's copy of its box in shared
+memory. ``--regs`` caps the kernel's registers, ``--merge-zero`` zeroes the other grids in the
+grid update's pass, and the environment's ``ARENA_SUM_FLOATS`` and ``VBOX_NODES`` size the
+shared arrays (their size bounds the blocks an SM holds).
 
 No stored terms, no sort, no window kernel; the grid is double-buffered (node velocities read
 from one set of grids, sums added to another, swapped every substep), so a substep is: zero the
@@ -46,6 +51,8 @@ each block size and arena capacity, ``--repeats`` times, and compares the displa
     python3 benchmarks/arena_g2p2g_experiment.py --object block --device cuda:0 --transfer apic --interleave 64 \
         --arena atomics fixed --block 128 256 --cap 512
     python3 benchmarks/arena_g2p2g_experiment.py --object pillow --profile paper --particles OUT/pillow.npz
+    ARENA_SUM_FLOATS=2048 python3 benchmarks/arena_g2p2g_experiment.py --object block --device cuda:0 --transfer apic \
+        --interleave 64 --arena atomics --block 128 --cap 512 --regs 64 --merge-zero --steps 500 --repeats 3
 """
 import argparse
 import os
