@@ -14,8 +14,7 @@ import warp as wp
 from knockgs_core.sim import MPMSolver
 from knockgs_core.sim import _kernels as K
 from knockgs_core.sim._config import DomainWalls
-from knockgs_core.sim._kernels import (g2p_particle, gather_by_lines, gather_by_nodes, mat33_at, mat33_put, mat33_to_f64,
-                                       mat33d_at, mat33d_put, p2g_terms, stencil_base, stencil_inside, updated_node)
+from knockgs_core.sim._kernels import g2p_particle, p2g_terms, stencil_base, stencil_inside, updated_node
 
 
 @wp.kernel(enable_backward=False)
@@ -59,27 +58,6 @@ def g2p_next_terms(p: int, count: int, grid_v: wp.array(dtype=wp.vec3), inv_dx: 
     active box, else the overrun is counted), its stencil base cell, its position in that cell
     [cells], momentum, mass and the affine matrices of the transfer and of its APIC term (zero
     where it adds nothing)."""
-    ok = False
-    up = wp.vec3(0.0)
-    vp = wp.vec3(0.0)
-    Cp = wp.mat33(0.0)
-    Fp = wp.mat33d(wp.float64(0.0))
-    if p < count:
-        ok, up, vp, Cp, Fp = g2p_particle(p, grid_v, n_grid, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo, hi, x0,
-                                          affine_flip, flip_weight, grid_v_old, g2p_lines, u, v, C, F, overrun)
-    return next_terms(p, ok, up, vp, Cp, Fp, inv_dx, dt, lo, hi, x0, mass, vol, mu, lam, probe_mask, probe_force,
-                      probe_on, polar_iters, polar_step, polar_rational, retardation, v, rot, overrun)
-
-
-@wp.func
-def next_terms(p: int, ok: bool, up: wp.vec3, vp: wp.vec3, Cp: wp.mat33, Fp: wp.mat33d, inv_dx: float, dt: float,
-               lo: wp.vec3i, hi: wp.vec3i, x0: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float),
-               vol: wp.array(dtype=float), mu: wp.array(dtype=float), lam: wp.array(dtype=float),
-               probe_mask: wp.array(dtype=wp.int32), probe_force: wp.vec3, probe_on: int, polar_iters: int,
-               polar_step: float, polar_rational: int, retardation: float, v: wp.array(dtype=wp.vec3),
-               rot: wp.array(dtype=wp.quat), overrun: wp.array(dtype=wp.int32)):
-    """Particle ``p``'s next P2G terms (see :func:`g2p_next_terms`) from its G2P's result (``ok``:
-    it had one; the new displacement, velocity, affine matrix and F)."""
     valid = False
     base = wp.vec3i(0)
     f = wp.vec3(0.0)
@@ -87,66 +65,29 @@ def next_terms(p: int, ok: bool, up: wp.vec3, vp: wp.vec3, Cp: wp.mat33, Fp: wp.
     m = float(0.0)
     aff = wp.mat33(0.0)
     mCp = wp.mat33(0.0)
-    if ok:
-        mp = mass[p]
-        if probe_on == 1 and probe_mask[p] != 0:
-            vp = vp + probe_force * (dt / mp)
-            v[p] = vp
-        q, a, mc = p2g_terms(vp, Cp, Fp, rot[p], mp, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters, polar_step,
-                             polar_rational, retardation)
-        rot[p] = q
-        gx = (x0[p] + up) * inv_dx
-        base = stencil_base(gx)
-        if stencil_inside(base, lo, hi):
-            valid = True
-            f = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-            m = mp
-            mvp = mp * vp
-            aff = a
-            mCp = mc
-        else:
-            wp.atomic_add(overrun, 0, 1)
+    if p < count:
+        ok, up, vp, Cp, Fp = g2p_particle(p, grid_v, n_grid, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo, hi, x0,
+                                          affine_flip, flip_weight, grid_v_old, g2p_lines, u, v, C, F, overrun)
+        if ok:
+            mp = mass[p]
+            if probe_on == 1 and probe_mask[p] != 0:
+                vp = vp + probe_force * (dt / mp)
+                v[p] = vp
+            q, a, mc = p2g_terms(vp, Cp, Fp, rot[p], mp, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters, polar_step,
+                                 polar_rational, retardation)
+            rot[p] = q
+            gx = (x0[p] + up) * inv_dx
+            base = stencil_base(gx)
+            if stencil_inside(base, lo, hi):
+                valid = True
+                f = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+                m = mp
+                mvp = mp * vp
+                aff = a
+                mCp = mc
+            else:
+                wp.atomic_add(overrun, 0, 1)
     return valid, base, f, mvp, m, aff, mCp
-
-
-@wp.func
-def g2p_particle_box(p: int, box_v: wp.array(dtype=wp.vec3), box_v_old: wp.array(dtype=wp.vec3), go: wp.vec3i,
-                     side: int, inv_dx: float, dt: float, lo: wp.vec3i, hi: wp.vec3i, x0: wp.array(dtype=wp.vec3),
-                     affine_flip: int, flip_weight: float, g2p_lines: int, u: wp.array(dtype=wp.vec3),
-                     v: wp.array(dtype=wp.vec3), C: Any, F: Any, overrun: wp.array(dtype=wp.int32)):
-    """:func:`~knockgs_core.sim._kernels.g2p_particle` from the node
-    velocities of a cube of ``side`` nodes a side from node ``go`` (``box_v``, ``box_v_old``: the
-    block's copy of them in shared memory, x-major), for models without prescribed motions; the
-    same arithmetic."""
-    up = u[p]
-    gx = (x0[p] + up) * inv_dx
-    base = stencil_base(gx)
-    if not stencil_inside(base, lo, hi):
-        wp.atomic_add(overrun, 0, 1)
-        return False, up, v[p], mat33_at(C, p), mat33d_at(F, p)
-    fx = gx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    origin = ((base[0] - go[0]) * side + base[1] - go[1]) * side + base[2] - go[2]
-    new_v = wp.vec3(0.0)
-    new_C = wp.mat33(0.0)
-    dv = wp.vec3(0.0)
-    dC = wp.mat33(0.0)
-    if g2p_lines == 1:
-        new_v, new_C, dv, dC = gather_by_lines(box_v, box_v_old, origin, side, fx, inv_dx, affine_flip)
-    else:
-        new_v, new_C, dv, dC = gather_by_nodes(box_v, box_v_old, origin, side, fx, inv_dx, affine_flip)
-    Fp = (wp.identity(n=3, dtype=wp.float64) + wp.float64(dt) * mat33_to_f64(new_C)) * mat33d_at(F, p)
-    mat33d_put(F, p, Fp)
-    up = up + dt * new_v
-    u[p] = up
-    vp = new_v
-    Cp = new_C
-    if affine_flip == 1:
-        vp = flip_weight * (v[p] + dv) + (1.0 - flip_weight) * new_v
-        Cp = flip_weight * (mat33_at(C, p) + dC) + (1.0 - flip_weight) * new_C
-    v[p] = vp
-    mat33_put(C, p, Cp)
-    return True, up, vp, Cp, Fp
-
 
 #: the state's arrays a run starts from
 _SAVED = ["particle_u", "particle_v", "particle_C", "particle_F", "particle_rot", "grid_mv", "grid_m", "grid_mv_old"]

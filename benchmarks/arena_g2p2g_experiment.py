@@ -28,10 +28,9 @@ groups of G and, within a group, every cell's first particle, then every cell's 
 a warp's lanes lie in different cells and its shared atomics on one stencil node go to
 different addresses. ``--rotate 1`` does that in cell order instead: each particle visits its
 stencil nodes from node ``p mod 27`` on. ``--box warp`` reduces the box in each warp first.
-``--gather box`` has G2P read the node velocities from the block's copy of its box in shared
-memory. ``--regs`` caps the kernel's registers, ``--merge-zero`` zeroes the other grids in the
-grid update's pass, and the environment's ``ARENA_SUM_FLOATS`` and ``VBOX_NODES`` size the
-shared arrays (their size bounds the blocks an SM holds).
+``--regs`` caps the kernel's registers, ``--merge-zero`` zeroes the other grids in the grid
+update's pass, and the environment's ``ARENA_SUM_FLOATS`` sizes the shared arena (its size
+bounds the blocks an SM holds).
 
 No stored terms, no sort, no window kernel; the grid is double-buffered (node velocities read
 from one set of grids, sums added to another, swapped every substep), so a substep is: zero the
@@ -60,10 +59,9 @@ from typing import Any
 
 import numpy as np
 import warp as wp
-from _fused_pipeline import FusedPipeline, g2p_next_terms, g2p_particle_box, next_terms
+from _fused_pipeline import FusedPipeline, g2p_next_terms
 
-from knockgs_core.sim._kernels import (bspline_weight, bspline_weights, g2p_particle, stencil_base, stencil_inside,
-                                       weighted_node_term)
+from knockgs_core.sim._kernels import bspline_weight, bspline_weights, weighted_node_term
 from knockgs_core.sim._solver import _FixedScratch
 
 #: floats of the shared-atomics arena: six int bounds (and two spare) and the sums, by default seven a node for up
@@ -81,18 +79,6 @@ def _native(cuda: str, cpu: str) -> str:
                         f"static float arena[{ARENA_FLOATS}];\nreturn (uint64_t)(&arena[0]);"))
 def arena_address() -> wp.uint64:
     """The block's arena in shared memory (a static array on the CPU)."""
-    ...
-
-
-#: nodes of the block's copy of the node velocities (``--gather box``): a cube of up to this many nodes, its
-#: velocities and (affine FLIP) old velocities; the environment's ``VBOX_NODES`` sets it for a run
-VBOX_NODES = int(os.environ.get("VBOX_NODES", 216))
-
-
-@wp.func_native(_native(f"__shared__ float vbox[{6 * VBOX_NODES}];\nreturn (uint64_t)(&vbox[0]);",
-                        f"static float vbox[{6 * VBOX_NODES}];\nreturn (uint64_t)(&vbox[0]);"))
-def vbox_address() -> wp.uint64:
-    """The block's copy of its node velocities in shared memory (a static array on the CPU)."""
     ...
 
 
@@ -214,7 +200,7 @@ def block_order(X: np.ndarray, dx: float, tile: int, *, interleave: int = 0) -> 
 
 
 def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles", scales: tuple = (1.0, 1.0), *,
-                rotate: int = 0, warp_box: int = 0, gather_box: int = 0):
+                rotate: int = 0, warp_box: int = 0):
     """The fused kernel: ``arena`` ``"tiles"`` (Warp's tile_scatter_add), ``"atomics"`` (float
     shared atomics) or ``"fixed"`` (int64 shared atomics in units of 1 / ``scales`` = (mass,
     momentum) scales, converted back to floats at the flush).
@@ -223,23 +209,12 @@ def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles", sca
     from node ``p mod 27`` (in the stencil's x-major order, wrapping), so the lanes of a warp in
     one cell add to 27 different nodes at once instead of queueing on one, with the particles
     kept in cell order (G2P's reads of the node velocities stay coalesced). ``warp_box``: the
-    block's box of base cells reduced in each warp first (:func:`arena_min_warp`).
-
-    ``gather_box`` (the float shared-atomics arena): the block first takes the box of its
-    particles' G2P base cells and copies the node velocities of that cube (``VBOX_NODES`` nodes
-    at most) into shared memory, and G2P reads them there (:func:`g2p_particle_box`) instead of
-    from the grid; the P2G arena is that box grown by a node on each side (a particle moves less
-    than a cell a substep), and a particle whose next stencil leaves it adds to the grid
-    directly. One box reduction instead of two."""
+    block's box of base cells reduced in each warp first (:func:`arena_min_warp`)."""
     if arena not in ("tiles", "atomics", "fixed"):
         raise SystemExit(f"--arena: unknown {arena!r}")
     tiles, fixed = arena == "tiles", arena == "fixed"
     if tiles and (rotate or warp_box):
         raise SystemExit("--rotate and --box warp take the shared-atomics arenas")
-    if gather_box and (arena != "atomics" or warp_box):
-        raise SystemExit("--gather box takes the float shared-atomics arena with --box atomics")
-    gbox = bool(gather_box)
-    vcap = VBOX_NODES
     box_min, box_max = (arena_min_warp, arena_max_warp) if warp_box else (arena_min, arena_max)
     add, get = (fixed_sum_add, fixed_sum_get) if fixed else (float_sum_add, float_sum_get)
     scale_m, scale_p = scales
@@ -300,68 +275,15 @@ def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles", sca
                 arena_seti(arena, d, big)
                 arena_seti(arena, 3 + d, -big)
             block_sync()
-        go = wp.vec3i(0)  # the G2P box's first node and side (nodes), where the block copies its node velocities
-        side = int(0)
-        if wp.static(gbox):
-            vb = vbox_address()
-            has = False
-            b0 = wp.vec3i(0)
-            if p < count:
-                b0 = stencil_base((x0[p] + u[p]) * inv_dx)
-                has = stencil_inside(b0, lo, hi)
-            if has:
-                for d in range(3):
-                    arena_min(arena, d, b0[d])
-                    arena_max(arena, 3 + d, b0[d])
-            block_sync()
-            for d in range(3):
-                go[d] = arena_geti(arena, d)
-                side = wp.max(side, arena_geti(arena, 3 + d) - go[d] + 3)
-            gfits = side > 0 and side * side * side <= wp.static(vcap)
-            box_v = wp.array(ptr=vb, shape=(wp.static(vcap),), dtype=wp.vec3)
-            box_v_old = wp.array(ptr=vb + wp.uint64(wp.static(12 * vcap)), shape=(wp.static(vcap),), dtype=wp.vec3)
-            if gfits:
-                for idx in range(lane, side * side * side, threads):
-                    gi = go[0] + idx // (side * side)
-                    gj = go[1] + (idx // side) % side
-                    gk = go[2] + idx % side
-                    if gi < n_grid and gj < n_grid and gk < n_grid:
-                        node = (gi * n_grid + gj) * n_grid + gk
-                        box_v[idx] = grid_v[node]
-                        if wp.static(affine_flip == 1):
-                            box_v_old[idx] = grid_v_old[node]
-            block_sync()
-            ok = False
-            up = wp.vec3(0.0)
-            vp = wp.vec3(0.0)
-            Cp = wp.mat33(0.0)
-            Fp = wp.mat33d(wp.float64(0.0))
-            if p < count:
-                if gfits:
-                    ok, up, vp, Cp, Fp = g2p_particle_box(p, box_v, box_v_old, go, side, inv_dx, dt, lo, hi, x0,
-                                                          wp.static(affine_flip), flip_weight, g2p_lines, u, v, C, F,
-                                                          overrun)
-                else:
-                    ok, up, vp, Cp, Fp = g2p_particle(p, grid_v, n_grid, inv_dx, dt, trans_mask, trans_velocity, trans_on,
-                                                      lo, hi, x0, wp.static(affine_flip), flip_weight, grid_v_old,
-                                                      g2p_lines, u, v, C, F, overrun)
-            valid, base, f, mvp, m, aff, mCp = next_terms(p, ok, up, vp, Cp, Fp, inv_dx, dt, lo, hi, x0, mass, vol, mu,
-                                                          lam, probe_mask, probe_force, probe_on, polar_iters, polar_step,
-                                                          polar_rational, retardation, v, rot, overrun)
-        else:
-            valid, base, f, mvp, m, aff, mCp = g2p_next_terms(p, count, grid_v, inv_dx, dt, trans_mask, trans_velocity,
-                                                              trans_on, lo, hi, x0, wp.static(affine_flip), flip_weight,
-                                                              grid_v_old, g2p_lines, mass, vol, mu, lam, probe_mask,
-                                                              probe_force, probe_on, polar_iters, polar_step,
-                                                              polar_rational, retardation, n_grid, u, v, C, F, rot, overrun)
+        valid, base, f, mvp, m, aff, mCp = g2p_next_terms(p, count, grid_v, inv_dx, dt, trans_mask, trans_velocity,
+                                                          trans_on, lo, hi, x0, wp.static(affine_flip), flip_weight,
+                                                          grid_v_old, g2p_lines, mass, vol, mu, lam, probe_mask,
+                                                          probe_force, probe_on, polar_iters, polar_step, polar_rational,
+                                                          retardation, n_grid, u, v, C, F, rot, overrun)
         # the block's box of base cells: origin o, extent e (nodes)
         o = wp.vec3i(0)
         e = wp.vec3i(0)
-        if wp.static(gbox):  # the G2P box grown by a node on each side
-            if side > 0:
-                o = go - wp.vec3i(1)
-                e = wp.vec3i(side + 2)
-        elif wp.static(tiles):
+        if wp.static(tiles):
             lo_p = wp.vec3i(big)
             hi_p = wp.vec3i(-big)
             if valid:
@@ -385,11 +307,7 @@ def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles", sca
                 e[d] = arena_geti(arena, 3 + d) - o[d] + 3
         dx = 1.0 / inv_dx
         any_valid = e[0] > 0
-        fits_block = any_valid and e[0] * e[1] * e[2] <= wp.static(cap)
-        fits = fits_block
-        if wp.static(gbox):  # the particle's next stencil inside the arena
-            for d in range(3):
-                fits = fits and base[d] >= o[d] and base[d] - o[d] <= e[d] - 3
+        fits = any_valid and e[0] * e[1] * e[2] <= wp.static(cap)
         w = bspline_weights(f)
         q4 = wp.vec4(mvp[0], mvp[1], mvp[2], m)  # momentum and mass, as the solver's node terms take them
         sp = float(wp.static(scale_p))
@@ -429,11 +347,11 @@ def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles", sca
                         wp.atomic_add(grid_m, node, am)
                         if wp.static(affine_flip == 1):
                             wp.atomic_add(grid_mv_old, node, old)
-        if any_valid and not fits_block and lane == 0:
+        if any_valid and not fits and lane == 0:
             wp.atomic_add(spilled, 0, 1)
         if wp.static(not tiles):
             block_sync()
-        if fits_block:
+        if fits:
             for idx in range(lane, e[0] * e[1] * e[2], threads):
                 s4 = wp.vec4(0.0)
                 s3 = wp.vec3(0.0)
@@ -456,7 +374,7 @@ def make_kernel(cap: int, regs: int, affine_flip: int, arena: str = "tiles", sca
                     if wp.static(affine_flip == 1):
                         wp.atomic_add(grid_mv_old, node, s3)
 
-    return wp.kernel(g2p2g_arena, name=f"g2p2g_{arena}_{cap}_{regs}_{affine_flip}_{gather_box}", cuda_max_registers=regs or None,
+    return wp.kernel(g2p2g_arena, name=f"g2p2g_{arena}_{cap}_{regs}_{affine_flip}", cuda_max_registers=regs or None,
                      module="unique", enable_backward=False)
 
 
@@ -513,9 +431,6 @@ def main():
                          "atomics of fixed-point units (the reproducible P2G's)")
     ap.add_argument("--rotate", type=int, nargs="+", choices=[0, 1], default=[0],
                     help="1: each particle visits its stencil nodes from node p mod 27 on (shared-atomics arenas)")
-    ap.add_argument("--gather", nargs="+", choices=["grid", "box"], default=["grid"],
-                    help="G2P reads the node velocities from the grid, or from the block's copy of its box in shared "
-                         "memory (VBOX_NODES nodes at most)")
     ap.add_argument("--merge-zero", action="store_true",
                     help="zero the other grids in the grid update's pass (one launch a substep less)")
     ap.add_argument("--box", nargs="+", choices=["atomics", "warp"], default=["atomics"],
@@ -563,10 +478,9 @@ def main():
 
     units = _FixedScratch(model)  # the solver's fixed-point units
     scales = (units.scale_m, units.scale_p)
-    variants = [(ar, rot, bx, gb) for ar in args.arena for rot in args.rotate for bx in args.box for gb in args.gather
-                if (ar != "tiles" or (rot == 0 and bx == "atomics")) and (gb == "grid" or (ar == "atomics" and bx == "atomics"))]
-    made = {(v, cap, regs): make_kernel(cap, regs, pipe.flip, v[0], scales, rotate=v[1], warp_box=int(v[2] == "warp"),
-                                        gather_box=int(v[3] == "box"))
+    variants = [(ar, rot, bx) for ar in args.arena for rot in args.rotate for bx in args.box
+                if ar != "tiles" or (rot == 0 and bx == "atomics")]
+    made = {(v, cap, regs): make_kernel(cap, regs, pipe.flip, v[0], scales, rotate=v[1], warp_box=int(v[2] == "warp"))
             for v in variants for cap in args.cap for regs in args.regs}
     kernels = {(v, bd, cap, regs): made[v, cap, regs] for v in variants for bd in args.block for cap in args.cap
                for regs in args.regs}
@@ -574,9 +488,8 @@ def main():
     u_arena = {}
 
     def name(key):
-        (ar, rot, bx, gb), bd, cap, regs = key
-        return (f"{ar}{' rotated' if rot else ''}{' warp box' if bx == 'warp' else ''}{' gather box' if gb == 'box' else ''}"
-                f" block {bd} cap {cap} regs {regs}")
+        (ar, rot, bx), bd, cap, regs = key
+        return f"{ar}{' rotated' if rot else ''}{' warp box' if bx == 'warp' else ''} block {bd} cap {cap} regs {regs}"
     for r in range(args.repeats):
         tb = pipe.time_base(args.steps)
         res.setdefault("base", []).append(tb)
