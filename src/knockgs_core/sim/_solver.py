@@ -651,11 +651,12 @@ class MPMSolver:
     #: of one base cell and a stencil node: :func:`~knockgs_core.sim._kernels.p2g_windows`; no
     #: chunk list) or ``"list"`` (the chunks listed first, then a thread a chunk and a node or a
     #: node line: ``p2g_cells``). The same sums in the same order, so the same bits wherever the
-    #: atomics arrive in order (the CPU). ``"auto"``: by windows under the affine-FLIP transfer,
-    #: listed under APIC and in the bitwise-reproducible P2G. Measured on an H100
-    #: (benchmarks/README.md), affine FLIP: paper-scale Pillow 0.412 against 0.435 ms a substep,
-    #: Ficus 0.142 against 0.158-0.163, Vasedeck 0.068 against 0.079, the 681k block 0.429
-    #: against 0.448; APIC, the block: 0.377 against 0.349
+    #: atomics arrive in order (the CPU). ``"auto"``: by windows, listed only in the
+    #: bitwise-reproducible P2G by gathers. Measured (benchmarks/README.md), affine FLIP on an
+    #: H100: paper-scale Pillow 0.412 against 0.435 ms a substep, Ficus 0.142 against
+    #: 0.158-0.163, Vasedeck 0.068 against 0.079, the 681k block 0.429 against 0.448; APIC on an
+    #: H200, the block: 0.203-0.205 against 0.245-0.249 (the list was faster there on an H100
+    #: before the windows' later cuts, 0.349 against 0.377)
     cell_sums: str = "auto"
     #: how the bitwise-reproducible P2G (``deterministic=True``) sums: ``"fixed_point"`` (the
     #: default path's window run sums added as int64 sums in units of a power of two: the
@@ -729,7 +730,7 @@ class MPMSolver:
         if self.cell_sums == "list" and fixed:
             raise InputError("MPMSolver", "cell_sums", "the fixed-point reproducible P2G sums by windows ('windows')")
         if self.cell_sums == "auto":
-            self.cell_sums = "windows" if (model.params.transfer == "affine_flip" and not deterministic) or fixed else "list"
+            self.cell_sums = "list" if gather else "windows"
         p = model.params
         cuda = wp.get_device(model.device).is_cuda
         hooks = bool(p.effects or model.translations)
