@@ -734,7 +734,14 @@ class MPMSolver:
         p = model.params
         cuda = wp.get_device(model.device).is_cuda
         hooks = bool(p.effects or model.translations)
-        auto = self.auto_options(cuda, hooks=hooks, deterministic=self.deterministic)  # p2g's crowding below
+        self.crowding = None
+        if p2g == "auto" and not self.deterministic:  # the crowding is counted only where it chooses
+            x0 = model.particle_x0_host
+            if crowding is None:
+                crowding = cell_crowding(x0, p.dx) if x0 is not None else math.inf
+            self.crowding = float(crowding)
+        auto = self.auto_options(cuda, crowding=math.inf if self.crowding is None else self.crowding, hooks=hooks,
+                                 deterministic=self.deterministic)
         if polar_step is not None:
             self.polar_step = polar_step
         if self.polar_step == "auto":
@@ -766,13 +773,6 @@ class MPMSolver:
             raise InputError("MPMSolver", "graph", "substep graphs take models without effects and particle translations")
         self.graph = bool(graph)
         self._graphs: dict = {}
-        self.crowding = None
-        if p2g == "auto" and not self.deterministic:  # the crowding is counted only where it chooses
-            x0 = model.particle_x0_host
-            if crowding is None:
-                crowding = cell_crowding(x0, p.dx) if x0 is not None else math.inf
-            self.crowding = float(crowding)
-            auto = self.auto_options(cuda, crowding=self.crowding, hooks=hooks)
         if p2g == "auto":
             p2g = auto["p2g"]
         if p2g not in ("scatter", "cells"):
