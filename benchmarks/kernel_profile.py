@@ -79,6 +79,9 @@ def main() -> None:
     ap.add_argument("--deformation-storage", nargs="+", choices=["auto", "float64", "displacement"], default=["auto"],
                     help="how the states store F (Model.deformation_storage; auto: the displacement gradient in "
                          "float32 on a GPU), each profiled")
+    ap.add_argument("--window-atomics", nargs="+", choices=["auto", "scalar", "vector"], default=["auto"],
+                    help="how the window sums reach the nodes (MPMSolver(window_atomics=...); auto: vector on a GPU "
+                         "where P2G sums by windows), each profiled")
     args = ap.parse_args()
 
     import warp as wp
@@ -105,10 +108,11 @@ def main() -> None:
     contract = load_contract(args.object, args.profile)
     ps = object_particles(contract, args.particles, order=args.order)
     model = probe_a_model(contract, ps, args.device)
-    runs = [(v, n, r, k, f, d, line, w, ps_, pu, g, ds) for v in args.p2g for n in args.slots for r in args.resort
+    runs = [(v, n, r, k, f, d, line, w, ps_, pu, g, ds, wa) for v in args.p2g for n in args.slots for r in args.resort
             for k in args.chunk for f in args.fuse for d in args.deterministic for line in args.line for w in args.sums
-            for ps_ in args.polar_step for pu in args.polar_update for g in args.g2p_sums for ds in args.deformation_storage]
-    for variant, slots, resort, chunk, fuse, det, line, sums, polar_step, polar_update, g2p_sums, storage in runs:
+            for ps_ in args.polar_step for pu in args.polar_update for g in args.g2p_sums for ds in args.deformation_storage
+            for wa in args.window_atomics]
+    for variant, slots, resort, chunk, fuse, det, line, sums, polar_step, polar_update, g2p_sums, storage, atomics in runs:
         model.deformation_storage = storage
         state = make_state(model, ps.positions)
         p2g, graph = variant.split("+")[0], variant.endswith("+graph")
@@ -122,7 +126,7 @@ def main() -> None:
         solver = MPMSolver(model, p2g=p2g, graph=graph, fuse=fuse, max_chunk_slots=slots or None, resort_every=resort,
                            cell_chunk=chunk, node_line=line, cell_sums=sums, deterministic=det != "off",
                            reproducible_sums={"on": "gather", "fixed": "fixed_point"}.get(det),
-                           polar_update=polar_update, g2p_sums=g2p_sums,
+                           polar_update=polar_update, g2p_sums=g2p_sums, window_atomics=atomics,
                            **({} if polar_step is None else {"polar_step": polar_step}))
         solver.check(state)
         for _ in range(args.warm):
@@ -152,6 +156,7 @@ def main() -> None:
               f"polar step {getattr(solver, 'polar_step', 1.0)} "
               f"({getattr(solver, 'polar_update', 'axis_angle')}), "
               f"G2P sums by {getattr(solver, 'g2p_sums', 'nodes')}, "
+              f"window atomics {getattr(solver, 'window_atomics', 'scalar')}, "
               f"F stored as {state.particle_F.dtype.__name__}{tuple(state.particle_F.shape)}, "
               f"module options {options or 'default'}, guard in the loop: {args.guard}, "
               f"register cap {args.max_registers or 'none'}): "

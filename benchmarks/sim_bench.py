@@ -45,7 +45,8 @@ def block(n_particles: int, n_grid: int, grid_lim: float = 2.0, ppc: int = 8) ->
 def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: str, *, transfer: str = "affine_flip",
              graph: bool | str = "auto", p2g: str = "auto", ppc: int = 8, order: str = "lattice",
              line: int | None = None, sums: str | None = None, g2p_sums: str | None = None,
-             polar_update: str | None = None, deformation_storage: str = "auto") -> dict:
+             polar_update: str | None = None, deformation_storage: str = "auto",
+             window_atomics: str | None = None) -> dict:
     import warp as wp
 
     from knockgs_core.sim import MPMSolver, Probe, SimParams, build_model, make_state
@@ -62,7 +63,8 @@ def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: st
     fixed = {"reproducible_sums": "fixed_point" if p2g == "cells-fixed" else "gather"} if reproducible else {}
     solver = MPMSolver(model, graph=graph, p2g="cells" if reproducible else p2g, deterministic=reproducible, **fixed,
                        node_line=line,
-                       cell_sums=None if reproducible else sums, g2p_sums=g2p_sums, polar_update=polar_update)
+                       cell_sums=None if reproducible else sums, g2p_sums=g2p_sums, polar_update=polar_update,
+                       window_atomics=None if reproducible else window_atomics)
     solver.check(state)
     for _ in range(20):  # warm-up (kernel load, caches)
         solver.step(state)
@@ -92,6 +94,7 @@ def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: st
         "cell_sums": solver.cell_sums,
         "g2p_sums": solver.g2p_sums,
         "polar_update": solver.polar_update,
+        "window_atomics": solver.window_atomics,
         "deformation_storage": deformation_storage,
         "F_array": f"{state.particle_F.dtype.__name__}{tuple(state.particle_F.shape)}",
         "steps": steps,
@@ -148,6 +151,9 @@ def main() -> None:
     ap.add_argument("--deformation-storage", nargs="+", choices=["auto", "float64", "displacement"], default=["auto"],
                     help="how the states store F (Model.deformation_storage; auto: the displacement gradient in "
                          "float32 on a GPU, F in float64 on the CPU), each measured")
+    ap.add_argument("--window-atomics", nargs="+", choices=["auto", "scalar", "vector"], default=[None],
+                    help="how the window sums reach the nodes (MPMSolver.window_atomics; default: the solver's), each "
+                         "measured")
     ap.add_argument("--cold", action="store_true", help="also measure a cold compile")
     ap.add_argument("--json", help="write results here")
     args = ap.parse_args()
@@ -156,26 +162,26 @@ def main() -> None:
     transfers = ["affine_flip", "apic"] if args.transfer == "both" else [args.transfer]
     graphs = {"auto": ["auto"], "off": [False], "both": [False, "auto"]}[args.graph]
     print("| particles | per cell | order | n_grid | transfer | graph | P2G | node line | sums | particle-substeps/s "
-          "| G2P sums | polar update | F stored | ms/substep | s per 6000-substep rollout |")
-    print("|---:|---:|---|---:|---|---|---|---:|---|---:|---|---|---|---:|---:|")
+          "| G2P sums | polar update | F stored | window atomics | ms/substep | s per 6000-substep rollout |")
+    print("|---:|---:|---|---:|---|---|---|---:|---|---:|---|---|---|---|---:|---:|")
     for case in args.cases:
         n, g = (int(v) for v in case.split(":"))
         for ppc in args.ppc:
             for transfer in transfers:
                 for graph in graphs:
-                    for order, p2g, line, sums, g2p, pu, ds in ((o, v, k, w, q, u, d) for o in args.order for v in args.p2g
-                                                                for k in args.line for w in args.sums
-                                                                for q in args.g2p_sums for u in args.polar_update
-                                                                for d in args.deformation_storage):
+                    for order, p2g, line, sums, g2p, pu, ds, wa in (
+                            (o, v, k, w, q, u, d, a) for o in args.order for v in args.p2g for k in args.line
+                            for w in args.sums for q in args.g2p_sums for u in args.polar_update
+                            for d in args.deformation_storage for a in args.window_atomics):
                         r = run_case(n, g, args.steps, args.repeats, args.device, transfer=transfer, graph=graph, p2g=p2g,
                                      ppc=ppc, order=order, line=line, sums=sums, g2p_sums=g2p,
-                                     polar_update=pu, deformation_storage=ds)
+                                     polar_update=pu, deformation_storage=ds, window_atomics=wa)
                         rows.append(r)
                         crowd = "" if r["crowding"] is None else f" (crowding {r['crowding']:.1f})"
                         print(f"| {r['particles']:,} | {ppc} | {order} | {g} | {transfer} | {'on' if r['graph'] else 'off'} | "
                               f"{p2g}: {r['p2g']}{crowd} | {r['node_line']} | {r['cell_sums']} | "
                               f"{r['particle_substeps_per_s']:.3g} | {r['g2p_sums']} | {r['polar_update']} | "
-                              f"{r['F_array']} | {r['ms_per_substep']:.3f} | "
+                              f"{r['F_array']} | {r['window_atomics']} | {r['ms_per_substep']:.3f} | "
                               f"{r['s_per_6000_substeps']:.2f} |", flush=True)
     out = {"device": args.device, "rows": rows}
     if args.cold:

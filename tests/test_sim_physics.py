@@ -867,7 +867,7 @@ def test_the_devices_auto_choices_are_made_in_one_place(rng, monkeypatch):
     from knockgs_core.sim import GPU_SOLVER_OPTIONS, GPU_STORAGE, _solver, device_storage, simulate_many
 
     assert dict(GPU_SOLVER_OPTIONS) == dict(p2g="cells", graph=True, fuse=True, polar_step=1.5, polar_update="rational",
-                                            g2p_sums="lines")
+                                            g2p_sums="lines", window_atomics="vector")
     assert dict(GPU_STORAGE) == dict(matrix_layout="components", deformation_storage="displacement")
     assert MPMSolver.auto_options(True, crowding=1.0)["p2g"] == "scatter"
     assert MPMSolver.auto_options(True, crowding=1.0, deterministic=True)["p2g"] == "cells"
@@ -1173,6 +1173,52 @@ def test_p2g_by_windows_gives_the_chunk_lists_sums_bit_for_bit(rng, transfer):
     with pytest.raises(InputError, match="cell_chunk"):
         MPMSolver(model, p2g="cells", cell_chunk=300, cell_sums="windows").step(make_state(model, X))
     model, state, _ = pushed_shell(params, X, 3, p2g="cells", cell_chunk=300, cell_sums="list")  # the list takes any
+
+
+@pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
+def test_window_sums_by_vector_atomics_give_the_same_bits(rng, transfer):
+    # window_atomics="vector": the window sums go into vec4 node records (momentum and mass; the
+    # stress-free momentum) with one 16-byte atomic each on a GPU, and the grid update reads and
+    # zeroes them. Each node receives the same sums in the same order as the grid's arrays would,
+    # so on the CPU the same bits, substep for substep (graphs and fused G2P or not).
+    params, X = shell_scene(rng, transfer, shell=3000, guard_every=10)
+    out = {}
+    for graph in (False, True):
+        for atomics in ("scalar", "vector"):
+            model, state, solver = pushed_shell(params, X, 40, p2g="cells", graph=graph, fuse=graph, resort_every=3,
+                                                cell_chunk=5, cell_sums="windows", window_atomics=atomics)
+            assert solver.window_atomics == atomics
+            assert (solver._records is not None) == (atomics == "vector")
+            if atomics == "vector":  # zeroed by the update, ready for the next substep's sums
+                assert not solver._records.sums_mvm.numpy().any() and not solver._records.sums_old.numpy().any()
+                assert len(solver._records.sums_old) == (params.n_grid ** 3 if transfer == "affine_flip" else 1)
+            out[graph, atomics] = [a.numpy().copy() for a in (state.particle_u, state.particle_F, state.particle_v,
+                                                              state.particle_C, state.grid_mv, state.grid_m,
+                                                              state.grid_mv_old)]
+        for a, b in zip(out[graph, "scalar"], out[graph, "vector"]):
+            assert np.array_equal(a, b)
+    u = out[False, "scalar"][0]
+    assert np.abs(u).max() > 1e-3  # the body moved
+    assert np.array_equal(out[False, "scalar"][0], out[True, "scalar"][0])
+    # the records replace the zeroing pass: a record left non-zero would add to the next substep
+    model, state, solver = pushed_shell(params, X, 3, p2g="cells", cell_chunk=5, cell_sums="windows",
+                                        window_atomics="vector")
+    solver._records.sums_mvm.fill_(wp.vec4(0.0, 0.0, 0.0, 1.0))
+    solver.step(state)
+    assert not np.array_equal(state.grid_m.numpy(), pushed_shell(params, X, 4, p2g="cells", cell_chunk=5,
+                                                                 cell_sums="windows")[1].grid_m.numpy())
+    # auto: scalar on the CPU; vector only where P2G sums float windows
+    assert MPMSolver(model, p2g="cells").window_atomics == "scalar"
+    assert MPMSolver(model).window_atomics == "scalar"
+    assert MPMSolver.auto_options(True)["window_atomics"] == "vector"
+    assert MPMSolver.auto_options(True, crowding=1.0)["window_atomics"] == "scalar"  # the scatter
+    assert MPMSolver.auto_options(True, deterministic=True)["window_atomics"] == "scalar"
+    # the reproducible sums add integers or gather: no float atomics for the option to change
+    assert MPMSolver(model, deterministic=True, window_atomics="vector")._records is None
+    for bad in (dict(window_atomics="vec4", p2g="cells"), dict(window_atomics="vector"),
+                dict(window_atomics="vector", p2g="cells", cell_sums="list")):
+        with pytest.raises(InputError, match="window_atomics"):
+            MPMSolver(model, **bad)
 
 
 def test_p2g_variant_is_checked_and_the_cpu_keeps_the_scatter():

@@ -465,6 +465,72 @@ def grid_update_fixed(
     grid_mv[gi, gj, gk] = v
 
 
+# P2G sums as vec4 records (``MPMSolver(window_atomics="vector")``). The window sums add a run's
+# sums to a node with one float atomic a component: four a node under APIC (momentum and mass),
+# seven under affine FLIP. Devices of compute capability 9.0 and later add a 16-byte vector
+# to global memory with one atomic, so here the sums go into node records, momentum and mass
+# (``sums_mvm``) and the stress-free momentum (``sums_old``, its fourth component unused), each
+# added with one :func:`vec4_atomic_add`; the update reads them back and zeroes them for the next
+# substep (:func:`grid_update_records`), as it does the fixed-point sums. Older devices add the
+# components one by one; the CPU adds them in order, the bits of the float arrays' atomics.
+@wp.func_native("""#if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 900)
+atomicAdd(reinterpret_cast<float4*>(a.data) + i, make_float4(x.c[0], x.c[1], x.c[2], x.c[3]));
+#elif defined(__CUDA_ARCH__)
+float* r = reinterpret_cast<float*>(a.data) + 4 * i;
+atomicAdd(r, x.c[0]); atomicAdd(r + 1, x.c[1]); atomicAdd(r + 2, x.c[2]); atomicAdd(r + 3, x.c[3]);
+#else
+float* r = reinterpret_cast<float*>(a.data) + 4 * i;
+r[0] += x.c[0]; r[1] += x.c[1]; r[2] += x.c[2]; r[3] += x.c[3];
+#endif
+""")
+def vec4_atomic_add(a: wp.array(dtype=wp.vec4), i: int, x: wp.vec4):
+    """Add ``x`` to record ``i`` of the flat array ``a``: one vector atomic on a device of
+    compute capability 9.0 or later, four float atomics on an older one, four additions in
+    component order on the CPU."""
+    ...
+
+
+@wp.kernel
+def grid_update_records(
+    lo: wp.vec3i,
+    dt: float,
+    gravity: wp.vec3,
+    damping: float,
+    walls: int,
+    n_grid: int,
+    padding: int,
+    sticky: int,
+    affine_flip: int,
+    sums_mvm: wp.array(dtype=wp.vec4),
+    sums_old: wp.array(dtype=wp.vec4),
+    grid_m: wp.array3d(dtype=float),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_mv_old: wp.array3d(dtype=wp.vec3),
+):
+    """:func:`grid_update` from the node records ``sums_mvm`` (momentum [kg m/s], mass [kg])
+    and ``sums_old`` (stress-free momentum, with ``affine_flip = 1``), flat over the
+    ``n_grid``^3 nodes: writes the mass, velocity and (``affine_flip = 1``) old velocity of
+    every node of the box and zeroes its records for the next substep, so the box needs no
+    zeroing pass."""
+    i, j, k = wp.tid()
+    gi = i + lo[0]
+    gj = j + lo[1]
+    gk = k + lo[2]
+    node = (gi * n_grid + gj) * n_grid + gk
+    r = sums_mvm[node]
+    sums_mvm[node] = wp.vec4(0.0)
+    mv_old = wp.vec3(0.0)
+    if affine_flip == 1:
+        mv_old = vec4_head(sums_old[node])
+        sums_old[node] = wp.vec4(0.0)
+    v, v_old = updated_node(wp.vec3i(gi, gj, gk), r[3], vec4_head(r), mv_old, dt, gravity, damping, walls, n_grid,
+                            padding, sticky, affine_flip)
+    grid_m[gi, gj, gk] = r[3]
+    if affine_flip == 1:
+        grid_mv_old[gi, gj, gk] = v_old
+    grid_mv[gi, gj, gk] = v
+
+
 @wp.kernel
 def grid_bc_walls(
     lo: wp.vec3i,
@@ -1005,7 +1071,8 @@ def window_run_sum(t_key: Any, t_end: Any, t_runs: Any, q: int, t_w: Any, t_fx: 
 @wp.func
 def window_sums(t_key: Any, t_end: Any, t_runs: Any, runs: int, t_w: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: Any,
                 lane: int, threads: int, n_grid: int, dx: float, affine_flip: int, grid_mv: wp.array(dtype=wp.vec3),
-                grid_m: wp.array(dtype=float), grid_mv_old: wp.array(dtype=wp.vec3)):
+                grid_m: wp.array(dtype=float), grid_mv_old: wp.array(dtype=wp.vec3), records: int,
+                sums_mvm: wp.array(dtype=wp.vec4), sums_old: wp.array(dtype=wp.vec4)):
     """A block's sums from its staged terms (shared-memory tiles of the window's slots: key, run
     end (:func:`window_run_end`), the weights ``t_w[slot, 3 axis + node]``, ``fx``, momentum and
     mass, and the rows of ``affine`` and ``m C``, each in a vec4: one 16-byte load where a vec3
@@ -1014,14 +1081,20 @@ def window_sums(t_key: Any, t_end: Any, t_runs: Any, runs: int, t_w: Any, t_fx: 
     ...``; a run is the slots ``s .. t_end[s] - 1``, its :func:`node_term` summed to node ``n`` in
     slot order as :func:`chunk_sum` sums them (:func:`window_run_sum`), and added to the grid
     (flat arrays of the ``n_grid``^3 nodes; a base cell's key is its node's index) with one
-    atomic per array."""
+    atomic per array, or (``records = 1``) to the node records ``sums_mvm`` and ``sums_old``
+    with one :func:`vec4_atomic_add` each."""
     for q in range(lane, runs * 27, threads):
         node, sum_mv, sum_m, sum_old = window_run_sum(t_key, t_end, t_runs, q, t_w, t_fx, t_mv, t_aff, t_mC, n_grid, dx,
                                                       affine_flip)
-        wp.atomic_add(grid_mv, node, sum_mv)
-        wp.atomic_add(grid_m, node, sum_m)
-        if affine_flip == 1:
-            wp.atomic_add(grid_mv_old, node, sum_old)
+        if records == 1:
+            vec4_atomic_add(sums_mvm, node, wp.vec4(sum_mv[0], sum_mv[1], sum_mv[2], sum_m))
+            if affine_flip == 1:
+                vec4_atomic_add(sums_old, node, wp.vec4(sum_old[0], sum_old[1], sum_old[2], 0.0))
+        else:
+            wp.atomic_add(grid_mv, node, sum_mv)
+            wp.atomic_add(grid_m, node, sum_m)
+            if affine_flip == 1:
+                wp.atomic_add(grid_mv_old, node, sum_old)
 
 
 @wp.func
@@ -1091,7 +1164,7 @@ def window_run_end(t_key: Any, s: int, window: int, none_key: int) -> int:
 _WINDOW_KERNELS: dict = {}
 
 
-def p2g_windows(window: int, affine_flip: int, fixed: bool = False):
+def p2g_windows(window: int, affine_flip: int, fixed: bool = False, records: bool = False):
     """The P2G-by-windows kernel for windows of ``window`` sorted positions under the transfer
     ``affine_flip`` (1: affine FLIP, 0: APIC). A tile's size is fixed when the kernel is
     compiled, and the transfer is made a constant of the kernel (its branches in the inner
@@ -1099,8 +1172,11 @@ def p2g_windows(window: int, affine_flip: int, fixed: bool = False):
     ``wp.launch_tiled(..., dim=ceil(count / window), block_dim=window)``; the CPU runs it with
     one thread a block (the loops stride by the block's size), the same sums. ``fixed``: the
     run sums go into the fixed-point sums ``q`` (:func:`window_sums_fixed`) instead of the
-    float grid arrays (each variant ignores the other's arguments)."""
-    kernel = _WINDOW_KERNELS.get((window, affine_flip, fixed))
+    float grid arrays (each variant ignores the other's arguments); ``records``: into the node
+    records ``sums_mvm`` and ``sums_old`` with vector atomics (:func:`vec4_atomic_add`)."""
+    if fixed and records:
+        raise ValueError("the window sums go into the fixed-point sums or the node records, not both")
+    kernel = _WINDOW_KERNELS.get((window, affine_flip, fixed, records))
     if kernel is not None:
         return kernel
 
@@ -1119,6 +1195,8 @@ def p2g_windows(window: int, affine_flip: int, fixed: bool = False):
         grid_mv: wp.array(dtype=wp.vec3),
         grid_m: wp.array(dtype=float),
         grid_mv_old: wp.array(dtype=wp.vec3),
+        sums_mvm: wp.array(dtype=wp.vec4),
+        sums_old: wp.array(dtype=wp.vec4),
         q_sums: wp.array2d(dtype=wp.int64),
         scale_m: float,
         scale_p: float,
@@ -1174,12 +1252,13 @@ def p2g_windows(window: int, affine_flip: int, fixed: bool = False):
                               1.0 / inv_dx, wp.static(affine_flip), q_sums, scale_m, scale_p, overflow)
         else:
             window_sums(t_key, t_end, t_runs, runs, t_w, t_fx, t_mv, t_aff, t_mC, lane, threads, n_grid, 1.0 / inv_dx,
-                        wp.static(affine_flip), grid_mv, grid_m, grid_mv_old)
+                        wp.static(affine_flip), grid_mv, grid_m, grid_mv_old, wp.static(int(records)), sums_mvm, sums_old)
 
-    name = f"p2g_windows_{window}_{'affine_flip' if affine_flip == 1 else 'apic'}{'_fixed' if fixed else ''}"
+    name = (f"p2g_windows_{window}_{'affine_flip' if affine_flip == 1 else 'apic'}{'_fixed' if fixed else ''}"
+            f"{'_records' if records else ''}")
     kernel = overload_per_layout(wp.Kernel(p2g_windows_kernel, key=name, module=wp.get_module(__name__)),
                                  f32=("affine", "C"))
-    _WINDOW_KERNELS[window, affine_flip, fixed] = kernel
+    _WINDOW_KERNELS[window, affine_flip, fixed, records] = kernel
     return kernel
 
 

@@ -503,6 +503,28 @@ class _FixedScratch:
         return f
 
 
+class _RecordScratch:
+    """Scratch of the window sums by vector atomics (``MPMSolver(window_atomics="vector")``):
+    the node records ``sums_mvm`` (momentum [kg m/s] and mass [kg]) and, under affine FLIP,
+    ``sums_old`` (stress-free momentum [kg m/s], its fourth component unused), flat over the
+    ``n_grid``^3 nodes, 16 bytes a node each; zero between substeps (the grid update reads and
+    zeroes them)."""
+
+    def __init__(self, model: Model):
+        n = model.params.n_grid ** 3
+        flip = model.params.transfer == "affine_flip"
+        self.sums_mvm = wp.zeros(n, dtype=wp.vec4, device=model.device)
+        self.sums_old = wp.zeros(n if flip else 1, dtype=wp.vec4, device=model.device)
+
+    @classmethod
+    def placeholder(cls, device) -> _RecordScratch:
+        """Stand-in arguments for the window sums into the grid's arrays, which ignore them."""
+        r = cls.__new__(cls)
+        r.sums_mvm = wp.zeros(1, dtype=wp.vec4, device=device)
+        r.sums_old = wp.zeros(1, dtype=wp.vec4, device=device)
+        return r
+
+
 class _GatherScratch:
     """Scratch of the bitwise-reproducible P2G (``MPMSolver(deterministic=True)``): each
     chunk's sums to its 27 stencil nodes (``sums_mv``, ``sums_m``, ``sums_old`` [27 x chunk
@@ -670,6 +692,17 @@ class MPMSolver:
     #: GPU"): the paper-scale Pillow 0.247 ms a substep by fixed point, 0.448 by gathers, 0.238
     #: not reproducible; two fixed-point runs give one MD5
     reproducible_sums: str = "fixed_point"
+    #: how the float window sums reach the nodes: ``"scalar"`` (one float atomic a component
+    #: into the grid's momentum, mass and stress-free momentum arrays, zeroed before P2G) or
+    #: ``"vector"`` (into vec4 node records of momentum and mass, and of the stress-free
+    #: momentum, one 16-byte atomic each on a device of compute capability 9.0 or later; the
+    #: grid update reads and zeroes them: :func:`~knockgs_core.sim._kernels.grid_update_records`).
+    #: The same sums, added to each node in the same order wherever the atomics arrive in order
+    #: (the CPU: the same bits). ``"auto"``: vector on a GPU where P2G sums by windows, scalar
+    #: elsewhere. The bitwise-reproducible sums (``deterministic=True``) add no floats to the
+    #: nodes, so the option does not apply there. Measured in benchmarks/README.md ("Window sums
+    #: by vector atomics")
+    window_atomics: str = "auto"
 
     @classmethod
     def auto_p2g(cls, cuda: bool, crowding: float | None) -> str:
@@ -690,18 +723,20 @@ class MPMSolver:
         the CPU: ``p2g``, ``graph``, ``fuse``, ``polar_step``, ``polar_update`` and
         ``g2p_sums``, for particles crowding their cells by ``crowding`` (:func:`cell_crowding`),
         a model with host-side hooks (``hooks``: effects or particle translations) or not, and
-        the bitwise-reproducible P2G or not. The one place these choices are made (the
-        constructor asks it); :data:`GPU_SOLVER_OPTIONS` is its answer for a GPU."""
+        the bitwise-reproducible P2G or not, and ``window_atomics``. The one place these choices
+        are made (the constructor asks it); :data:`GPU_SOLVER_OPTIONS` is its answer for a GPU."""
         p2g = "cells" if deterministic else cls.auto_p2g(cuda, crowding)
         graph = bool(cuda) and not hooks
         return dict(p2g=p2g, graph=graph, fuse=cls.auto_fuse(graph, p2g), polar_step=1.5 if cuda else 1.0,
-                    polar_update="rational" if cuda else "axis_angle", g2p_sums="lines" if cuda else "nodes")
+                    polar_update="rational" if cuda else "axis_angle", g2p_sums="lines" if cuda else "nodes",
+                    window_atomics="vector" if cuda and p2g == "cells" and not deterministic else "scalar")
 
     def __init__(self, model: Model, *, p2g: str = "auto", graph: bool | str = "auto", fuse: bool | str = "auto",
                  resort_every: int | None = None, cell_chunk: int | None = None, max_chunk_slots: int | None = None,
                  node_line: int | None = None, cell_sums: str | None = None, deterministic: bool = False,
                  polar_step: float | str | None = None, polar_update: str | None = None, g2p_sums: str | None = None,
-                 crowding: float | None = None, reproducible_sums: str | None = None):
+                 crowding: float | None = None, reproducible_sums: str | None = None,
+                 window_atomics: str | None = None):
         self.model = model
         self.deterministic = _flag("MPMSolver", "deterministic", deterministic)
         if resort_every is not None:
@@ -792,6 +827,22 @@ class MPMSolver:
         self._cells = _CellScratch.make(model, listed=self.cell_sums == "list") if p2g == "cells" else None
         self._gather = _GatherScratch(model) if gather else None
         self._fixed = _FixedScratch(model) if fixed else None
+        if window_atomics is not None:
+            self.window_atomics = window_atomics
+        if self.window_atomics not in ("auto", "scalar", "vector"):
+            raise InputError("MPMSolver", "window_atomics",
+                             f"must be 'auto', 'scalar' or 'vector', got {self.window_atomics!r}")
+        # the bitwise-reproducible sums add no floats to the nodes: the option does not apply there
+        float_windows = p2g == "cells" and self.cell_sums == "windows" and not self.deterministic
+        if self.window_atomics == "vector" and not float_windows and not self.deterministic:
+            raise InputError("MPMSolver", "window_atomics", "vector atomics add the window sums (p2g='cells', "
+                             f"cell_sums='windows'), not a P2G {p2g!r} with cell_sums={self.cell_sums!r}")
+        if self.window_atomics == "auto":
+            self.window_atomics = auto["window_atomics"] if float_windows else "scalar"
+        self._records = _RecordScratch(model) if self.window_atomics == "vector" and float_windows else None
+        self._window_records = self._records
+        if self._records is None and p2g == "cells" and self.cell_sums == "windows":
+            self._window_records = _RecordScratch.placeholder(model.device)
         # the window kernel's fixed-point arguments (stand-ins, which the float sums ignore, unless fixed)
         self._window_fixed = self._fixed
         if self._fixed is None and p2g == "cells" and self.cell_sums == "windows":
@@ -927,10 +978,10 @@ class MPMSolver:
                 self._record_gather(state, self._chunk_slots(dims), dims, lo, flip, rec, cmds)
             elif self.cell_sums == "windows":
                 w = self.cell_chunk
-                f = self._window_fixed
-                fixed_args = [f.q, f.scale_m, f.scale_p, f.overflow]
+                f, r = self._window_fixed, self._window_records
+                fixed_args = [r.sums_mvm, r.sums_old, f.q, f.scale_m, f.scale_p, f.overflow]
                 cmds["p2g_windows"] = wp.launch_tiled(
-                    K.p2g_windows(w, flip, self._fixed is not None),
+                    K.p2g_windows(w, flip, self._fixed is not None, self._records is not None),
                     dim=-(-m.particle_count // w),
                     block_dim=w,
                     inputs=[c.order, c.keys, c.none_key, m.particle_count, p.n_grid, self._inv_dx, c.fx,
@@ -965,6 +1016,10 @@ class MPMSolver:
             f = self._fixed
             cmds["update"] = wp.launch(K.grid_update_fixed, dim=dims,
                                        inputs=[*update_args[:-1], f.unit_m, f.unit_p, f.q],
+                                       outputs=[state.grid_m, state.grid_mv, state.grid_mv_old], **rec)
+        elif self._records is not None:  # from the node records, zeroed there
+            r = self._records
+            cmds["update"] = wp.launch(K.grid_update_records, dim=dims, inputs=[*update_args[:-1], r.sums_mvm, r.sums_old],
                                        outputs=[state.grid_m, state.grid_mv, state.grid_mv_old], **rec)
         else:
             cmds["update"] = wp.launch(K.grid_update, dim=dims, inputs=update_args,
@@ -1099,7 +1154,7 @@ class MPMSolver:
         that is None."""
         m, p = self.model, self.model.params
         cmds = self._cmds
-        if self._gather is None and self._fixed is None:  # both reproducible P2Gs write every node of the box
+        if self._gather is None and self._fixed is None and self._records is None:  # these write every node of the box
             cmds["zero"].launch()
         if not prepared:
             cmds["p2g"].set_param_by_name("probe_on", probe_on)
@@ -1157,8 +1212,8 @@ class MPMSolver:
 # overloads: a kernel first made when a solver records its launches would make Warp build the
 # module again)
 for _flip in (0, 1):
-    for _fixed in (False, True):
-        K.p2g_windows(MPMSolver.cell_chunk, _flip, _fixed)
+    for _fixed, _records in ((False, False), (True, False), (False, True)):
+        K.p2g_windows(MPMSolver.cell_chunk, _flip, _fixed, _records)
 
 
 #: the settings a simulation takes where its caller does not say (:func:`config_context`)
