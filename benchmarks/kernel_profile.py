@@ -64,8 +64,9 @@ def main() -> None:
     ap.add_argument("--block-dim", type=int, default=0,
                     help="threads per block of the solver's launches (Warp's module option; 0: Warp's default)")
     ap.add_argument("--max-registers", type=int, default=0,
-                    help="cap on the registers per thread of the particle kernels (CUDA __maxnreg__; 0: the "
-                         "solver's, _kernels.CUDA_MAX_REGISTERS on its heavy kernels)")
+                    help="cap on the registers per thread of the unfused particle kernels (CUDA __maxnreg__; 0: "
+                         "the solver's, _kernels.CUDA_MAX_REGISTERS on its heavy kernels; the fused g2p_prepare, a "
+                         "kernel per transfer, keeps the solver's)")
     ap.add_argument("--polar-step", type=float, nargs="+", default=[None],
                     help="the polar iterations' step (MPMSolver(polar_step=...); default: the solver's, 1.5 on a GPU), "
                          "each profiled")
@@ -95,7 +96,7 @@ def main() -> None:
         options["block_dim"] = args.block_dim
     if options:
         wp.set_module_options(options, module=_kernels)
-    particle_kernels = ("p2g_prepare", "g2p", "g2p_prepare", "p2g_cells", "p2g_chunk_sums")
+    particle_kernels = ("p2g_prepare", "g2p", "p2g_cells", "p2g_chunk_sums")
     if args.max_registers:  # the same kernels, registered again with the cap (the solver looks them up by name)
         for name in particle_kernels:
             setattr(_kernels, name, wp.kernel(getattr(_kernels, name).func, cuda_max_registers=args.max_registers))
@@ -170,9 +171,11 @@ def main() -> None:
         print(f"| all | {sum(count.values())} | {all_ms / args.steps:.4f} | 100 % |")
         if wp.get_device(args.device).is_cuda:
             props = []
-            for name in particle_kernels:
+            kernels = {name: getattr(_kernels, name) for name in particle_kernels}
+            kernels.update({k.key: k for k in getattr(_kernels, "_G2P_PREPARE_KERNELS", {}).values()})  # one a transfer
+            for name, kernel in kernels.items():
                 try:
-                    q = wp.get_cuda_kernel_properties(getattr(_kernels, name), device=args.device)
+                    q = wp.get_cuda_kernel_properties(kernel, device=args.device)
                 except RuntimeError:  # not loaded in this variant
                     continue
                 props.append(f"{name} {q['register_count']} registers, {q['local_memory_size']} B local")

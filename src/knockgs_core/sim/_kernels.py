@@ -1142,6 +1142,39 @@ def window_runs_before(t_end: Any, s: int, window: int) -> wp.vec2i:
     return wp.vec2i(before, total)
 
 
+@wp.func_native("""#if defined(__CUDA_ARCH__)
+const unsigned m = __ballot_sync(0xffffffffu, starts != 0);
+return wp::vec2i(__popc(m & ((1u << (threadIdx.x & 31u)) - 1u)), __popc(m));
+#else
+return wp::vec2i(-1, -1);
+#endif
+""")
+def warp_runs_before(starts: int) -> wp.vec2i:
+    """:func:`window_runs_before` for a window of 32 slots held by one warp, a slot a lane
+    (``starts``: a run starts at this lane's slot): the runs that start at the lanes below this
+    one, and in the whole warp, from one ballot. ``(-1, -1)`` on the CPU, whose block is one
+    thread (the caller counts there)."""
+    ...
+
+
+@wp.func_native("""#if defined(__CUDA_ARCH__)
+const unsigned m = __ballot_sync(0xffffffffu, change != 0);
+const unsigned lane = threadIdx.x & 31u;
+if (!start) return 0;
+const unsigned above = lane == 31u ? 0u : (m >> (lane + 1u));
+return above ? (int)(lane + __ffs(above)) : 32;
+#else
+return -1;
+#endif
+""")
+def warp_run_end(change: int, start: int) -> int:
+    """:func:`window_run_end` for a window of 32 slots held by one warp, a slot a lane
+    (``change``: this slot's key differs from the slot before's, or it is the first;
+    ``start``: a run starts here): the next lane above whose key changes, or 32, from one
+    ballot; 0 where no run starts. -1 on the CPU (the caller searches there)."""
+    ...
+
+
 @wp.func
 def window_run_end(t_key: Any, s: int, window: int, none_key: int) -> int:
     """The end (one past the last slot) of the run of equal keys that starts at slot ``s`` of a
@@ -1239,12 +1272,25 @@ def p2g_windows(window: int, affine_flip: int, fixed: bool = False, records: boo
                     wp.tile_scatter_masked(t_mC, slot, r, wp.vec4(M[r, 0], M[r, 1], M[r, 2], 0.0), True)
         t_end = wp.tile_empty(shape=wp.static(window), dtype=wp.int32, storage="shared")
         for slot in range(lane, wp.static(window), threads):
-            wp.tile_scatter_masked(t_end, slot, window_run_end(t_key, slot, wp.static(window), none_key), True)
+            e = int(-1)
+            if wp.static(window == 32):  # a warp a window on a GPU: the run ends found by a ballot
+                key = t_key[slot]
+                change = int(1)
+                if slot > 0:
+                    change = int(t_key[slot - 1] != key)
+                e = warp_run_end(change, int(change == 1 and key != none_key))
+            if e < 0:
+                e = window_run_end(t_key, slot, wp.static(window), none_key)
+            wp.tile_scatter_masked(t_end, slot, e, True)
         # the runs' first slots listed in slot order, so the threads share out (run, node) pairs only
         t_runs = wp.tile_empty(shape=wp.static(window), dtype=wp.int32, storage="shared")
         runs = int(0)
         for slot in range(lane, wp.static(window), threads):
-            ranks = window_runs_before(t_end, slot, wp.static(window))
+            ranks = wp.vec2i(-1, -1)
+            if wp.static(window == 32):  # a warp a window on a GPU: the runs counted by a ballot
+                ranks = warp_runs_before(int(t_end[slot] != 0))
+            if ranks[0] < 0:
+                ranks = window_runs_before(t_end, slot, wp.static(window))
             wp.tile_scatter_masked(t_runs, ranks[0], slot, t_end[slot] != 0)
             runs = ranks[1]
         if wp.static(fixed):
@@ -1619,62 +1665,80 @@ def g2p(
                  flip_weight, grid_v_old, g2p_lines, u, v, C, F, overrun)
 
 
-@wp.kernel(cuda_max_registers=CUDA_MAX_REGISTERS)
-def g2p_prepare(
-    grid_v: wp.array(dtype=wp.vec3),
-    inv_dx: float,
-    dt: float,
-    trans_mask: wp.array(dtype=wp.int32),
-    trans_velocity: wp.vec3,
-    trans_on: int,
-    lo: wp.vec3i,
-    hi: wp.vec3i,
-    x0: wp.array(dtype=wp.vec3),
-    affine_flip: int,
-    flip_weight: float,
-    grid_v_old: wp.array(dtype=wp.vec3),
-    g2p_lines: int,
-    mass: wp.array(dtype=float),
-    vol: wp.array(dtype=float),
-    mu: wp.array(dtype=float),
-    lam: wp.array(dtype=float),
-    probe_mask: wp.array(dtype=wp.int32),
-    probe_force: wp.vec3,
-    probe_on: int,
-    polar_iters: int,
-    polar_step: float,
-    polar_rational: int,
-    retardation: float,
-    n_grid: int,
-    none_key: int,
-    u: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: Any,
-    F: Any,
-    rot: wp.array(dtype=wp.quat),
-    fx: wp.array(dtype=wp.vec3),
-    affine: Any,
-    keys: wp.array(dtype=wp.int32),
-    overrun: wp.array(dtype=wp.int32),
-):
-    """:func:`g2p` fused with the next substep's :func:`p2g_prepare` (its probe state
-    ``probe_on``): the new velocity, affine matrix, F and position go from registers into the
-    next P2G terms instead of being read back. The same arithmetic as the two kernels in
-    turn, so the same bits."""
-    p = wp.tid()
-    ok, up, vp, Cp, Fp = g2p_particle(p, grid_v, n_grid, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo, hi, x0,
-                                      affine_flip, flip_weight, grid_v_old, g2p_lines, u, v, C, F, overrun)
-    if ok:
-        m = mass[p]
-        if probe_on == 1 and probe_mask[p] != 0:
-            vp = vp + probe_force * (dt / m)
-            v[p] = vp
-        q, aff, mCp = p2g_terms(vp, Cp, Fp, rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters, polar_step,
-                                polar_rational, retardation)
-        rot[p] = q
-        p2g_store(p, (x0[p] + up) * inv_dx, aff, lo, hi, n_grid, none_key, fx, affine, keys, overrun)
-    else:
-        keys[p] = none_key
+_G2P_PREPARE_KERNELS: dict = {}
+
+
+def g2p_prepare(affine_flip: int) -> wp.Kernel:
+    """The fused G2P kernel (:func:`g2p` with the next substep's :func:`p2g_prepare`) under the
+    transfer ``affine_flip`` (1: affine FLIP, 0: APIC), made a constant of the kernel, as the
+    windows' kernels are: APIC's kernel then holds neither the old node velocities' sums nor
+    their registers. One kernel per transfer, its overloads per matrix layout made with it."""
+    kernel = _G2P_PREPARE_KERNELS.get(affine_flip)
+    if kernel is not None:
+        return kernel
+
+    def g2p_prepare_kernel(
+        grid_v: wp.array(dtype=wp.vec3),
+        inv_dx: float,
+        dt: float,
+        trans_mask: wp.array(dtype=wp.int32),
+        trans_velocity: wp.vec3,
+        trans_on: int,
+        lo: wp.vec3i,
+        hi: wp.vec3i,
+        x0: wp.array(dtype=wp.vec3),
+        flip_weight: float,
+        grid_v_old: wp.array(dtype=wp.vec3),
+        g2p_lines: int,
+        mass: wp.array(dtype=float),
+        vol: wp.array(dtype=float),
+        mu: wp.array(dtype=float),
+        lam: wp.array(dtype=float),
+        probe_mask: wp.array(dtype=wp.int32),
+        probe_force: wp.vec3,
+        probe_on: int,
+        polar_iters: int,
+        polar_step: float,
+        polar_rational: int,
+        retardation: float,
+        n_grid: int,
+        none_key: int,
+        u: wp.array(dtype=wp.vec3),
+        v: wp.array(dtype=wp.vec3),
+        C: Any,
+        F: Any,
+        rot: wp.array(dtype=wp.quat),
+        fx: wp.array(dtype=wp.vec3),
+        affine: Any,
+        keys: wp.array(dtype=wp.int32),
+        overrun: wp.array(dtype=wp.int32),
+    ):
+        """:func:`g2p` fused with the next substep's :func:`p2g_prepare` (its probe state
+        ``probe_on``): the new velocity, affine matrix, F and position go from registers into
+        the next P2G terms instead of being read back. The same arithmetic as the two kernels
+        in turn, so the same bits."""
+        p = wp.tid()
+        ok, up, vp, Cp, Fp = g2p_particle(p, grid_v, n_grid, inv_dx, dt, trans_mask, trans_velocity, trans_on, lo, hi,
+                                          x0, wp.static(affine_flip), flip_weight, grid_v_old, g2p_lines, u, v, C, F,
+                                          overrun)
+        if ok:
+            m = mass[p]
+            if probe_on == 1 and probe_mask[p] != 0:
+                vp = vp + probe_force * (dt / m)
+                v[p] = vp
+            q, aff, mCp = p2g_terms(vp, Cp, Fp, rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters, polar_step,
+                                    polar_rational, retardation)
+            rot[p] = q
+            p2g_store(p, (x0[p] + up) * inv_dx, aff, lo, hi, n_grid, none_key, fx, affine, keys, overrun)
+        else:
+            keys[p] = none_key
+
+    name = f"g2p_prepare_{'affine_flip' if affine_flip == 1 else 'apic'}"
+    kernel = overload_per_layout(wp.Kernel(g2p_prepare_kernel, key=name, module=wp.get_module(__name__),
+                                           options={"cuda_max_registers": CUDA_MAX_REGISTERS}),
+                                 f32=("C", "affine"), f64=("F",))
+    _G2P_PREPARE_KERNELS[affine_flip] = kernel
+    return kernel
 
 
 @wp.kernel
@@ -1802,6 +1866,7 @@ overload_per_layout(p2g_prepare, f32=("C", "affine"), f64=("F",))
 overload_per_layout(p2g_cells, f32=("affine", "C"))
 overload_per_layout(p2g_chunk_sums, f32=("affine", "C"))
 overload_per_layout(g2p, f32=("C",), f64=("F",))
-overload_per_layout(g2p_prepare, f32=("C", "affine"), f64=("F",))
+for _flip in (0, 1):
+    g2p_prepare(_flip)
 overload_per_layout(gather_F, f64=("F",))
 overload_per_layout(particle_stats, f64=("F",))

@@ -586,7 +586,7 @@ class MPMSolver:
     same kernels, in the same order, with the same arguments.
 
     ``fuse``: with the P2G by cells, end each substep with G2P fused with the next substep's
-    per-particle P2G half (:func:`~knockgs_core.sim._kernels.g2p_prepare`): one pass over the
+    per-particle P2G half (:func:`~knockgs_core.sim._kernels.g2p_prepare`, a kernel per transfer): one pass over the
     particles instead of two, the same bits. The next substep's probe impulse and rotation are
     then already in the state between substeps, so the solver must step that one state on
     (another state, or a state whose step count was changed, is refused), and nothing else may
@@ -1047,10 +1047,10 @@ class MPMSolver:
         if self.fuse:
             c = self._cells
             cmds["g2p_prepare"] = wp.launch(
-                K.g2p_prepare,
+                K.g2p_prepare(flip),
                 dim=m.particle_count,
                 inputs=[state.grid_mv.flatten(), self._inv_dx, dt, self._zero_mask, wp.vec3(0.0), 0, lo, hi,
-                        state.particle_x0, flip, p.flip_weight, state.grid_mv_old.flatten(), self._g2p_lines,
+                        state.particle_x0, p.flip_weight, state.grid_mv_old.flatten(), self._g2p_lines,
                         m.particle_mass,
                         m.particle_vol, m.particle_mu, m.particle_lam, m.probe_mask, wp.vec3(*m.probe_force), 0,
                         self.polar_iters, self.polar_step, self._polar_rational, self.retardation, p.n_grid, c.none_key],
