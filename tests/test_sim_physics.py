@@ -1221,6 +1221,26 @@ def test_window_sums_by_vector_atomics_give_the_same_bits(rng, transfer):
             MPMSolver(model, **bad)
 
 
+def test_the_kernels_cuda_branches_compile_with_their_vector_atomics_and_ballots(tmp_path):
+    # The CPU never compiles the CUDA branches of the kernels' native snippets (vector atomics,
+    # warp ballots): compiled here ahead of time, as Warp compiles them for a card, the window
+    # sums' records take one 16-byte atomic on compute capability 9.0 (H100, H200) and four
+    # float atomics on 8.0 (A100), and the windows' runs come from ballots on both.
+    from pathlib import Path
+
+    from knockgs_core.sim import _kernels
+
+    module = wp.get_module(_kernels.__name__)
+    ptx = {}
+    for arch in (80, 90):
+        (path,) = wp.compile_aot_module(module, arch=arch, module_dir=tmp_path / str(arch), use_ptx=True)
+        ptx[arch] = Path(path).read_text()
+    assert "atom.global.add.v4.f32" in ptx[90] and "atom.global.add.v4.f32" not in ptx[80]
+    for arch in (80, 90):
+        assert "vote.sync.ballot" in ptx[arch]
+        assert ".entry g2p_prepare_apic" in ptx[arch] and ".entry g2p_prepare_affine_flip" in ptx[arch]
+
+
 def test_p2g_variant_is_checked_and_the_cpu_keeps_the_scatter():
     params = SimParams(n_grid=16, dt=1e-3, boundaries=())
     X = block((0.9, 0.9, 0.9), (1.1, 1.1, 1.1), 1 / 16)

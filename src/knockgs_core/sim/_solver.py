@@ -592,9 +592,9 @@ class MPMSolver:
     (another state, or a state whose step count was changed, is refused), and nothing else may
     change it between substeps. ``"auto"``: where substeps are graphs and P2G is by cells.
 
-    ``resort_every``, ``cell_chunk``, ``max_chunk_slots``, ``node_line``, ``cell_sums``: the P2G
-    by cells' settings (the class attributes of the same names document them); they set speed
-    only.
+    ``resort_every``, ``cell_chunk``, ``max_chunk_slots``, ``node_line``, ``cell_sums``,
+    ``window_atomics``: the P2G by cells' settings (the class attributes of the same names
+    document them); they set speed only.
 
     ``deterministic``: a GPU rollout the same bit for bit on every run. Float atomics add a
     node's contributions in the order the GPU schedules its threads, so the last bits of a GPU
