@@ -1133,22 +1133,31 @@ def test_p2g_by_windows_gives_the_chunk_lists_sums_bit_for_bit(rng, transfer):
     # one thread a block (the CPU's) the same bits as the list, substep for substep (sorts every
     # 3rd substep, chunks of 5, particles changing cells; graphs and fused G2P or not). With
     # blocks of 5 threads (Warp's CPU fibers: the lanes' atomics interleave as on a GPU) the same
-    # response to rounding, the grid holding all the mass.
+    # response to rounding, the grid holding all the mass. The windows' sums added by vector
+    # atomics into node records (window_atomics="vector", a GPU's), which the grid update reads
+    # and zeroes: each node receives the same sums in the same order, so the same bits too.
     params, X = shell_scene(rng, transfer, shell=3000, guard_every=10)
     out = {}
+    variants = (("list", "scalar"), ("windows", "scalar"), ("windows", "vector"))
     for graph in (False, True):
-        for sums in ("list", "windows"):
+        for sums, atomics in variants:
             model, state, solver = pushed_shell(params, X, 40, p2g="cells", graph=graph, fuse=graph, resort_every=3,
-                                                cell_chunk=5, cell_sums=sums)
+                                                cell_chunk=5, cell_sums=sums, window_atomics=atomics)
             assert solver.cell_sums == sums and ("p2g_windows" in solver._cmds) == (sums == "windows")
             # the windows record no chunk list and hold no list arrays
             assert ("p2g_chunk_list" in solver._cmds) == (sums == "list")
             assert len(solver._cells.chunks) == (len(X) if sums == "list" else 1)
-            out[graph, sums] = [a.numpy().copy() for a in (state.particle_u, state.particle_F, state.particle_v,
-                                                           state.grid_mv, state.grid_m)]
-        for a, b in zip(out[graph, "list"], out[graph, "windows"]):
-            assert np.array_equal(a, b)
-    u = out[False, "list"][0]
+            assert solver.window_atomics == atomics and (solver._records is not None) == (atomics == "vector")
+            if atomics == "vector":  # zeroed by the update, ready for the next substep's sums
+                assert not solver._records.sums_mvm.numpy().any() and not solver._records.sums_old.numpy().any()
+                assert len(solver._records.sums_old) == (params.n_grid ** 3 if transfer == "affine_flip" else 1)
+            out[graph, sums, atomics] = [a.numpy().copy() for a in (state.particle_u, state.particle_F, state.particle_v,
+                                                                    state.particle_C, state.grid_mv, state.grid_m,
+                                                                    state.grid_mv_old)]
+        for variant in variants[1:]:
+            for a, b in zip(out[(graph, *variants[0])], out[(graph, *variant)]):
+                assert np.array_equal(a, b)
+    u = out[False, "list", "scalar"][0]
     assert np.abs(u).max() > 1e-3  # the body moved
     scale = np.sqrt((u ** 2).sum(-1).mean())
     cpu_blocks = wp.config.enable_cpu_blocks
@@ -1175,32 +1184,11 @@ def test_p2g_by_windows_gives_the_chunk_lists_sums_bit_for_bit(rng, transfer):
     model, state, _ = pushed_shell(params, X, 3, p2g="cells", cell_chunk=300, cell_sums="list")  # the list takes any
 
 
-@pytest.mark.parametrize("transfer", ["apic", "affine_flip"])
-def test_window_sums_by_vector_atomics_give_the_same_bits(rng, transfer):
-    # window_atomics="vector": the window sums go into vec4 node records (momentum and mass; the
-    # stress-free momentum) with one 16-byte atomic each on a GPU, and the grid update reads and
-    # zeroes them. Each node receives the same sums in the same order as the grid's arrays would,
-    # so on the CPU the same bits, substep for substep (graphs and fused G2P or not).
-    params, X = shell_scene(rng, transfer, shell=3000, guard_every=10)
-    out = {}
-    for graph in (False, True):
-        for atomics in ("scalar", "vector"):
-            model, state, solver = pushed_shell(params, X, 40, p2g="cells", graph=graph, fuse=graph, resort_every=3,
-                                                cell_chunk=5, cell_sums="windows", window_atomics=atomics)
-            assert solver.window_atomics == atomics
-            assert (solver._records is not None) == (atomics == "vector")
-            if atomics == "vector":  # zeroed by the update, ready for the next substep's sums
-                assert not solver._records.sums_mvm.numpy().any() and not solver._records.sums_old.numpy().any()
-                assert len(solver._records.sums_old) == (params.n_grid ** 3 if transfer == "affine_flip" else 1)
-            out[graph, atomics] = [a.numpy().copy() for a in (state.particle_u, state.particle_F, state.particle_v,
-                                                              state.particle_C, state.grid_mv, state.grid_m,
-                                                              state.grid_mv_old)]
-        for a, b in zip(out[graph, "scalar"], out[graph, "vector"]):
-            assert np.array_equal(a, b)
-    u = out[False, "scalar"][0]
-    assert np.abs(u).max() > 1e-3  # the body moved
-    assert np.array_equal(out[False, "scalar"][0], out[True, "scalar"][0])
-    # the records replace the zeroing pass: a record left non-zero would add to the next substep
+def test_window_sums_by_vector_atomics_are_read_from_their_records(rng):
+    # window_atomics="vector" (its bits: the test above): the update reads the node records and
+    # zeroes them in place of the zeroing pass, so a record left non-zero would reach the next
+    # substep's grid; the option is checked
+    params, X = shell_scene(rng, "affine_flip", shell=800, guard_every=10)
     model, state, solver = pushed_shell(params, X, 3, p2g="cells", cell_chunk=5, cell_sums="windows",
                                         window_atomics="vector")
     solver._records.sums_mvm.fill_(wp.vec4(0.0, 0.0, 0.0, 1.0))
