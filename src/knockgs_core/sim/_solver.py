@@ -586,8 +586,8 @@ class MPMSolver:
     same kernels, in the same order, with the same arguments.
 
     ``fuse``: with the P2G by cells, end each substep with G2P fused with the next substep's
-    per-particle P2G half (:func:`~knockgs_core.sim._kernels.g2p_prepare`, a kernel per transfer): one pass over the
-    particles instead of two, the same bits. The next substep's probe impulse and rotation are
+    per-particle P2G half (:func:`~knockgs_core.sim._kernels.g2p_prepare`, a kernel per
+    transfer): one pass over the particles instead of two, the same bits. The next substep's probe impulse and rotation are
     then already in the state between substeps, so the solver must step that one state on
     (another state, or a state whose step count was changed, is refused), and nothing else may
     change it between substeps. ``"auto"``: where substeps are graphs and P2G is by cells.
