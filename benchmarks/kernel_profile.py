@@ -11,11 +11,10 @@ cell within the Gaussian-associated rows and within the fill, ``knockgs_core.rol
 or in the asset's (``--order asset``).
 
     python3 benchmarks/kernel_profile.py --object pillow --profile paper --device cuda:0 --p2g cells cells+graph scatter
-    python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells cells+graph --resort 1 10 --slots 0 16384
+    python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells cells+graph --resort 1 10
     python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells+graph --fuse off on
-    python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells cells+graph --line 1 3
     python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells+graph --particles OUT/pillow.npz
-    python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells cells+graph --sums list windows
+    python3 benchmarks/kernel_profile.py --object pillow --device cuda:0 --p2g cells+graph --deterministic off fixed
 """
 
 from __future__ import annotations
@@ -38,26 +37,16 @@ def main() -> None:
     ap.add_argument("--order", choices=["cell", "asset"], default="cell")
     ap.add_argument("--particles", help="the object's particles .npz: read where it exists, else built and written "
                                         "there (processes comparing code versions then share one asset)")
-    ap.add_argument("--slots", type=int, nargs="+", default=[0],
-                    help="caps on the chunk-sum threads (MPMSolver.max_chunk_slots; 0: none), each profiled")
     ap.add_argument("--chunk", type=int, nargs="+", default=[32],
-                    help="most particles a chunk of the P2G by cells (MPMSolver.cell_chunk), each profiled")
+                    help="sorted particles a window of the P2G by cells (MPMSolver.cell_chunk), each profiled")
     ap.add_argument("--fuse", nargs="+", choices=["auto", "on", "off"], default=["auto"],
                     help="G2P fused with the next substep's per-particle P2G half (MPMSolver(fuse=...); on: "
                          "the P2G by cells only), each profiled")
     ap.add_argument("--resort", type=int, nargs="+", default=[10],
                     help="intervals of the P2G by cells' sort in substeps (MPMSolver.resort_every), each profiled")
-    ap.add_argument("--line", type=int, nargs="+", choices=[1, 3], default=[None],
-                    help="stencil nodes a thread of the chunk sums sums at once (MPMSolver.node_line; default: the "
-                         "solver's), each profiled")
-    ap.add_argument("--sums", nargs="+", choices=["auto", "windows", "list"], default=[None],
-                    help="how the P2G by cells sums its chunks (MPMSolver.cell_sums; default: the solver's), each "
-                         "profiled")
-    ap.add_argument("--deterministic", nargs="+", choices=["on", "off", "fixed"], default=["off"],
-                    help="the bitwise-reproducible P2G (MPMSolver(deterministic=...); on: by cells, sorted every "
-                         "substep, gathered, reproducible_sums='gather'; fixed: the windows' sums added as fixed-point integers, "
-                         "reproducible_sums='fixed_point'), each profiled; list one twice to compare the runs' bits "
-                         "(MD5 of u)")
+    ap.add_argument("--deterministic", nargs="+", choices=["off", "fixed"], default=["off"],
+                    help="the bitwise-reproducible P2G (MPMSolver(deterministic=...); fixed: the windows' sums added "
+                         "as fixed-point integers), each profiled; list one twice to compare the runs' bits (MD5 of u)")
     ap.add_argument("--fast-math", action="store_true",
                     help="compile the solver's kernels with fast math (approximate division, square root, sine and "
                          "cosine; denormals flushed): a measurement only, the solver never does")
@@ -96,7 +85,7 @@ def main() -> None:
         options["block_dim"] = args.block_dim
     if options:
         wp.set_module_options(options, module=_kernels)
-    particle_kernels = ("p2g_prepare", "g2p", "p2g_cells", "p2g_chunk_sums")
+    particle_kernels = ("p2g_prepare", "g2p")
     if args.max_registers:  # the same kernels, registered again with the cap (the solver looks them up by name)
         for name in particle_kernels:
             setattr(_kernels, name, wp.kernel(getattr(_kernels, name).func, cuda_max_registers=args.max_registers))
@@ -109,25 +98,20 @@ def main() -> None:
     contract = load_contract(args.object, args.profile)
     ps = object_particles(contract, args.particles, order=args.order)
     model = probe_a_model(contract, ps, args.device)
-    runs = [(v, n, r, k, f, d, line, w, ps_, pu, g, ds, wa) for v in args.p2g for n in args.slots for r in args.resort
-            for k in args.chunk for f in args.fuse for d in args.deterministic for line in args.line for w in args.sums
-            for ps_ in args.polar_step for pu in args.polar_update for g in args.g2p_sums for ds in args.deformation_storage
-            for wa in args.window_atomics]
-    for variant, slots, resort, chunk, fuse, det, line, sums, polar_step, polar_update, g2p_sums, storage, atomics in runs:
+    runs = [(v, r, k, f, d, ps_, pu, g, ds, wa) for v in args.p2g for r in args.resort for k in args.chunk
+            for f in args.fuse for d in args.deterministic for ps_ in args.polar_step for pu in args.polar_update
+            for g in args.g2p_sums for ds in args.deformation_storage for wa in args.window_atomics]
+    for variant, resort, chunk, fuse, det, polar_step, polar_update, g2p_sums, storage, atomics in runs:
         model.deformation_storage = storage
         state = make_state(model, ps.positions)
         p2g, graph = variant.split("+")[0], variant.endswith("+graph")
         fuse = {"auto": "auto", "on": True, "off": False}[fuse]
         if fuse is True and p2g != "cells":
             continue
-        if det == "on" and (p2g != "cells" or sums == "windows"):  # the reproducible P2G by gathers sums the list
+        if det == "fixed" and p2g != "cells":  # the fixed-point sums sum by cells
             continue
-        if det == "fixed" and (p2g != "cells" or sums == "list"):  # the fixed-point one sums by windows
-            continue
-        solver = MPMSolver(model, p2g=p2g, graph=graph, fuse=fuse, max_chunk_slots=slots or None, resort_every=resort,
-                           cell_chunk=chunk, node_line=line, cell_sums=sums, deterministic=det != "off",
-                           reproducible_sums={"on": "gather", "fixed": "fixed_point"}.get(det),
-                           polar_update=polar_update, g2p_sums=g2p_sums, window_atomics=atomics,
+        solver = MPMSolver(model, p2g=p2g, graph=graph, fuse=fuse, resort_every=resort, cell_chunk=chunk,
+                           deterministic=det != "off", polar_update=polar_update, g2p_sums=g2p_sums, window_atomics=atomics,
                            **({} if polar_step is None else {"polar_step": polar_step}))
         solver.check(state)
         for _ in range(args.warm):
@@ -150,8 +134,8 @@ def main() -> None:
             total[r.name] += r.elapsed
             count[r.name] += 1
         all_ms = sum(total.values())
-        print(f"{args.object} {args.profile}, P2G {variant} ({args.order} order, chunk slots {slots or 'all'}, sort every "
-              f"{resort} substeps, chunks of {chunk}, node line {solver.node_line}, sums by {solver.cell_sums}, "
+        print(f"{args.object} {args.profile}, P2G {variant} ({args.order} order, sort every "
+              f"{resort} substeps, windows of {chunk}, "
               f"G2P fused with the next P2G half: {solver.fuse}, "
               f"reproducible: {solver.deterministic} ({solver.reproducible_sums}), "
               f"polar step {getattr(solver, 'polar_step', 1.0)} "

@@ -44,8 +44,7 @@ def block(n_particles: int, n_grid: int, grid_lim: float = 2.0, ppc: int = 8) ->
 
 def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: str, *, transfer: str = "affine_flip",
              graph: bool | str = "auto", p2g: str = "auto", ppc: int = 8, order: str = "lattice",
-             line: int | None = None, sums: str | None = None, g2p_sums: str | None = None,
-             polar_update: str | None = None, deformation_storage: str = "auto",
+             g2p_sums: str | None = None, polar_update: str | None = None, deformation_storage: str = "auto",
              window_atomics: str | None = None) -> dict:
     import warp as wp
 
@@ -59,12 +58,9 @@ def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: st
     model = build_model(X, E=1e4, nu=0.3, rho=2000.0, params=params, probe=Probe("standard_x", (-0.18, 0.0, 0.0)), device=device)
     model.deformation_storage = deformation_storage
     state = make_state(model, X)
-    reproducible = p2g in ("cells-reproducible", "cells-fixed")  # MPMSolver(deterministic=True): no float atomics on the grid
-    fixed = {"reproducible_sums": "fixed_point" if p2g == "cells-fixed" else "gather"} if reproducible else {}
-    solver = MPMSolver(model, graph=graph, p2g="cells" if reproducible else p2g, deterministic=reproducible, **fixed,
-                       node_line=line,
-                       cell_sums=None if reproducible else sums, g2p_sums=g2p_sums, polar_update=polar_update,
-                       window_atomics=None if reproducible else window_atomics)
+    reproducible = p2g == "cells-fixed"  # MPMSolver(deterministic=True): no float atomics on the grid
+    solver = MPMSolver(model, graph=graph, p2g="cells" if reproducible else p2g, deterministic=reproducible,
+                       g2p_sums=g2p_sums, polar_update=polar_update, window_atomics=None if reproducible else window_atomics)
     solver.check(state)
     for _ in range(20):  # warm-up (kernel load, caches)
         solver.step(state)
@@ -90,8 +86,6 @@ def run_case(n_particles: int, n_grid: int, steps: int, repeats: int, device: st
         "p2g_asked": p2g,
         "crowding": solver.crowding,
         "order": order,
-        "node_line": solver.node_line,
-        "cell_sums": solver.cell_sums,
         "g2p_sums": solver.g2p_sums,
         "polar_update": solver.polar_update,
         "window_atomics": solver.window_atomics,
@@ -131,19 +125,12 @@ def main() -> None:
     ap.add_argument("--transfer", choices=["affine_flip", "apic", "both"], default="affine_flip")
     ap.add_argument("--graph", choices=["auto", "off", "both"], default="auto",
                     help="substeps as CUDA graphs (auto: on a CUDA device); both: each case with and without")
-    ap.add_argument("--p2g", nargs="+", choices=["auto", "scatter", "cells", "cells-reproducible", "cells-fixed"],
-                    default=["auto"], help="P2G variants (cells-reproducible: MPMSolver(deterministic=True, "
-                                           "reproducible_sums='gather'); cells-fixed: the same with "
-                                           "reproducible_sums='fixed_point')")
+    ap.add_argument("--p2g", nargs="+", choices=["auto", "scatter", "cells", "cells-fixed"],
+                    default=["auto"], help="P2G variants (cells-fixed: MPMSolver(deterministic=True), the fixed-point "
+                                           "sums)")
     ap.add_argument("--order", nargs="+", choices=["lattice", "cell"], default=["lattice"],
                     help="the particles' order: the lattice's, or sorted by stencil base cell")
     ap.add_argument("--ppc", nargs="+", type=int, default=[8], help="particles per cell of the block (cubes: 8, 27, 64)")
-    ap.add_argument("--line", nargs="+", type=int, choices=[1, 3], default=[None],
-                    help="stencil nodes a thread of the chunk sums sums at once (MPMSolver.node_line; default: the "
-                         "solver's), each measured")
-    ap.add_argument("--sums", nargs="+", choices=["auto", "windows", "list"], default=[None],
-                    help="how the P2G by cells sums its chunks (MPMSolver.cell_sums; default: the solver's), each "
-                         "measured")
     ap.add_argument("--g2p-sums", nargs="+", choices=["auto", "nodes", "lines"], default=[None],
                     help="how G2P sums its stencil (MPMSolver.g2p_sums; default: the solver's), each measured")
     ap.add_argument("--polar-update", nargs="+", choices=["auto", "axis_angle", "rational"], default=[None],
@@ -161,25 +148,24 @@ def main() -> None:
     print(f"# device {args.device}, {platform.processor() or platform.machine()}, python {platform.python_version()}")
     transfers = ["affine_flip", "apic"] if args.transfer == "both" else [args.transfer]
     graphs = {"auto": ["auto"], "off": [False], "both": [False, "auto"]}[args.graph]
-    print("| particles | per cell | order | n_grid | transfer | graph | P2G | node line | sums | particle-substeps/s "
+    print("| particles | per cell | order | n_grid | transfer | graph | P2G | particle-substeps/s "
           "| G2P sums | polar update | F stored | window atomics | ms/substep | s per 6000-substep rollout |")
-    print("|---:|---:|---|---:|---|---|---|---:|---|---:|---|---|---|---|---:|---:|")
+    print("|---:|---:|---|---:|---|---|---|---:|---|---|---|---|---:|---:|")
     for case in args.cases:
         n, g = (int(v) for v in case.split(":"))
         for ppc in args.ppc:
             for transfer in transfers:
                 for graph in graphs:
-                    for order, p2g, line, sums, g2p, pu, ds, wa in (
-                            (o, v, k, w, q, u, d, a) for o in args.order for v in args.p2g for k in args.line
-                            for w in args.sums for q in args.g2p_sums for u in args.polar_update
-                            for d in args.deformation_storage for a in args.window_atomics):
+                    for order, p2g, g2p, pu, ds, wa in (
+                            (o, v, q, u, d, a) for o in args.order for v in args.p2g for q in args.g2p_sums
+                            for u in args.polar_update for d in args.deformation_storage for a in args.window_atomics):
                         r = run_case(n, g, args.steps, args.repeats, args.device, transfer=transfer, graph=graph, p2g=p2g,
-                                     ppc=ppc, order=order, line=line, sums=sums, g2p_sums=g2p,
-                                     polar_update=pu, deformation_storage=ds, window_atomics=wa)
+                                     ppc=ppc, order=order, g2p_sums=g2p, polar_update=pu, deformation_storage=ds,
+                                     window_atomics=wa)
                         rows.append(r)
                         crowd = "" if r["crowding"] is None else f" (crowding {r['crowding']:.1f})"
                         print(f"| {r['particles']:,} | {ppc} | {order} | {g} | {transfer} | {'on' if r['graph'] else 'off'} | "
-                              f"{p2g}: {r['p2g']}{crowd} | {r['node_line']} | {r['cell_sums']} | "
+                              f"{p2g}: {r['p2g']}{crowd} | "
                               f"{r['particle_substeps_per_s']:.3g} | {r['g2p_sums']} | {r['polar_update']} | "
                               f"{r['F_array']} | {r['window_atomics']} | {r['ms_per_substep']:.3f} | "
                               f"{r['s_per_6000_substeps']:.2f} |", flush=True)

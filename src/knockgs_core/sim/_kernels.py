@@ -31,14 +31,10 @@ from .. import _warp  # noqa: F401  (Warp's log level: no start-up banner in log
 
 wp.set_module_options({"enable_backward": False})
 
-#: cap on the registers per thread of the GPU's heavy particle kernels (G2P, the fused G2P,
-#: the chunk sums; CUDA ``__maxnreg__``, ignored on the CPU): more threads resident per SM
-#: to hide their memory latency, at the cost of a few spills. Paper-scale Pillow on an H100
-#: (benchmarks/README.md): a substep as a graph 0.435 ms capped at 96 against 0.466 ms uncapped
-#: (``g2p`` 140 registers, 0.232 against 0.155 ms); caps of 128, 80, 72 and 64 paid less.
-#: With the matrices component by component (matrix_array) and the windows' run ends found once,
-#: 80 pays most: 0.371 against 0.381 ms a substep at 96 (the list 0.394 against 0.404, the
-#: Ficus 0.131 against 0.137); 72 and 88 paid less than 96
+#: cap on the registers per thread of the GPU's heavy particle kernels (G2P and the fused G2P;
+#: CUDA ``__maxnreg__``, ignored on the CPU): more threads resident per SM to hide their memory
+#: latency, at the cost of a few spills. The caps tried and their substep times are in
+#: benchmarks/results/2026-11-27-layout-and-instructions.md
 CUDA_MAX_REGISTERS = 80
 
 
@@ -189,17 +185,6 @@ def bspline_weights(fx: wp.vec3) -> wp.mat33:
     w1 = wp.vec3(0.75) - wp.cw_mul(b, b)
     w2 = 0.5 * wp.cw_mul(c, c)
     return wp.mat33(w0[0], w0[1], w0[2], w1[0], w1[1], w1[2], w2[0], w2[1], w2[2])
-
-
-@wp.func
-def bspline_weight(f: float, i: int) -> float:
-    """Quadratic B-spline weight of stencil node ``i`` (0, 1 or 2) along one axis, for a
-    particle ``f`` cells from its base node: entry ``[i, axis]`` of :func:`bspline_weights`,
-    chosen by selects (a runtime index into a matrix would put it in local memory)."""
-    a = 1.5 - f
-    b = f - 1.0
-    c = f - 0.5
-    return wp.where(i == 0, 0.5 * (a * a), wp.where(i == 1, 0.75 - b * b, 0.5 * (c * c)))
 
 
 @wp.func
@@ -391,7 +376,7 @@ def grid_update(
     grid_mv[gi, gj, gk] = v
 
 
-# Fixed-point P2G sums (``MPMSolver(deterministic=True, reproducible_sums="fixed_point")``). Float
+# Fixed-point P2G sums (``MPMSolver(deterministic=True)``, the bitwise-reproducible P2G). Float
 # atomics add a node's contributions in the order the GPU schedules them, so their rounding, and
 # a GPU rollout's last bits, vary from run to run. Integer additions give the same sum in any
 # order. So the windows' run sums (each summed in a fixed order) go into int64 node sums
@@ -732,14 +717,10 @@ def p2g(
 # GPU serializes those atomics on the shared nodes. By cells: each particle's contribution
 # terms and the key of its stencil base cell are computed once, in the particles' own order
 # (``p2g_prepare``); the particles are sorted by key (``p2g_sort_keys`` and a radix sort, every
-# few substeps: between sorts a particle that changed cells only cuts its run short); the
-# chunks are listed in that order (``p2g_chunk_starts``, a prefix sum, ``p2g_chunk_list``: a
-# chunk is a run of at most ``MPMSolver.cell_chunk`` sorted particles whose current base cells
-# agree), and one thread
-# per chunk and stencil node sums the chunk's contributions, reading the terms through the
-# order (``p2g_cells``): 27 atomics per chunk instead of 27 per particle. The same sums, in
-# another order (float rounding differs from the scatter's). By default the chunks are summed by
-# windows instead of listed (:func:`p2g_windows`, below the chunk sums).
+# few substeps: between sorts a particle that changed cells only cuts its run short), and the
+# sorted particles are summed by windows (:func:`p2g_windows`): one atomic per run of particles
+# of one base cell and stencil node instead of one per particle. The same sums, in another
+# order (float rounding differs from the scatter's).
 
 
 @wp.func
@@ -808,43 +789,10 @@ def p2g_sort_keys(keys: wp.array(dtype=wp.int32), sort_keys: wp.array(dtype=wp.i
     order[p] = p
 
 
-@wp.kernel
-def p2g_chunk_starts(keys: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32), chunk: int,
-                     start: wp.array(dtype=wp.int32)):
-    """Launched over sorted positions ``s``: ``start[s]`` = 1 where a chunk begins (a run of at
-    most ``chunk`` sorted particles whose current keys agree, cut at every ``chunk``-th
-    position; a particle outside the active box is a chunk of its own, which the sums skip),
-    0 elsewhere. A chunk ends where the next begins."""
-    s = wp.tid()
-    start[s] = 0
-    if s % chunk == 0:
-        start[s] = 1
-    elif keys[order[s - 1]] != keys[order[s]]:
-        start[s] = 1
-
-
-@wp.kernel
-def p2g_chunk_list(start: wp.array(dtype=wp.int32), index: wp.array(dtype=wp.int32), count: int,
-                   chunks: wp.array(dtype=wp.int32), n_chunks: wp.array(dtype=wp.int32)):
-    """From the chunk starts and their exclusive prefix sum ``index``: the list of chunk
-    starts ``chunks`` (in sorted order) and their number ``n_chunks[0]``."""
-    s = wp.tid()
-    if start[s] == 1:
-        chunks[index[s]] = s
-    if s == count - 1:
-        n_chunks[0] = index[s] + start[s]
-
-
 @wp.func
 def stencil_offset(n: int) -> wp.vec3i:
     """Stencil node ``n`` (0..26) of a base cell as its offset ``(i, j, k)``, ``n = 9 i + 3 j + k``."""
     return wp.vec3i(n // 9, (n // 3) % 3, n % 3)
-
-
-@wp.func
-def stencil_node(key: int, o: wp.vec3i, n_grid: int) -> wp.vec3i:
-    """The grid node at offset ``o`` from the base cell ``key`` (its index in the grid)."""
-    return wp.vec3i(key // (n_grid * n_grid) + o[0], (key // n_grid) % n_grid + o[1], key % n_grid + o[2])
 
 
 @wp.func
@@ -868,22 +816,13 @@ def apic_term(q: wp.vec4, C: Any, p: int) -> wp.mat33:
 
 
 @wp.func
-def node_term(f: wp.vec3, q: wp.vec4, A: wp.mat33, M: wp.mat33, i: int, j: int, k: int, dx: float, affine_flip: int):
+def node_term(weight: float, f: wp.vec3, q: wp.vec4, A: wp.mat33, M: wp.mat33, i: int, j: int, k: int, dx: float,
+              affine_flip: int):
     """One particle's contribution to the stencil node ``(i, j, k)`` of its base cell, from its
-    P2G terms (position in the cell ``f`` [cells], momentum and mass ``q``, affine matrices
-    ``A`` and ``M``): momentum [kg m/s], mass [kg], and the stress-free momentum (affine FLIP
-    only, else 0). Every P2G by cells sums these, so its variants agree term for term. The
-    weights come by selects (:func:`bspline_weight`): the node is the caller's, not a
-    constant."""
-    weight = bspline_weight(f[0], i) * bspline_weight(f[1], j) * bspline_weight(f[2], k)
-    return weighted_node_term(weight, f, q, A, M, i, j, k, dx, affine_flip)
-
-
-@wp.func
-def weighted_node_term(weight: float, f: wp.vec3, q: wp.vec4, A: wp.mat33, M: wp.mat33, i: int, j: int, k: int,
-                       dx: float, affine_flip: int):
-    """:func:`node_term` with the particle's weight at the node given (the product of its
-    B-spline weights along x, y and z, in that order): the same arithmetic."""
+    weight at the node ``weight`` (the product of its B-spline weights along x, y and z, in that
+    order) and its P2G terms (position in the cell ``f`` [cells], momentum and mass ``q``, affine
+    matrices ``A`` and ``M``): momentum [kg m/s], mass [kg], and the stress-free momentum (affine
+    FLIP only, else 0)."""
     dpos = (wp.vec3(float(i), float(j), float(k)) - f) * dx
     mvp = wp.vec3(q[0], q[1], q[2])
     old = wp.vec3(0.0)
@@ -892,158 +831,20 @@ def weighted_node_term(weight: float, f: wp.vec3, q: wp.vec4, A: wp.mat33, M: wp
     return weight * (mvp + A * dpos), weight * q[3], old
 
 
-@wp.func
-def chunk_sum(s: int, e: int, i: int, j: int, k: int, dx: float, affine_flip: int, order: wp.array(dtype=wp.int32),
-              fx: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), affine: Any,
-              C: Any):
-    """The contributions (:func:`node_term`) of the particles at sorted positions ``s .. e-1``
-    (one chunk, one base cell) to the stencil node ``(i, j, k)`` of that cell, summed in sorted
-    order."""
-    sum_mv = wp.vec3(0.0)
-    sum_m = float(0.0)
-    sum_old = wp.vec3(0.0)
-    for t in range(s, e):
-        p = order[t]
-        q = momentum_mass(v, mass, p)
-        M = wp.mat33(0.0)
-        if affine_flip == 1:
-            M = apic_term(q, C, p)
-        d_mv, d_m, d_old = node_term(fx[p], q, mat33_at(affine, p), M, i, j, k, dx, affine_flip)
-        sum_mv += d_mv
-        sum_m += d_m
-        sum_old += d_old
-    return sum_mv, sum_m, sum_old
-
-
-@wp.func
-def chunk_line_sum(s: int, e: int, i: int, j: int, dx: float, affine_flip: int, order: wp.array(dtype=wp.int32),
-                   fx: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), affine: Any,
-                   C: Any):
-    """:func:`chunk_sum` for the line of three stencil nodes ``(i, j, 0..2)`` at once: each
-    particle's terms are read once for three nodes. Per node the same arithmetic in the same
-    order, so the same bits. Returns the momenta of nodes k = 0, 1, 2 [kg m/s], their masses as
-    a vec3 [kg] and their stress-free momenta (affine FLIP only)."""
-    mv0 = wp.vec3(0.0)
-    mv1 = wp.vec3(0.0)
-    mv2 = wp.vec3(0.0)
-    m0 = float(0.0)
-    m1 = float(0.0)
-    m2 = float(0.0)
-    old0 = wp.vec3(0.0)
-    old1 = wp.vec3(0.0)
-    old2 = wp.vec3(0.0)
-    for t in range(s, e):
-        p = order[t]
-        f = fx[p]
-        q = momentum_mass(v, mass, p)
-        A = mat33_at(affine, p)
-        M = wp.mat33(0.0)
-        if affine_flip == 1:
-            M = apic_term(q, C, p)
-        d_mv, d_m, d_old = node_term(f, q, A, M, i, j, 0, dx, affine_flip)
-        mv0 += d_mv
-        m0 += d_m
-        old0 += d_old
-        d_mv, d_m, d_old = node_term(f, q, A, M, i, j, 1, dx, affine_flip)
-        mv1 += d_mv
-        m1 += d_m
-        old1 += d_old
-        d_mv, d_m, d_old = node_term(f, q, A, M, i, j, 2, dx, affine_flip)
-        mv2 += d_mv
-        m2 += d_m
-        old2 += d_old
-    return mv0, mv1, mv2, wp.vec3(m0, m1, m2), old0, old1, old2
-
-
-@wp.func
-def chunk_end(c: int, total: int, count: int, chunks: wp.array(dtype=wp.int32)) -> int:
-    """The sorted position after chunk ``c``'s last particle: the next chunk's start."""
-    e = count
-    if c + 1 < total:
-        e = chunks[c + 1]
-    return e
-
-
-@wp.kernel(cuda_max_registers=CUDA_MAX_REGISTERS)
-def p2g_cells(
-    chunks: wp.array(dtype=wp.int32),
-    n_chunks: wp.array(dtype=wp.int32),
-    stride: int,
-    line: int,
-    keys: wp.array(dtype=wp.int32),
-    order: wp.array(dtype=wp.int32),
-    none_key: int,
-    count: int,
-    n_grid: int,
-    inv_dx: float,
-    affine_flip: int,
-    fx: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    mass: wp.array(dtype=float),
-    affine: Any,
-    C: Any,
-    grid_mv: wp.array3d(dtype=wp.vec3),
-    grid_m: wp.array3d(dtype=float),
-    grid_mv_old: wp.array3d(dtype=wp.vec3),
-):
-    """Launched over (chunk slot, stencil node): the thread sums the contributions of the
-    chunks ``slot``, ``slot + stride``, ... (the chunk list is as long as the data make it;
-    chunks outside the active box, key ``none_key``, are skipped) to its node, reading particle
-    ``order[s]``'s terms at sorted position ``s`` (:func:`chunk_sum`), and adds each chunk's
-    sum to the grid with one atomic. With ``line = 3`` launched over (chunk slot, node line
-    ``n``: nodes ``3 n .. 3 n + 2``, a line along z) instead, the thread sums the line's three
-    nodes at once (:func:`chunk_line_sum`; the same sums, a third of the reads); ``line = 1``:
-    a node a thread."""
-    c, n = wp.tid()
-    total = n_chunks[0]
-    o = stencil_offset(n * line)
-    dx = 1.0 / inv_dx
-    while c < total:
-        s = chunks[c]
-        key = keys[order[s]]
-        if key == none_key:
-            c += stride
-            continue
-        e = chunk_end(c, total, count, chunks)
-        g = stencil_node(key, o, n_grid)
-        if line == 3:
-            mv0, mv1, mv2, m3, old0, old1, old2 = chunk_line_sum(s, e, o[0], o[1], dx, affine_flip, order, fx, v, mass, affine, C)
-            wp.atomic_add(grid_mv, g[0], g[1], g[2], mv0)
-            wp.atomic_add(grid_mv, g[0], g[1], g[2] + 1, mv1)
-            wp.atomic_add(grid_mv, g[0], g[1], g[2] + 2, mv2)
-            wp.atomic_add(grid_m, g[0], g[1], g[2], m3[0])
-            wp.atomic_add(grid_m, g[0], g[1], g[2] + 1, m3[1])
-            wp.atomic_add(grid_m, g[0], g[1], g[2] + 2, m3[2])
-            if affine_flip == 1:
-                wp.atomic_add(grid_mv_old, g[0], g[1], g[2], old0)
-                wp.atomic_add(grid_mv_old, g[0], g[1], g[2] + 1, old1)
-                wp.atomic_add(grid_mv_old, g[0], g[1], g[2] + 2, old2)
-        else:
-            sum_mv, sum_m, sum_old = chunk_sum(s, e, o[0], o[1], o[2], dx, affine_flip, order, fx, v, mass, affine, C)
-            wp.atomic_add(grid_mv, g[0], g[1], g[2], sum_mv)
-            wp.atomic_add(grid_m, g[0], g[1], g[2], sum_m)
-            if affine_flip == 1:
-                wp.atomic_add(grid_mv_old, g[0], g[1], g[2], sum_old)
-        c += stride
-
-
-# P2G by windows (``MPMSolver(cell_sums="windows")``, W = ``cell_chunk``): the chunk sums above
-# stage nothing: each of a chunk's threads reads the chunk's particles one after the other
-# through the sort's order, a chain of dependent global loads, and the chunk list costs three
-# launches a substep. Here one block of ``W`` threads takes the ``W`` sorted positions
-# ``b W .. b W + W - 1``: its threads put those particles' terms in shared memory together,
-# then each thread sums one run of equal keys (a window is cut where the key changes, as the
-# chunk list cuts a chunk, and at its ends) to one stencil node from shared memory and adds the
-# sum with one atomic (:func:`window_sums`). With ``W = MPMSolver.cell_chunk`` the runs are the
-# chunk list's chunks and each node's sums are those of :func:`chunk_sum`, term for term.
-# (Windows of 64 or 128 cut every 32 slots paid no more on an H100, and the cut's integer
-# modulo cost the kernel 10 %: benchmarks/README.md.)
+# P2G by windows (W = ``MPMSolver.cell_chunk``): one block of ``W`` threads takes the ``W``
+# sorted positions ``b W .. b W + W - 1``; its threads put those particles' terms in shared
+# memory together, then each thread sums one run of equal keys (a window is cut where the key
+# changes and at its ends) to one stencil node from shared memory, in slot order, and adds the
+# sum with one atomic (:func:`window_sums`). Staging the terms once a window spares each of a
+# run's threads a chain of dependent global loads through the sort's order (the measurements,
+# windows of other sizes among them, are in
+# benchmarks/results/2026-11-27-window-sums-and-reference.md).
 @wp.func
 def window_run_sum(t_key: Any, t_end: Any, t_runs: Any, q: int, t_w: Any, t_fx: Any, t_mv: Any, t_aff: Any, t_mC: Any,
                    n_grid: int, dx: float, affine_flip: int):
     """The (run, stencil node) pair ``q`` (run ``q // 27``, node ``q % 27``) of a window's staged
     terms (see :func:`window_sums`): the run's :func:`node_term` summed to the node in slot
-    order, as :func:`chunk_sum` sums them, and the node's index in the grid."""
+    order, and the node's index in the grid."""
     r = q // 27
     s = t_runs[r]
     e = t_end[s]
@@ -1058,9 +859,9 @@ def window_run_sum(t_key: Any, t_end: Any, t_runs: Any, q: int, t_w: Any, t_fx: 
         M = wp.mat33(0.0)
         if affine_flip == 1:
             M = mat33_from_rows(t_mC[t, 0], t_mC[t, 1], t_mC[t, 2])
-        d_mv, d_m, d_old = weighted_node_term(weight, vec4_head(t_fx[t]), t_mv[t],
-                                              mat33_from_rows(t_aff[t, 0], t_aff[t, 1], t_aff[t, 2]), M, o[0], o[1], o[2], dx,
-                                              affine_flip)
+        d_mv, d_m, d_old = node_term(weight, vec4_head(t_fx[t]), t_mv[t],
+                                     mat33_from_rows(t_aff[t, 0], t_aff[t, 1], t_aff[t, 2]), M, o[0], o[1], o[2], dx,
+                                     affine_flip)
         sum_mv += d_mv
         sum_m += d_m
         sum_old += d_old
@@ -1079,7 +880,7 @@ def window_sums(t_key: Any, t_end: Any, t_runs: Any, runs: int, t_w: Any, t_fx: 
     or a matrix's row would take three) and its ``runs`` runs' first slots ``t_runs`` (in slot
     order): the thread ``lane`` of ``threads`` takes the (run, stencil node) pairs ``lane, lane + threads,
     ...``; a run is the slots ``s .. t_end[s] - 1``, its :func:`node_term` summed to node ``n`` in
-    slot order as :func:`chunk_sum` sums them (:func:`window_run_sum`), and added to the grid
+    slot order (:func:`window_run_sum`), and added to the grid
     (flat arrays of the ``n_grid``^3 nodes; a base cell's key is its node's index) with one
     atomic per array, or (``records = 1``) to the node records ``sums_mvm`` and ``sums_old``
     with one :func:`vec4_atomic_add` each."""
@@ -1306,173 +1107,6 @@ def p2g_windows(window: int, affine_flip: int, fixed: bool = False, records: boo
                                  f32=("affine", "C"))
     _WINDOW_KERNELS[window, affine_flip, fixed, records] = kernel
     return kernel
-
-
-# Bitwise-reproducible P2G (``MPMSolver(deterministic=True)``). The chunk sums above are
-# summed in a fixed order, but their float atomics on a node arrive in the order the GPU
-# schedules the threads, so a GPU rollout's last bits vary from run to run. Here each chunk's
-# sums to its 27 nodes are stored (``p2g_chunk_sums``); sorted every substep, a cell's chunks
-# are consecutive in the list, and the thread of its first chunk sums them, in list order, for
-# one stencil node (``p2g_cell_sums``: one row of node arrays per stencil offset, so no two
-# cells write one entry); each node then sums its 27 rows in row order (``p2g_gather``). No
-# float atomics: the same bits on every run, whatever the threads' schedule.
-@wp.kernel(cuda_max_registers=CUDA_MAX_REGISTERS)
-def p2g_chunk_sums(
-    chunks: wp.array(dtype=wp.int32),
-    n_chunks: wp.array(dtype=wp.int32),
-    stride: int,
-    line: int,
-    keys: wp.array(dtype=wp.int32),
-    order: wp.array(dtype=wp.int32),
-    none_key: int,
-    count: int,
-    capacity: int,
-    inv_dx: float,
-    affine_flip: int,
-    fx: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    mass: wp.array(dtype=float),
-    affine: Any,
-    C: Any,
-    sums_mv: wp.array(dtype=wp.vec3),
-    sums_m: wp.array(dtype=float),
-    sums_old: wp.array(dtype=wp.vec3),
-    overflow: wp.array(dtype=wp.int32),
-):
-    """Launched as :func:`p2g_cells`: chunk ``c``'s sum to its stencil node ``n`` (0..26,
-    ``n = 9 i + 3 j + k``) stored at ``27 c + n`` instead of added to the grid (``capacity``:
-    the buffers' chunks, ``overflow[0]`` set to 1 if the list is longer; chunks outside the
-    active box are skipped). ``line`` as in :func:`p2g_cells`."""
-    c, n = wp.tid()
-    total = n_chunks[0]
-    if c == 0 and n == 0 and total > capacity:
-        overflow[0] = 1
-    n = n * line  # the thread's (first) stencil node
-    o = stencil_offset(n)
-    dx = 1.0 / inv_dx
-    while c < total and c < capacity:
-        s = chunks[c]
-        if keys[order[s]] != none_key:
-            e = chunk_end(c, total, count, chunks)
-            r = 27 * c + n
-            if line == 3:
-                mv0, mv1, mv2, m3, old0, old1, old2 = chunk_line_sum(s, e, o[0], o[1], dx, affine_flip, order, fx, v,
-                                                                     mass, affine, C)
-                sums_mv[r] = mv0
-                sums_mv[r + 1] = mv1
-                sums_mv[r + 2] = mv2
-                sums_m[r] = m3[0]
-                sums_m[r + 1] = m3[1]
-                sums_m[r + 2] = m3[2]
-                if affine_flip == 1:
-                    sums_old[r] = old0
-                    sums_old[r + 1] = old1
-                    sums_old[r + 2] = old2
-            else:
-                sum_mv, sum_m, sum_old = chunk_sum(s, e, o[0], o[1], o[2], dx, affine_flip, order, fx, v, mass, affine, C)
-                sums_mv[r] = sum_mv
-                sums_m[r] = sum_m
-                if affine_flip == 1:
-                    sums_old[r] = sum_old
-        c += stride
-
-
-@wp.func
-def chunk_key(c: int, chunks: wp.array(dtype=wp.int32), keys: wp.array(dtype=wp.int32),
-              order: wp.array(dtype=wp.int32)) -> int:
-    """The base cell key of chunk ``c``."""
-    return keys[order[chunks[c]]]
-
-
-@wp.kernel
-def p2g_cell_sums(
-    chunks: wp.array(dtype=wp.int32),
-    n_chunks: wp.array(dtype=wp.int32),
-    stride: int,
-    keys: wp.array(dtype=wp.int32),
-    order: wp.array(dtype=wp.int32),
-    none_key: int,
-    capacity: int,
-    n_grid: int,
-    lo: wp.vec3i,
-    dims: wp.vec3i,
-    affine_flip: int,
-    sums_mv: wp.array(dtype=wp.vec3),
-    sums_m: wp.array(dtype=float),
-    sums_old: wp.array(dtype=wp.vec3),
-    node_mv: wp.array2d(dtype=wp.vec3),
-    node_m: wp.array2d(dtype=float),
-    node_old: wp.array2d(dtype=wp.vec3),
-):
-    """Launched as :func:`p2g_chunk_sums`; the thread of a cell's first chunk (the chunks of a
-    cell are consecutive: the list is sorted by key) sums the cell's chunk sums to its stencil
-    node ``n`` in list order and writes the sum to row ``n`` of the node arrays [27, box nodes]
-    at the node's index in the active box (each (row, node) has at most one source cell: the
-    node minus the row's offset). Entries of cells without particles stay zero."""
-    c, n = wp.tid()
-    total = wp.min(n_chunks[0], capacity)
-    o = stencil_offset(n)
-    while c < total:
-        key = chunk_key(c, chunks, keys, order)
-        first = key != none_key
-        if first and c > 0:
-            first = chunk_key(c - 1, chunks, keys, order) != key
-        if first:
-            acc_mv = sums_mv[27 * c + n]
-            acc_m = sums_m[27 * c + n]
-            acc_old = wp.vec3(0.0)
-            if affine_flip == 1:
-                acc_old = sums_old[27 * c + n]
-            d = c + 1
-            while d < total:
-                if chunk_key(d, chunks, keys, order) != key:
-                    break
-                acc_mv += sums_mv[27 * d + n]
-                acc_m += sums_m[27 * d + n]
-                if affine_flip == 1:
-                    acc_old += sums_old[27 * d + n]
-                d += 1
-            g = stencil_node(key, o, n_grid) - lo
-            local = (g[0] * dims[1] + g[1]) * dims[2] + g[2]
-            node_mv[n, local] = acc_mv
-            node_m[n, local] = acc_m
-            if affine_flip == 1:
-                node_old[n, local] = acc_old
-        c += stride
-
-
-@wp.kernel
-def p2g_gather(
-    lo: wp.vec3i,
-    dims: wp.vec3i,
-    affine_flip: int,
-    node_mv: wp.array2d(dtype=wp.vec3),
-    node_m: wp.array2d(dtype=float),
-    node_old: wp.array2d(dtype=wp.vec3),
-    grid_mv: wp.array3d(dtype=wp.vec3),
-    grid_m: wp.array3d(dtype=float),
-    grid_mv_old: wp.array3d(dtype=wp.vec3),
-):
-    """One thread per node of the active box: the node's momentum, mass (and stress-free
-    momentum) as the sum of its 27 rows (:func:`p2g_cell_sums`) in row order; written, not
-    added."""
-    i, j, k = wp.tid()
-    local = (i * dims[1] + j) * dims[2] + k
-    acc_mv = wp.vec3(0.0)
-    acc_m = float(0.0)
-    acc_old = wp.vec3(0.0)
-    for n in range(27):
-        acc_mv += node_mv[n, local]
-        acc_m += node_m[n, local]
-        if affine_flip == 1:
-            acc_old += node_old[n, local]
-    gi = i + lo[0]
-    gj = j + lo[1]
-    gk = k + lo[2]
-    grid_mv[gi, gj, gk] = acc_mv
-    grid_m[gi, gj, gk] = acc_m
-    if affine_flip == 1:
-        grid_mv_old[gi, gj, gk] = acc_old
 
 
 @wp.func
@@ -1863,8 +1497,6 @@ def particle_stats(
 overload_per_layout(state_rest, f64=("F",))
 overload_per_layout(p2g, f32=("C",), f64=("F",))
 overload_per_layout(p2g_prepare, f32=("C", "affine"), f64=("F",))
-overload_per_layout(p2g_cells, f32=("affine", "C"))
-overload_per_layout(p2g_chunk_sums, f32=("affine", "C"))
 overload_per_layout(g2p, f32=("C",), f64=("F",))
 for _flip in (0, 1):
     g2p_prepare(_flip)

@@ -257,7 +257,7 @@ class SimResult:
     deformation gradient ``F`` (T, n_F, 3, 3) float32 of the first ``n_F`` particles when
     asked for. ``stats`` holds guard statistics (max CFL number, min det F, steps).
     ``reproducible_sums``: how the solver made a deterministic run's P2G sums reproducible
-    (:attr:`MPMSolver.reproducible_sums`, whose bits differ); None for a run that was not."""
+    (:attr:`MPMSolver.reproducible_sums`); None for a run that was not."""
 
     times: np.ndarray
     positions: np.ndarray
@@ -431,9 +431,7 @@ class _CellScratch:
     where they are summed) and the base cell's ``keys``;
     the radix sort's ``sort_keys`` and ``order`` (twice the particle count, as the sort needs;
     ``order[:n]`` is a permutation at all times: the identity until the first sort), ``none_key``
-    (a key above every cell's) and ``end_bit`` (the bits the sort looks at); over sorted
-    positions the chunk starts ``start`` and their prefix sum ``index``; the list of chunk starts
-    ``chunks`` and its length ``n_chunks`` [1]."""
+    (a key above every cell's) and ``end_bit`` (the bits the sort looks at)."""
 
     fx: wp.array
     affine: wp.array
@@ -442,38 +440,24 @@ class _CellScratch:
     order: wp.array
     none_key: int
     end_bit: int
-    start: wp.array
-    index: wp.array
-    chunks: wp.array
-    n_chunks: wp.array
 
     @classmethod
-    def make(cls, model: Model, *, listed: bool = True) -> _CellScratch:
-        """The scratch for ``model``; the chunk list's arrays (``start``, ``index``, ``chunks``)
-        only where the chunks are ``listed`` (placeholders of one entry where they are summed by
-        windows)."""
+    def make(cls, model: Model) -> _CellScratch:
+        """The scratch for ``model``."""
         n, dev, g = model.particle_count, model.device, model.params.n_grid
-        n_list = n if listed else 1
         none_key = g * g * g
-
-        def zeros(dtype, size=n):
-            return wp.zeros(size, dtype=dtype, device=dev)
-
         order = wp.array(np.arange(2 * n, dtype=np.int32), dtype=wp.int32, device=dev)
-        return cls(fx=zeros(wp.vec3), affine=matrix_array(n, float, dev, layout=model.matrix_layout),
-                   keys=zeros(wp.int32),
-                   sort_keys=zeros(wp.int32, 2 * n), order=order, none_key=none_key,
-                   end_bit=max(1, int(none_key).bit_length()), start=zeros(wp.int32, n_list),
-                   index=zeros(wp.int32, n_list), chunks=zeros(wp.int32, n_list), n_chunks=zeros(wp.int32, 1))
+        return cls(fx=wp.zeros(n, dtype=wp.vec3, device=dev), affine=matrix_array(n, float, dev, layout=model.matrix_layout),
+                   keys=wp.zeros(n, dtype=wp.int32, device=dev), sort_keys=wp.zeros(2 * n, dtype=wp.int32, device=dev),
+                   order=order, none_key=none_key, end_bit=max(1, int(none_key).bit_length()))
 
 
 class _FixedScratch:
-    """Scratch of the fixed-point reproducible P2G (``MPMSolver(deterministic=True,
-    reproducible_sums="fixed_point")``): the int64 node sums ``q`` [7, n_grid^3] (momentum,
-    mass, stress-free momentum), their scales ``scale_m``, ``scale_p`` (powers of two: the
-    object's mass ``M`` [kg] and the momentum bound ``bound_p = M 64 dx / dt`` [kg m/s] at
-    2^61 units) and units ``unit_m``, ``unit_p`` (their inverses, float64), and ``overflow``
-    [1], set where a run sum reached 2^61 units."""
+    """Scratch of the fixed-point reproducible P2G (``MPMSolver(deterministic=True)``): the
+    int64 node sums ``q`` [7, n_grid^3] (momentum, mass, stress-free momentum), their scales
+    ``scale_m``, ``scale_p`` (powers of two: the object's mass ``M`` [kg] and the momentum bound
+    ``bound_p = M 64 dx / dt`` [kg m/s] at 2^61 units) and units ``unit_m``, ``unit_p`` (their
+    inverses, float64), and ``overflow`` [1], set where a run sum reached 2^61 units."""
 
     def __init__(self, model: Model):
         p = model.params
@@ -481,12 +465,12 @@ class _FixedScratch:
         mass = float(np.asarray(model.mass_host, dtype=np.float64).sum())
         self.bound_p = mass * 64.0 * p.dx / p.dt
         if not (mass > 0.0 and math.isfinite(self.bound_p) and self.bound_p > 0.0):
-            raise InputError("MPMSolver", "reproducible_sums", f"fixed-point sums need a positive total mass and "
+            raise InputError("MPMSolver", "deterministic", f"fixed-point sums need a positive total mass and "
                              f"momentum bound, got {mass!r} kg and {self.bound_p!r} kg m/s")
         e_m = 61 - math.ceil(math.log2(mass))
         e_p = 61 - math.ceil(math.log2(self.bound_p))
         if max(abs(e_m), abs(e_p)) > 120:  # the scales are float32 kernel arguments
-            raise InputError("MPMSolver", "reproducible_sums", f"fixed-point scales 2^{e_m} and 2^{e_p} leave float32's "
+            raise InputError("MPMSolver", "deterministic", f"fixed-point scales 2^{e_m} and 2^{e_p} leave float32's "
                              f"range (total mass {mass:.3g} kg, momentum bound {self.bound_p:.3g} kg m/s)")
         self.scale_m, self.scale_p = math.ldexp(1.0, e_m), math.ldexp(1.0, e_p)
         self.unit_m, self.unit_p = wp.float64(math.ldexp(1.0, -e_m)), wp.float64(math.ldexp(1.0, -e_p))
@@ -525,44 +509,6 @@ class _RecordScratch:
         return r
 
 
-class _GatherScratch:
-    """Scratch of the bitwise-reproducible P2G (``MPMSolver(deterministic=True)``): each
-    chunk's sums to its 27 stencil nodes (``sums_mv``, ``sums_m``, ``sums_old`` [27 x chunk
-    capacity]), each cell's sums by stencil offset at the active box's nodes (``node_mv``,
-    ``node_m``, ``node_old`` [27, box nodes]), grown as the active box asks (``*_old`` hold
-    one entry unless the transfer is affine FLIP), and ``overflow`` [1], set by the kernels if
-    the chunk list outgrew the buffers."""
-
-    def __init__(self, model: Model):
-        self.device = model.device
-        self.flip = model.params.transfer == "affine_flip"
-        self.overflow = wp.zeros(1, dtype=wp.int32, device=self.device)
-        self.capacity = 0
-        self.nodes = 0
-        self.reserve(1, 1)
-
-    def reserve(self, capacity: int, nodes: int) -> None:
-        """Buffers for at least ``capacity`` chunks and ``nodes`` box nodes (reallocated only to grow)."""
-        dev, old = self.device, (lambda size: size if self.flip else 1)
-        if capacity > self.capacity:
-            self.capacity = capacity
-            self.sums_mv = wp.zeros(27 * capacity, dtype=wp.vec3, device=dev)
-            self.sums_m = wp.zeros(27 * capacity, dtype=float, device=dev)
-            self.sums_old = wp.zeros(old(27 * capacity), dtype=wp.vec3, device=dev)
-        if nodes > self.nodes:
-            self.nodes = nodes
-            self.node_mv = wp.zeros((27, nodes), dtype=wp.vec3, device=dev)
-            self.node_m = wp.zeros((27, nodes), dtype=float, device=dev)
-            self.node_old = wp.zeros((27, old(nodes)), dtype=wp.vec3, device=dev)
-
-    def clear_nodes(self) -> None:
-        """Zero the node rows (entries of cells without particles must read zero)."""
-        self.node_mv.zero_()
-        self.node_m.zero_()
-        if self.flip:
-            self.node_old.zero_()
-
-
 class MPMSolver:
     """Advances a :class:`State` of a :class:`Model` by substeps of ``params.dt``.
 
@@ -573,10 +519,12 @@ class MPMSolver:
     object of each of ``params.effects`` (same order), made by its ``setup`` here.
 
     ``p2g``: ``"scatter"`` (one float atomic per particle and stencil node; the CPU's),
-    ``"cells"`` (particles sorted by base cell every :attr:`resort_every` substeps, chunk sums
-    with one atomic per chunk and node) or ``"auto"``: by cells on a CUDA device where the particles crowd their
-    cells (:func:`cell_crowding` at least :attr:`CELLS_CROWDING`; counted on every device and
-    recorded in ``crowding``), else the scatter.
+    ``"cells"`` (particles sorted by base cell every :attr:`resort_every` substeps, summed by
+    windows of :attr:`cell_chunk` sorted particles with one atomic per run of one base cell and
+    stencil node: :func:`~knockgs_core.sim._kernels.p2g_windows`) or ``"auto"``: by cells on a
+    CUDA device where the particles crowd their cells (:func:`cell_crowding` at least
+    :attr:`CELLS_CROWDING`; counted on every device and recorded in ``crowding``), else the
+    scatter.
 
     ``graph``: replay each substep as a captured graph (one per probe state and set of active
     supports, captured again when the guard moves the active box), which skips the host's
@@ -592,23 +540,17 @@ class MPMSolver:
     (another state, or a state whose step count was changed, is refused), and nothing else may
     change it between substeps. ``"auto"``: where substeps are graphs and P2G is by cells.
 
-    ``resort_every``, ``cell_chunk``, ``max_chunk_slots``, ``node_line``, ``cell_sums``,
-    ``window_atomics``: the P2G by cells' settings (the class attributes of the same names
-    document them); they set speed only.
+    ``resort_every``, ``cell_chunk``, ``window_atomics``: the P2G by cells' settings (the class
+    attributes of the same names document them); they set speed only.
 
     ``deterministic``: a GPU rollout the same bit for bit on every run. Float atomics add a
     node's contributions in the order the GPU schedules its threads, so the last bits of a GPU
     rollout vary between runs. Deterministic, the P2G is by cells (chosen whatever the
-    crowding) and its sums are reproducible in the way ``reproducible_sums`` names (the class
-    attribute documents both): by default (``"fixed_point"``) the default path's window sums,
-    each summed in a fixed order, are added to the nodes as int64 fixed-point sums
-    (:func:`~knockgs_core.sim._kernels.window_sums_fixed`), whose integer atomics give one sum
-    in any order; ``"gather"`` sorts every substep, stores each chunk's sums to its 27 nodes
-    and has each node gather them in a fixed order
-    (:func:`~knockgs_core.sim._kernels.p2g_gather`). Either way no float atomics reach the
-    grid. The same sums as the other variants, in another order and, in fixed point, rounded to
-    its units (the CPU's scatter stays the default there); the cost on a GPU is in
-    benchmarks/README.md.
+    crowding) and the windows' run sums, each summed in a fixed order, are added to the nodes
+    as int64 fixed-point sums (:attr:`reproducible_sums`;
+    :func:`~knockgs_core.sim._kernels.window_sums_fixed`), whose integer atomics give one sum in
+    any order: no float atomics reach the grid. The same sums as the other variants, in another
+    order and rounded to the fixed point's units (the CPU's scatter stays the default there).
 
     ``polar_step`` and ``polar_update``: the polar iterations' step near convergence and how it
     is taken, and ``g2p_sums``: how G2P sums its stencil (the class attributes of the same names
@@ -644,53 +586,29 @@ class MPMSolver:
     #: tables made from them, keep their bits)
     g2p_sums: str = "auto"
     #: ``p2g="auto"`` on a CUDA device sums by cells from this :func:`cell_crowding` on (particles
-    #: sharing a particle's base cell, on average), and scatters below it. Measured on an H100
-    #: (benchmarks/README.md): a 681k-particle block at 1 per cell scatters faster (0.92 against
-    #: 1.39 ms a substep), at 8 per cell sums faster by cells (0.59 against 0.88 ms)
+    #: sharing a particle's base cell, on average), and scatters below it: where particles crowd
+    #: their cells the scatter's atomics serialize on the shared nodes (measured on blocks at 1
+    #: and 8 particles a cell: benchmarks/results/2026-11-26-graphs-crowding-cell-sums.md)
     CELLS_CROWDING = 4.0
     #: the P2G by cells sorts the particles by base cell every this many substeps; between sorts
-    #: the chunks follow the last order, cut where a particle has changed cells since (the sums
-    #: are right in any order: the interval sets speed only). On the paper-scale Pillow (H100,
-    #: substeps as graphs): 0.555 ms a substep sorting every substep, 0.501 every 10th, 0.511
-    #: every 50th
+    #: the windows follow the last order, their runs cut where a particle has changed cells since
+    #: (the sums are right in any order: the interval sets speed only;
+    #: benchmarks/results/2026-11-26-graphs-crowding-cell-sums.md)
     resort_every: int = 10
-    #: most particles in one chunk of the P2G by cells (a thread sums a chunk's contributions
-    #: to one node; a cell with more is split); the size of a window where it sums by windows
-    #: (at most 256 there)
+    #: sorted particles a window of the P2G by cells takes (a block's threads and its staged
+    #: terms in shared memory: at most 256); a run of one base cell is cut at a window's ends
     cell_chunk: int = 32
-    #: stencil nodes a thread of the chunk sums sums at once: 1 (a node a thread, 27 threads a
-    #: chunk) or 3 (a line of nodes along z, 9 threads a chunk, each particle's terms read once
-    #: for three nodes). Each node's sums are the same, in the same order: the same bits in the
-    #: reproducible P2G, and with float atomics wherever a thread sums one chunk (the default).
-    #: Paper-scale Pillow on an H100: ``p2g_cells`` 0.199 ms with lines against 0.258 ms
-    #: (benchmarks/README.md)
-    node_line: int = 3
-    #: cap on the threads of the listed chunk sums (in chunks; None: one per possible chunk, see
-    #: :meth:`_chunk_slots`); each thread strides over the chunks beyond, so it sets speed only
-    max_chunk_slots: int | None = None
-    #: how the P2G by cells sums its chunks: ``"windows"`` (a block of ``cell_chunk`` threads a
-    #: window of as many sorted positions, their terms staged in shared memory, a thread a run
-    #: of one base cell and a stencil node: :func:`~knockgs_core.sim._kernels.p2g_windows`; no
-    #: chunk list) or ``"list"`` (the chunks listed first, then a thread a chunk and a node or a
-    #: node line: ``p2g_cells``). The same sums in the same order, so the same bits wherever the
-    #: atomics arrive in order (the CPU). ``"auto"``: by windows, listed only in the
-    #: bitwise-reproducible P2G by gathers. Measured (benchmarks/README.md), affine FLIP on an
-    #: H100: paper-scale Pillow 0.412 against 0.435 ms a substep, Ficus 0.142 against
-    #: 0.158-0.163, Vasedeck 0.068 against 0.079, the 681k block 0.429 against 0.448; APIC on an
-    #: H200, the block: 0.203-0.205 against 0.245-0.249 (the list was faster there on an H100
-    #: before the windows' later cuts, 0.349 against 0.377)
-    cell_sums: str = "auto"
-    #: how the bitwise-reproducible P2G (``deterministic=True``) sums: ``"fixed_point"`` (the
-    #: default path's window run sums added as int64 sums in units of a power of two: the
-    #: object's mass, and its mass times 64 dx / dt, at 2^61 units or less, so a unit is 4e-19
-    #: to 9e-19 of each: of the momenta, 3e-17 to 6e-17 of the mass times dx / dt; integer
-    #: atomics, so the sums and the rollout are the same in any order the GPU runs them; the
-    #: grid update reads and zeroes them; a run sum added at or above 2^61 units stops the
-    #: rollout at the next guard check (:meth:`check`); they hold 56 bytes a grid node) or
-    #: ``"gather"`` (each chunk's sums stored, sorted every substep, gathered by each node in a
-    #: fixed order). Measured on a lent H200 (benchmarks/README.md, "fixed-point sums on a
-    #: GPU"): the paper-scale Pillow 0.247 ms a substep by fixed point, 0.448 by gathers, 0.238
-    #: not reproducible; two fixed-point runs give one MD5
+    #: how the P2G by cells sums: by windows (:func:`~knockgs_core.sim._kernels.p2g_windows`),
+    #: as benchmark reports record
+    cell_sums: str = "windows"
+    #: how the bitwise-reproducible P2G (``deterministic=True``) sums, as rollout metadata
+    #: records: the windows' run sums added as int64 sums in units of a power of two (the
+    #: object's mass, and its mass times 64 dx / dt, at 2^61 units or less, so a unit is 4e-19 to
+    #: 9e-19 of each: of the momenta, 3e-17 to 6e-17 of the mass times dx / dt); integer atomics,
+    #: so the sums and the rollout are the same in any order the GPU runs them; the grid update
+    #: reads and zeroes them; a run sum added at or above 2^61 units stops the rollout at the next
+    #: guard check (:meth:`check`); they hold 56 bytes a grid node. Their cost on a GPU:
+    #: benchmarks/results/2026-11-28-fixed-point-sums.md
     reproducible_sums: str = "fixed_point"
     #: how the float window sums reach the nodes: ``"scalar"`` (one float atomic a component
     #: into the grid's momentum, mass and stress-free momentum arrays, zeroed before P2G) or
@@ -698,10 +616,10 @@ class MPMSolver:
     #: momentum, one 16-byte atomic each on a device of compute capability 9.0 or later; the
     #: grid update reads and zeroes them: :func:`~knockgs_core.sim._kernels.grid_update_records`).
     #: The same sums, added to each node in the same order wherever the atomics arrive in order
-    #: (the CPU: the same bits). ``"auto"``: vector on a GPU where P2G sums by windows, scalar
+    #: (the CPU: the same bits). ``"auto"``: vector on a GPU where P2G sums by cells, scalar
     #: elsewhere. The bitwise-reproducible sums (``deterministic=True``) add no floats to the
-    #: nodes, so the option does not apply there. Measured in benchmarks/README.md ("Window sums
-    #: by vector atomics")
+    #: nodes, so the option does not apply there. Measured in
+    #: benchmarks/results/2026-11-29-vector-atomics.md
     window_atomics: str = "auto"
 
     @classmethod
@@ -732,40 +650,15 @@ class MPMSolver:
                     window_atomics="vector" if cuda and p2g == "cells" and not deterministic else "scalar")
 
     def __init__(self, model: Model, *, p2g: str = "auto", graph: bool | str = "auto", fuse: bool | str = "auto",
-                 resort_every: int | None = None, cell_chunk: int | None = None, max_chunk_slots: int | None = None,
-                 node_line: int | None = None, cell_sums: str | None = None, deterministic: bool = False,
+                 resort_every: int | None = None, cell_chunk: int | None = None, deterministic: bool = False,
                  polar_step: float | str | None = None, polar_update: str | None = None, g2p_sums: str | None = None,
-                 crowding: float | None = None, reproducible_sums: str | None = None,
-                 window_atomics: str | None = None):
+                 crowding: float | None = None, window_atomics: str | None = None):
         self.model = model
         self.deterministic = _flag("MPMSolver", "deterministic", deterministic)
         if resort_every is not None:
             self.resort_every = resort_every
         if cell_chunk is not None:
             self.cell_chunk = cell_chunk
-        if max_chunk_slots is not None:
-            self.max_chunk_slots = max_chunk_slots
-        if node_line is not None:
-            self.node_line = node_line
-        if self.node_line not in (1, 3) or isinstance(self.node_line, bool):
-            raise InputError("MPMSolver", "node_line", f"must be 1 or 3, got {self.node_line!r}")
-        if reproducible_sums is not None:
-            self.reproducible_sums = reproducible_sums
-        if self.reproducible_sums not in ("gather", "fixed_point"):
-            raise InputError("MPMSolver", "reproducible_sums",
-                             f"must be 'gather' or 'fixed_point', got {self.reproducible_sums!r}")
-        gather = deterministic and self.reproducible_sums == "gather"
-        fixed = deterministic and self.reproducible_sums == "fixed_point"
-        if cell_sums is not None:
-            self.cell_sums = cell_sums
-        if self.cell_sums not in ("auto", "windows", "list"):
-            raise InputError("MPMSolver", "cell_sums", f"must be 'auto', 'windows' or 'list', got {self.cell_sums!r}")
-        if self.cell_sums == "windows" and gather:
-            raise InputError("MPMSolver", "cell_sums", "the bitwise-reproducible P2G by gathers sums the chunk list ('list')")
-        if self.cell_sums == "list" and fixed:
-            raise InputError("MPMSolver", "cell_sums", "the fixed-point reproducible P2G sums by windows ('windows')")
-        if self.cell_sums == "auto":
-            self.cell_sums = "list" if gather else "windows"
         p = model.params
         cuda = wp.get_device(model.device).is_cuda
         hooks = bool(p.effects or model.translations)
@@ -824,28 +717,26 @@ class MPMSolver:
                              "and particle translations")
         self.fuse = bool(fuse)
         self._prepared: tuple[int, int] | None = None  # (state, step) whose P2G terms the last G2P computed
-        self._cells = _CellScratch.make(model, listed=self.cell_sums == "list") if p2g == "cells" else None
-        self._gather = _GatherScratch(model) if gather else None
-        self._fixed = _FixedScratch(model) if fixed else None
+        self._cells = _CellScratch.make(model) if p2g == "cells" else None
+        self._fixed = _FixedScratch(model) if self.deterministic else None
         if window_atomics is not None:
             self.window_atomics = window_atomics
         if self.window_atomics not in ("auto", "scalar", "vector"):
             raise InputError("MPMSolver", "window_atomics",
                              f"must be 'auto', 'scalar' or 'vector', got {self.window_atomics!r}")
         # the bitwise-reproducible sums add no floats to the nodes: the option does not apply there
-        float_windows = p2g == "cells" and self.cell_sums == "windows" and not self.deterministic
-        if self.window_atomics == "vector" and not float_windows and not self.deterministic:
-            raise InputError("MPMSolver", "window_atomics", "vector atomics add the window sums (p2g='cells', "
-                             f"cell_sums='windows'), not a P2G {p2g!r} with cell_sums={self.cell_sums!r}")
+        float_windows = p2g == "cells" and not self.deterministic
+        if self.window_atomics == "vector" and p2g != "cells":
+            raise InputError("MPMSolver", "window_atomics", f"vector atomics add the window sums of p2g='cells', not {p2g!r}")
         if self.window_atomics == "auto":
             self.window_atomics = auto["window_atomics"] if float_windows else "scalar"
         self._records = _RecordScratch(model) if self.window_atomics == "vector" and float_windows else None
+        # the window kernel's arguments that its variant ignores: stand-ins
         self._window_records = self._records
-        if self._records is None and p2g == "cells" and self.cell_sums == "windows":
+        if self._records is None and p2g == "cells":
             self._window_records = _RecordScratch.placeholder(model.device)
-        # the window kernel's fixed-point arguments (stand-ins, which the float sums ignore, unless fixed)
         self._window_fixed = self._fixed
-        if self._fixed is None and p2g == "cells" and self.cell_sums == "windows":
+        if self._fixed is None and p2g == "cells":
             self._window_fixed = _FixedScratch.placeholder(model.device)
         self._sorted_at: int | None = None  # the step of the last sort by cells
         self._inv_dx = 1.0 / p.dx
@@ -869,9 +760,7 @@ class MPMSolver:
         m, p = self.model, self.model.params
         wp.launch(K.guard_reset, dim=1, outputs=[self._stats_f, self._stats_i], device=m.device)
         per = K.STATS_PER_BLOCK
-        overflow = self._stats_zero  # no reproducible P2G: no overflow
-        if self._gather is not None or self._fixed is not None:
-            overflow = (self._gather or self._fixed).overflow
+        overflow = self._stats_zero if self._fixed is None else self._fixed.overflow  # no reproducible P2G: no overflow
         wp.launch_tiled(K.particle_stats, dim=[max(1, -(-m.particle_count // per))],
                         inputs=[state.particle_x0, state.particle_u, state.particle_v, state.particle_F, self._inv_dx,
                                 m.particle_count, per, self._overrun, overflow],
@@ -879,13 +768,10 @@ class MPMSolver:
         sf = self._stats_f.numpy()
         si = self._stats_i.numpy()  # with the overrun flag and the reproducible P2G's overflow (one read-back)
         overrun = int(si[7])
-        if int(si[8]) and self._fixed is not None:
+        if int(si[8]):
             raise SimulationError(f"the fixed-point P2G's sums overflowed by step {state.step}: a node's momentum "
                                   f"passed {self._fixed.bound_p:.4g} kg m/s (the object's mass times 64 dx / dt); "
-                                  f"the motion is far beyond the CFL limit, or rerun with reproducible_sums='gather'")
-        if int(si[8]):
-            raise SimulationError(f"the reproducible P2G's chunk buffers ({self._gather.capacity} chunks) overflowed by "
-                                  f"step {state.step}: an internal bound failed; rerun with deterministic=False")
+                                  f"the motion is far beyond the CFL limit: reduce dt, or rerun with deterministic=False")
         t = state.step * p.dt
         where = f"at step {state.step} (t = {t:.6g} s)"
         elastic = m.max_wave_speed * p.dt / p.dx
@@ -957,9 +843,9 @@ class MPMSolver:
                 value = getattr(self, name)
                 if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                     raise InputError("MPMSolver", name, f"must be an integer >= 1, got {value!r}")
-            if self.cell_sums == "windows" and self.cell_chunk > 256:
-                raise InputError("MPMSolver", "cell_chunk", f"sums by windows take at most 256 (a block's threads and "
-                                 f"shared memory), got {self.cell_chunk}; or cell_sums='list'")
+            if self.cell_chunk > 256:
+                raise InputError("MPMSolver", "cell_chunk", f"a window takes at most 256 particles (a block's threads "
+                                 f"and shared memory), got {self.cell_chunk}")
             cmds["p2g"] = wp.launch(
                 K.p2g_prepare,
                 dim=m.particle_count,
@@ -969,36 +855,18 @@ class MPMSolver:
             )
             cmds["p2g_sort_keys"] = wp.launch(K.p2g_sort_keys, dim=m.particle_count, inputs=[c.keys],
                                               outputs=[c.sort_keys, c.order], **rec)
-            if self.cell_sums == "list":  # the chunks listed in sorted order (the windows need no list)
-                cmds["p2g_chunk_starts"] = wp.launch(K.p2g_chunk_starts, dim=m.particle_count,
-                                                     inputs=[c.keys, c.order, self.cell_chunk], outputs=[c.start], **rec)
-                cmds["p2g_chunk_list"] = wp.launch(K.p2g_chunk_list, dim=m.particle_count, inputs=[c.start, c.index,
-                                                   m.particle_count], outputs=[c.chunks, c.n_chunks], **rec)
-            if self._gather is not None:
-                self._record_gather(state, self._chunk_slots(dims), dims, lo, flip, rec, cmds)
-            elif self.cell_sums == "windows":
-                w = self.cell_chunk
-                f, r = self._window_fixed, self._window_records
-                fixed_args = [r.sums_mvm, r.sums_old, f.q, f.scale_m, f.scale_p, f.overflow]
-                cmds["p2g_windows"] = wp.launch_tiled(
-                    K.p2g_windows(w, flip, self._fixed is not None, self._records is not None),
-                    dim=-(-m.particle_count // w),
-                    block_dim=w,
-                    inputs=[c.order, c.keys, c.none_key, m.particle_count, p.n_grid, self._inv_dx, c.fx,
-                            state.particle_v, m.particle_mass, c.affine, state.particle_C],
-                    outputs=[state.grid_mv.flatten(), state.grid_m.flatten(), state.grid_mv_old.flatten(), *fixed_args],
-                    **rec,
-                )
-            else:
-                slots = self._chunk_slots(dims)
-                cmds["p2g_cells"] = wp.launch(
-                    K.p2g_cells,
-                    dim=(slots, 27 // self.node_line),
-                    inputs=[c.chunks, c.n_chunks, slots, self.node_line, c.keys, c.order, c.none_key, m.particle_count, p.n_grid,
-                            self._inv_dx, flip, c.fx, state.particle_v, m.particle_mass, c.affine, state.particle_C],
-                    outputs=[state.grid_mv, state.grid_m, state.grid_mv_old],
-                    **rec,
-                )
+            w = self.cell_chunk
+            f, r = self._window_fixed, self._window_records
+            fixed_args = [r.sums_mvm, r.sums_old, f.q, f.scale_m, f.scale_p, f.overflow]
+            cmds["p2g_windows"] = wp.launch_tiled(
+                K.p2g_windows(w, flip, self._fixed is not None, self._records is not None),
+                dim=-(-m.particle_count // w),
+                block_dim=w,
+                inputs=[c.order, c.keys, c.none_key, m.particle_count, p.n_grid, self._inv_dx, c.fx,
+                        state.particle_v, m.particle_mass, c.affine, state.particle_C],
+                outputs=[state.grid_mv.flatten(), state.grid_m.flatten(), state.grid_mv_old.flatten(), *fixed_args],
+                **rec,
+            )
         else:  # one float atomic per particle and stencil node
             cmds["p2g"] = wp.launch(
                 K.p2g,
@@ -1063,45 +931,6 @@ class MPMSolver:
         self._graphs = {}  # graphs of the launches recorded before
         self._box = (lo, dims)  # the active box as the effects' grid hooks take it
 
-    def _chunk_slots(self, dims: tuple[int, int, int]) -> int:
-        """Threads (chunk slots) of the listed chunk sums over the active box ``dims``: at most
-        one chunk per cell of the box plus one per ``cell_chunk`` particles, capped by
-        ``max_chunk_slots`` (each thread strides over any chunks beyond, so the bound is for
-        speed, not correctness)."""
-        n = self.model.particle_count
-        slots = max(1, min(n, math.prod(dims) + n // self.cell_chunk + 1))
-        if self.max_chunk_slots:
-            slots = min(slots, self.max_chunk_slots)
-        return slots
-
-    def _record_gather(self, state: State, slots: int, dims: tuple[int, int, int], lo, flip: int, rec: dict,
-                       cmds: dict) -> None:
-        """Record the bitwise-reproducible P2G's launches (chunk sums, cell ranges, gather)."""
-        m, c, s = self.model, self._cells, self._gather
-        # sorted every substep, the chunks are runs of one key cut every cell_chunk-th sorted
-        # position: at most one per occupied cell (inside the box) and the outside key, plus
-        # one per cell_chunk positions
-        s.reserve(min(m.particle_count, math.prod(dims) + m.particle_count // self.cell_chunk + 2), math.prod(dims))
-        cmds["p2g_chunk_sums"] = wp.launch(
-            K.p2g_chunk_sums,
-            dim=(slots, 27 // self.node_line),
-            inputs=[c.chunks, c.n_chunks, slots, self.node_line, c.keys, c.order, c.none_key, m.particle_count, s.capacity,
-                    self._inv_dx, flip, c.fx, state.particle_v, m.particle_mass, c.affine, state.particle_C],
-            outputs=[s.sums_mv, s.sums_m, s.sums_old, s.overflow],
-            **rec,
-        )
-        cmds["p2g_cell_sums"] = wp.launch(
-            K.p2g_cell_sums,
-            dim=(slots, 27),
-            inputs=[c.chunks, c.n_chunks, slots, c.keys, c.order, c.none_key, s.capacity, m.params.n_grid, lo,
-                    wp.vec3i(*dims), flip, s.sums_mv, s.sums_m, s.sums_old],
-            outputs=[s.node_mv, s.node_m, s.node_old],
-            **rec,
-        )
-        cmds["p2g_gather"] = wp.launch(K.p2g_gather, dim=dims,
-                                       inputs=[lo, wp.vec3i(*dims), flip, s.node_mv, s.node_m, s.node_old],
-                                       outputs=[state.grid_mv, state.grid_m, state.grid_mv_old], **rec)
-
     def step(self, state: State) -> None:
         """Advance ``state`` by one substep: P2G (probe force included), grid update, boundary
         conditions, effects on the grid, G2P (particle translation included), effects on the
@@ -1116,8 +945,7 @@ class MPMSolver:
         t = state.step * p.dt
         probe_on = self._probe_on(state.step)
         active = tuple(isinstance(bc, DomainWalls) or bc.start_time <= t < bc.end_time for bc, _ in self._cmds["bcs"])
-        sort = self._cells is not None and (self._gather is not None or self._sorted_at is None
-                                            or not 0 <= state.step - self._sorted_at < self.resort_every)
+        sort = self._cells is not None and (self._sorted_at is None or not 0 <= state.step - self._sorted_at < self.resort_every)
         if sort:
             self._sorted_at = state.step
         # fused: this substep's P2G terms came with the last G2P; this G2P computes the next's
@@ -1154,29 +982,17 @@ class MPMSolver:
         that is None."""
         m, p = self.model, self.model.params
         cmds = self._cmds
-        if self._gather is None and self._fixed is None and self._records is None:  # these write every node of the box
+        if self._fixed is None and self._records is None:  # these write every node of the box
             cmds["zero"].launch()
         if not prepared:
             cmds["p2g"].set_param_by_name("probe_on", probe_on)
             cmds["p2g"].launch()
-        if self._cells is not None:  # (sort by base cell,) then sum the chunks, by windows or listed
+        if self._cells is not None:  # (sort by base cell,) then sum by windows
             c = self._cells
             if sort:
                 cmds["p2g_sort_keys"].launch()
                 wp.utils.radix_sort_pairs(c.sort_keys, c.order, m.particle_count, end_bit=c.end_bit)
-        if "p2g_windows" in cmds:
             cmds["p2g_windows"].launch()
-        elif self._cells is not None:
-            cmds["p2g_chunk_starts"].launch()
-            wp.utils.array_scan(c.start, c.index, inclusive=False)
-            cmds["p2g_chunk_list"].launch()
-            if self._gather is not None:
-                self._gather.clear_nodes()
-                cmds["p2g_chunk_sums"].launch()
-                cmds["p2g_cell_sums"].launch()
-                cmds["p2g_gather"].launch()
-            else:
-                cmds["p2g_cells"].launch()
         cmds["update"].launch()
         for (_, cmd), on in zip(cmds["bcs"], active):
             if on:
