@@ -1,24 +1,112 @@
-"""Helpers of the workflow tests: a scratch copy of the workflow and a Snakemake call in it."""
+"""Helpers of the workflow tests: a scratch copy of the workflow, a Snakemake call in it, and the
+one ci-profile run that every test reading its outputs shares."""
 
 from __future__ import annotations
 
+import contextlib
+import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
+import yaml
+
 ROOT = Path(__file__).resolve().parents[1]
+CI = "results/ci"  # every output of a ci-profile run lies under it
+
+#: The shared run's settings (``config/ci_tests.yaml``, which :func:`scratch_copy` writes): the ci
+#: profile on the Pillow alone, with one alternative split (the ci profile has three: each adds
+#: about 25 evaluation jobs and no code path) and one flow-noise rung of the observation ladder
+#: (the ci profile has three: each adds a descriptor table, five estimates and their Probe-B
+#: rollouts, and no code path).
+CI_TESTS_OVERRIDES = {"diagnostics": {"splits": ["alt_1"]}, "ladder": {"depth_noise": [0.01]}}
+CI_RUN_CONFIG = ("--configfile=config/ci_tests.yaml", "--config", "objects=[pillow]")
+
+#: What the shared run makes: the Pillow's main, render, diagnostics, probe-shift, passive and
+#: ladder tables and figures, and the audits that read them.
+CI_RUN_TARGETS = tuple(f"{CI}/{path}" for path in (
+    "tables/main_pillow.csv", "tables/render_pillow.csv", "figures/qualitative_pillow.png", "figures/compare_pillow.gif",
+    "figures/main_pillow.png", "audits/leakage.json", "audits/duplicates.json", "audits/nonfinite.json",
+    "audits/missing_frames.json", "tables/splits_pillow.csv", "tables/sensitivity_size_pillow.csv",
+    "tables/identifiability_pillow.csv", "tables/duration_pillow.csv", "tables/contact_pillow.csv",
+    "tables/passive_active_pillow.csv", "audits/rollout_metadata.json", "tables/ladder_pillow.csv"))
 
 
 def scratch_copy(dest: Path) -> Path:
-    """Copy the Snakefile, ``workflow/`` and ``config/`` into ``dest`` (results stay there)."""
+    """Copy the Snakefile, ``workflow/`` and ``config/`` into ``dest`` (results stay there), and
+    write the shared run's profile ``config/ci_tests.yaml`` there (:data:`CI_TESTS_OVERRIDES`)."""
     dest.mkdir(parents=True, exist_ok=True)
     shutil.copy(ROOT / "Snakefile", dest)
     shutil.copytree(ROOT / "workflow", dest / "workflow")
     shutil.copytree(ROOT / "config", dest / "config")
+    ci = yaml.safe_load((dest / "config" / "ci.yaml").read_text())
+    for key, value in CI_TESTS_OVERRIDES.items():
+        ci[key].update(value)
+    (dest / "config" / "ci_tests.yaml").write_text(yaml.safe_dump(ci, sort_keys=False))
     return dest
 
 
 def snakemake(work: Path, *args: str) -> subprocess.CompletedProcess:
     """``snakemake ARGS`` in ``work`` (the installed Snakemake), output captured."""
     return subprocess.run([sys.executable, "-m", "snakemake", *args], cwd=work, capture_output=True, text=True)
+
+
+@contextlib.contextmanager
+def _exclusive(lock: Path):
+    """Hold ``lock`` (a file) exclusively: one process of the test run at a time."""
+    import fcntl
+
+    with open(lock, "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def shared_root(tmp_path_factory) -> Path:
+    """The temporary folder shared by every process of this test run (pytest-xdist's workers
+    each have a folder of their own below it)."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+def shared_run(tmp_path_factory, name: str, *args: str) -> Path:
+    """``snakemake ARGS`` in a scratch copy made once per test run, whichever process asks first
+    (the others wait for it under a file lock, then read it). Tests only read what it holds:
+    a test that changes files works on a copy (:func:`copy_run`)."""
+    root = shared_root(tmp_path_factory)
+    work, done, failed = root / f"shared-{name}", root / f"shared-{name}.done", root / f"shared-{name}.failed"
+    with _exclusive(root / f"shared-{name}.lock"):
+        if failed.exists():
+            raise AssertionError(f"the shared run {name} failed in another process:\n{failed.read_text()}")
+        if not done.exists():
+            shutil.rmtree(work, ignore_errors=True)
+            out = snakemake(scratch_copy(work), *args)
+            if out.returncode != 0:
+                failed.write_text(out.stderr[-4000:])
+                raise AssertionError(out.stderr[-4000:])
+            done.touch()
+    return work
+
+
+def ci_run(tmp_path_factory) -> Path:
+    """The shared ci-profile run of the Pillow (:data:`CI_RUN_TARGETS` under :data:`CI_RUN_CONFIG`)."""
+    return shared_run(tmp_path_factory, "ci", *CI_RUN_TARGETS, "--cores", "2", *CI_RUN_CONFIG)
+
+
+def copy_run(run: Path, dest: Path, *parts: str) -> Path:
+    """A scratch copy of the workflow in ``dest`` holding ``parts`` of the run's results (paths
+    below ``results/ci``) as hard links, so a Snakemake started in it finds them up to date and
+    makes only what is missing. Snakemake replaces a file it remakes rather than writing into
+    it, so the run's own files stay as they are; a test that edits files in place copies them."""
+    scratch_copy(dest)
+    for part in parts:
+        src, out = run / CI / part, dest / CI / part
+        if src.is_dir():
+            shutil.copytree(src, out, copy_function=os.link)
+        else:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            os.link(src, out)
+    return dest

@@ -1,9 +1,20 @@
-"""Shared fixtures: seeded generators (never a global seed)."""
+"""Shared fixtures (seeded generators, never a global seed; the one shared ci-profile workflow
+run) and the order in which pytest-xdist's workers take the tests.
+
+With ``-n 2`` (the project's default, ``pyproject.toml``) the tests are spread over two worker
+processes by group (``--dist loadgroup``): every test that reads the shared ci-profile run is
+in the group ``ci_run``, so one worker makes the run once and then reads it, and every other
+module whose tests share a module-scoped fixture is a group of its own, so the fixture is built
+once. The ``ci_run`` group goes first (it is the longest), then the modules marked ``slow``, so
+that the short tests fill the other worker's time at the end.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+
+from _workflow import ci_run as _ci_run
 
 
 @pytest.fixture
@@ -20,3 +31,38 @@ def pillow_ci():
 
     contract = load_contract("pillow", "ci")
     return contract, build_asset(contract)
+
+
+@pytest.fixture(scope="session")
+def ci_run(tmp_path_factory):
+    """The scratch workflow folder of the shared ci-profile run of the Pillow (``_workflow.ci_run``:
+    main, render, diagnostics, probe-shift, passive and ladder tables, audits), made once per
+    test run. Read only: a test that changes files works on ``_workflow.copy_run``'s copy."""
+    return _ci_run(tmp_path_factory)
+
+
+def _shares_a_module_fixture(item) -> bool:
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return False
+    return any(defs and defs[-1].scope == "module" for defs in info.name2fixturedefs.values())
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    slow_modules = {item.path for item in items if item.get_closest_marker("slow")}
+    for item in items:
+        if item.get_closest_marker("xdist_group"):
+            continue
+        if "ci_run" in item.fixturenames:
+            item.add_marker(pytest.mark.xdist_group("ci_run"))
+        elif _shares_a_module_fixture(item):
+            item.add_marker(pytest.mark.xdist_group(item.path.stem))
+
+    def rank(item):
+        group = item.get_closest_marker("xdist_group")
+        if group is not None and group.args and group.args[0] == "ci_run":
+            return 0
+        return 1 if item.path in slow_modules else 2
+
+    items.sort(key=rank)  # stable: the order within each rank is the collection's

@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from _workflow import scratch_copy, snakemake
+from _workflow import CI_RUN_CONFIG, copy_run, scratch_copy, snakemake
 
 from knockgs_core.assets import build_asset
 from knockgs_core.calibration import calibrate
@@ -285,16 +285,21 @@ def test_boundaries_target_plans_every_object_and_the_loo_table(tmp_path):
     assert f"{CI}/boundaries/ficus/resolution" not in planned   # its ci and default profiles are one resolution
 
 
+BOUNDARIES_REFERENCE = (*CI_RUN_CONFIG, "boundaries={conditions: [reference], rebuild: [reference]}")
+
+
 @pytest.fixture(scope="module")
-def ci_boundaries(tmp_path_factory):
+def ci_boundaries(ci_run, tmp_path_factory):
     """The ci-profile Pillow boundaries table at the unchanged specification, rebuilt, beside the
-    main local-ridge evaluation."""
-    work = scratch_copy(tmp_path_factory.mktemp("bwf"))
+    main local-ridge evaluation: made in a copy of the shared ci run's asset, library, estimates
+    and evaluations (tests/conftest.py), so only the boundaries' own jobs run."""
+    work = copy_run(ci_run, tmp_path_factory.mktemp("bwf"), "assets", "rollouts/pillow/lib", "rollouts/pillow/eval",
+                    "descriptors/pillow", "estimates/pillow/main", "metrics/pillow/main")
     targets = [f"{CI}/tables/boundaries_pillow.csv", f"{CI}/figures/boundaries_pillow.png",
                f"{CI}/metrics/pillow/main/local_ridge.csv"]
-    out = snakemake(work, *targets, "--cores", "2", "--configfile=config/ci.yaml", "--config", "objects=[pillow]",
-                     "boundaries={conditions: [reference], rebuild: [reference]}")
+    out = snakemake(work, *targets, "--cores", "2", *BOUNDARIES_REFERENCE)
     assert out.returncode == 0, out.stderr[-4000:]
+    assert "rule rollout_library:" not in out.stdout + out.stderr  # the shared run's library is used as it is
     return work
 
 
@@ -322,6 +327,5 @@ def test_a_rebuilt_library_at_the_unchanged_contract_reproduces_the_main_result(
 
 @pytest.mark.slow
 def test_boundaries_rerun_is_a_no_op(ci_boundaries):
-    out = snakemake(ci_boundaries, f"{CI}/tables/boundaries_pillow.csv", "-n", "--configfile=config/ci.yaml",
-                     "--config", "objects=[pillow]", "boundaries={conditions: [reference], rebuild: [reference]}")
+    out = snakemake(ci_boundaries, "-n", f"{CI}/tables/boundaries_pillow.csv", *BOUNDARIES_REFERENCE)
     assert out.returncode == 0 and "Nothing to be done" in out.stdout + out.stderr, out.stdout[-2000:]

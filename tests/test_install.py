@@ -1,11 +1,13 @@
 """The library as a user installs it: a non-editable ``pip install .`` into a fresh virtual
 environment, used from a directory that is not the project.
 
-The environment is made with ``--system-site-packages`` and ``--without-pip`` and the
-package installed with ``--no-deps --no-build-isolation --no-index``, so nothing is
-downloaded: the dependencies (and pip, setuptools) come from the test environment. The
-project's own editable install stays visible through the system site-packages, so every
-check first asserts that the installed copy, not the source tree, is the one imported.
+The environment is made ``--without-pip``; a ``.pth`` file in it adds the running
+interpreter's site-packages folders as site folders (``--system-site-packages`` would see the
+*base* interpreter's, not those of a virtual environment the tests run in), and the package
+is installed with ``--no-deps --no-build-isolation --no-index``, so nothing is downloaded:
+the dependencies (and pip, setuptools) come from the test environment. The project's own
+editable install stays visible through those folders, after the new environment's own, so
+every check first asserts that the installed copy, not the source tree, is the one imported.
 """
 
 from __future__ import annotations
@@ -52,9 +54,14 @@ def installed(tmp_path_factory):
         shutil.copy2(ROOT / name, src / name)
     shutil.copytree(ROOT / "src", src / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
     venv = base / "venv"
-    subprocess.run([sys.executable, "-m", "venv", "--without-pip", "--system-site-packages", str(venv)], check=True)
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
     bindir = venv / ("Scripts" if os.name == "nt" else "bin")
     python = bindir / "python"
+    own = subprocess.run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                         capture_output=True, text=True, check=True).stdout.strip()
+    # the test environment's packages, behind the new environment's own (a venv or not)
+    outer = [p for p in sys.path if p and Path(p).is_dir() and Path(p).name in ("site-packages", "dist-packages")]
+    (Path(own) / "_test_environment.pth").write_text("".join(f"import site; site.addsitedir({p!r})\n" for p in outer))
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "KNOCKGS_CONFIG_DIR", "KNOCKGS_DEVICE")}
     env["PIP_DISABLE_PIP_VERSION_CHECK"] = "1"
     pip = [str(python), "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--no-index", str(src)]

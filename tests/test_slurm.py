@@ -23,12 +23,12 @@ import pandas as pd
 import pytest
 import yaml
 
-from _workflow import ROOT, scratch_copy, snakemake
+from _workflow import CI_RUN_CONFIG, ROOT, scratch_copy, snakemake
 
 SCRIPT = ROOT / "scripts" / "slurm-single-node.sh"
 P = "results/ci"
 TABLE = f"{P}/tables/main_pillow.csv"
-ARGS = ("--configfile=config/ci.yaml", "--config", "objects=[pillow]", "--")
+ARGS = (*CI_RUN_CONFIG, "--")  # the shared ci run's settings: its main table is the local reference
 
 
 def _cluster_or_skip() -> bool:
@@ -62,10 +62,8 @@ def _our_jobs(work: Path) -> list[tuple[str, str, str]]:
 
 
 @pytest.mark.slow
-def test_the_ci_main_table_through_slurm_equals_the_local_run_and_survives_a_scancel(cluster, tmp_path):
-    local = scratch_copy(tmp_path / "local")
-    out = snakemake(local, "--cores", "2", *ARGS, TABLE)
-    assert out.returncode == 0, out.stderr[-3000:]
+def test_the_ci_main_table_through_slurm_equals_the_local_run_and_survives_a_scancel(cluster, ci_run, tmp_path):
+    local = ci_run  # the shared local ci run (tests/conftest.py), read only
 
     work = scratch_copy(tmp_path / "slurm")
     shutil.copytree(ROOT / "profiles", work / "profiles")

@@ -1,8 +1,9 @@
 """Workflow faults on the ci profile (issue 17): an interrupted run (Ctrl-C, SIGTERM or SIGKILL of
 the whole process group) resumes to byte-identical tables, and the audits catch a cached
 rollout that was swapped for another or truncated behind Snakemake's back, with a verdict
-naming the file (not a crash). One object (Pillow), the descriptor table of its candidate
-library: the asset job and nine library jobs.
+naming the file (not a crash). One object (Pillow), the descriptor table of a candidate library
+of 12 (the first rows of config/candidates.csv): the asset job and two library jobs of six,
+enough to stop one job while the other writes, at a fifth of the full library's cost.
 """
 
 from __future__ import annotations
@@ -28,6 +29,17 @@ from knockgs_core.audits import audit_missing_frames, audit_nonfinite, audit_rol
 P = "results/ci"
 TABLE = f"{P}/descriptors/pillow/library.csv"
 ARGS = ("--cores", "2", "--configfile=config/ci.yaml", "--config", "objects=[pillow]", "--")
+N_CANDIDATES = 12
+
+
+def _workflow(dest: Path) -> Path:
+    """A scratch copy of the workflow whose candidate library is the first N_CANDIDATES rows."""
+    work = scratch_copy(dest)
+    table = work / "config" / "candidates.csv"
+    lines = table.read_text().splitlines(keepends=True)
+    head = sum(1 for line in lines if line.startswith("#")) + 1  # comments and the header
+    table.write_text("".join(lines[: head + N_CANDIDATES]))
+    return work
 
 
 def _start(work: Path, *extra: str) -> subprocess.Popen:
@@ -38,8 +50,9 @@ def _start(work: Path, *extra: str) -> subprocess.Popen:
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
     """An uninterrupted run: the table and the rollout cache it was computed from."""
-    work = scratch_copy(tmp_path_factory.mktemp("reference"))
+    work = _workflow(tmp_path_factory.mktemp("reference"))
     out = snakemake(work, *ARGS, TABLE)
+    assert len(pd.read_csv(work / TABLE)) == N_CANDIDATES
     assert out.returncode == 0, out.stderr[-3000:]
     return work
 
@@ -92,7 +105,7 @@ def _interrupt_and_resume(work: Path, sig: int, *, recorded: bool = False) -> su
                                               (signal.SIGKILL, True)],
                          ids=["SIGINT", "SIGTERM", "SIGKILL", "SIGKILL-jobs-recorded"])
 def test_an_interrupted_run_resumes_to_the_same_bytes(reference, tmp_path, sig, recorded):
-    work = scratch_copy(tmp_path / "wf")
+    work = _workflow(tmp_path / "wf")
     out = _interrupt_and_resume(work, sig, recorded=recorded)
     assert out.returncode == 0, out.stderr[-3000:]
     assert (work / TABLE).read_bytes() == (reference / TABLE).read_bytes()
@@ -102,18 +115,20 @@ def test_an_interrupted_run_resumes_to_the_same_bytes(reference, tmp_path, sig, 
 
 def _cache_copy(reference: Path, dest: Path) -> Path:
     shutil.copytree(reference / P, dest / P, ignore=shutil.ignore_patterns("benchmarks"))
+    shutil.copytree(reference / "config", dest / "config")
     return dest
 
 
 def _expect(work: Path) -> dict:
-    return rollout_expectations(["pillow"], "ci", [work / P / "rollouts/pillow"], [work / P / "assets/pillow.particles.npz"])
+    return rollout_expectations(["pillow"], "ci", [work / P / "rollouts/pillow"], [work / P / "assets/pillow.particles.npz"],
+                                config_dir=work / "config")
 
 
 @pytest.mark.slow
 def test_the_rollout_cache_of_a_clean_run_passes_the_audits(reference):
     verdict = audit_rollout_metadata(_expect(reference))
     assert verdict["passed"], verdict["problems"][:3]
-    assert verdict["files_checked"] == 2 * 54  # 54 library rollouts and their F files
+    assert verdict["files_checked"] == 2 * N_CANDIDATES  # the library rollouts and their F files
     assert audit_missing_frames([reference / P / "rollouts/pillow"])["passed"]
 
 
@@ -154,7 +169,7 @@ def test_a_rollout_of_another_probe_in_the_cache_is_caught(reference, tmp_path):
 @pytest.mark.slow
 def test_a_truncated_rollout_with_its_old_time_stamp_is_caught_not_a_crash(reference, tmp_path):
     work = _cache_copy(reference, tmp_path)
-    victim = sorted((work / P / "rollouts/pillow/lib/chunk2").glob("*[0-9].parquet"))[0]
+    victim = sorted((work / P / "rollouts/pillow/lib/chunk1").glob("*[0-9].parquet"))[0]
     stat = victim.stat()
     data = victim.read_bytes()
     victim.write_bytes(data[: len(data) // 2])

@@ -10,7 +10,6 @@ from pathlib import Path
 from knockgs_core._io import StagedFolders, check_files_in, staged_folders
 from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
-from knockgs_core.experiments import PassiveProtocol
 from knockgs_core.rollout import BackgroundWriter, batches, run_rollouts
 from knockgs_core.sim import set_config
 
@@ -28,6 +27,8 @@ contract = load_contract(p.object, p.profile)
 particles = load_particles(snakemake.input.particles)
 passive = None
 if "protocol" in snakemake.input.keys():
+    from knockgs_core.experiments import PassiveProtocol  # the studies' package: only a passive job pays its import
+
     with open(snakemake.input.protocol) as fh:
         passive = PassiveProtocol.from_dict(json.load(fh), snakemake.input.protocol)
 
