@@ -150,6 +150,7 @@ def _energy(model, state) -> float:
     return float(0.5 * (m * (v**2).sum(1)).sum() + (model.particle_vol.numpy().astype(np.float64) * psi).sum())
 
 
+@pytest.mark.slow
 def test_affine_flip_converges_at_first_order_in_dt():
     """Observed order of the bar's trajectory change under dt -> dt/2 -> ... -> dt/16
     (measured 0.114, 0.067, 0.038, 0.020 %: orders 0.77, 0.82, 0.89, rising to 1); APIC's
@@ -163,6 +164,7 @@ def test_affine_flip_converges_at_first_order_in_dt():
     assert apic_changes[1] > apic_changes[0] > 3 * changes[0], apic_changes
 
 
+@pytest.mark.slow
 def test_displacement_storage_keeps_the_first_order_in_dt():
     """The same bar with F stored as its displacement gradient F - I in float32 (the GPU's
     storage): no rounding floor, the same changes as F in float64 to three digits (measured
@@ -195,6 +197,7 @@ def _bar_displacements(dt: float, solver_options: dict, *, gpu_storage: bool, n_
     return np.asarray(frames), _energy(model, state), _energy0(model, v), solver
 
 
+@pytest.mark.slow
 def test_the_gpu_configuration_keeps_the_first_order_in_dt():
     """The paper profile's GPU substep replayed on the CPU: P2G by cells summed in windows into
     fixed-point sums, G2P fused and summed along stencil lines, the polar step 1.5 by rational
@@ -251,6 +254,7 @@ def _probe_a(contract, particles, dt: float) -> np.ndarray:
     return out.positions[:, : particles.n_gs]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", OBJECTS)
 def test_halving_dt_keeps_the_probe_a_response(name):
     c = load_contract(name, "ci")

@@ -326,6 +326,7 @@ def cases(pillow, tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_planted_damping_is_found_and_improves_the_heldout_prediction(cases):
     c = cases["damping"]
     row, res = c["row"], c["result"]
@@ -341,6 +342,7 @@ def test_planted_damping_is_found_and_improves_the_heldout_prediction(cases):
     assert "damping" in report and "Verdict" in report and (c["dirs"][2] / "residuals_standard_y.png").exists()
 
 
+@pytest.mark.slow
 def test_null_case_reports_no_missing_effect(cases):
     row, res = cases["null"]["row"], cases["null"]["result"]
     assert row["identified_effect"] == "none" and not res.unexplained
@@ -349,6 +351,7 @@ def test_null_case_reports_no_missing_effect(cases):
     assert res.rounds[0]["excess_val"] < SETTINGS.min_excess
 
 
+@pytest.mark.slow
 def test_effect_outside_the_catalogue_stays_unexplained(cases):
     row, res = cases["pulse"]["row"], cases["pulse"]["result"]
     assert row["identified_effect"] == "none" and res.unexplained
@@ -356,6 +359,7 @@ def test_effect_outside_the_catalogue_stays_unexplained(cases):
     assert res.residual["excess_fraction_of_response"] > 0.05
 
 
+@pytest.mark.slow
 def test_truth_audit(cases, tmp_path):
     results = [c["dirs"][2] / "result.json" for c in cases.values()]
     measured = [c["dirs"][0] / f"measured_{r}.parquet" for c in cases.values() for r in ("calib", "heldout")]
@@ -375,6 +379,7 @@ def test_truth_audit(cases, tmp_path):
     assert not bad["passed"] and len(bad["problems"]) >= 2
 
 
+@pytest.mark.slow
 def test_cli_run_writes_a_report(cases, tmp_path):
     from knockgs_core.cli import main
 
@@ -389,6 +394,7 @@ def test_cli_run_writes_a_report(cases, tmp_path):
     assert rc == 2
 
 
+@pytest.mark.slow
 def test_library_base_calibration_on_a_null_measurement(pillow, rng):
     """Library route: local ridge on descriptors of the observed points, then the theta
     refit through the simulator; a clean response without extra effect finds none."""

@@ -246,6 +246,7 @@ def _tracks(contract, particles, theta, probe, effects, rng, *, noise=0.02, shar
     return m, X
 
 
+@pytest.mark.slow
 def test_a_finer_world_without_effect_names_nothing_and_its_floor_is_the_residual_size(pillow):
     """Data from the same MPM on a grid twice as fine: the term's coefficient is well above
     the standard cases' (<= 0.01), no catalogue effect is named, the floor measured by the
@@ -272,6 +273,7 @@ def test_a_finer_world_without_effect_names_nothing_and_its_floor_is_the_residua
     assert "discretization floor" in res.verdict
 
 
+@pytest.mark.slow
 def test_a_push_that_starts_late_is_not_named_gravity(pillow):
     """A vertical push on the whole body between 20 % and 60 % of the record (outside the
     catalogue) looks like gravity on the validation window; the time signature refuses it
@@ -297,6 +299,7 @@ def test_a_push_that_starts_late_is_not_named_gravity(pillow):
     assert res.effects[0]["value"] == pytest.approx(0.03, rel=0.1)
 
 
+@pytest.mark.slow
 def test_a_yield_in_a_finer_world_is_judged_with_its_own_discretization_term(pillow):
     """Plasticity in data from the same MPM on a grid twice as fine. A yield resolved on the
     finer grid sets in elsewhere, so the model with a yield moves under refinement in its own

@@ -44,6 +44,7 @@ def test_the_finer_world_has_twice_the_grid_and_the_next_profiles_gaussians(pill
     assert w.sim.dt <= cfl_dt(w.materials, n_grid=w.sim.n_grid, grid_lim=w.sim.grid_lim) * (1 + 1e-12)
 
 
+@pytest.mark.slow
 def test_the_fem_world_delivers_the_contracts_impulse_and_tracks_the_mpm(pillow):
     """The FEM world's mesh has the MPM's volume, its probe load the contract's total impulse,
     and its Probe-A response follows the MPM's at the same theta within the discretization
@@ -89,6 +90,7 @@ def test_the_fem_world_delivers_the_contracts_impulse_and_tracks_the_mpm(pillow)
     assert np.sqrt(np.mean((Yg - Yg[0]) ** 2)) > 1.02 * np.sqrt(np.mean(u**2))
 
 
+@pytest.mark.slow
 def test_a_fem_case_is_observed_without_identity_and_its_truth_kept_apart(pillow, tmp_path):
     contract, particles = pillow
     spec = next(c for c in world_cases() if c.name == "fem_null")
@@ -124,6 +126,7 @@ def test_world_acceptance_rule():
     assert not world_acceptance({**base, "planted_effect": "damping", "world": "finer", "identified_effect": "viscosity"})[0]
 
 
+@pytest.mark.slow
 def test_the_worlds_target_plans_every_world_case_and_stays_out_of_all(tmp_path):
     from _workflow import scratch_copy, snakemake
 

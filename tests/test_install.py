@@ -77,6 +77,7 @@ def _run(args, installed, **kw):
     return subprocess.run([str(a) for a in args], cwd=run_dir, env=env, capture_output=True, text=True, timeout=300, **kw)
 
 
+@pytest.mark.slow
 def test_the_installed_copy_is_imported_with_its_schema(installed):
     python, _, _, run_dir = installed
     code = ("import knockgs_core, knockgs_core.contract as c; "
@@ -90,6 +91,7 @@ def test_the_installed_copy_is_imported_with_its_schema(installed):
     assert not Path(schema).resolve().is_relative_to(ROOT)
 
 
+@pytest.mark.slow
 def test_a_contract_given_by_path_is_validated_and_simulated(installed):
     _, knockgs, _, run_dir = installed
     contracts = run_dir / "contracts"
@@ -114,6 +116,7 @@ def test_a_contract_given_by_path_is_validated_and_simulated(installed):
     assert "typo.yaml" in proc.stderr and "nmae" in proc.stderr
 
 
+@pytest.mark.slow
 def test_a_name_outside_a_project_says_where_it_looked(installed):
     _, knockgs, _, _ = installed
     proc = _run([knockgs, "asset", "summary", "pillow", "--profile", "ci"], installed)

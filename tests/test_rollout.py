@@ -19,6 +19,7 @@ from knockgs_core.errors import InputError
 from knockgs_core.rollout import read_rollout, run_rollout, write_rollout
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["pillow", "ficus", "vasedeck"])
 def test_each_asset_responds_to_its_probe_a(name, tmp_path):
     contract = load_contract(name, "ci")

@@ -974,6 +974,7 @@ def test_frames_copied_behind_the_next_substeps_are_handed_over_in_order(rng, mo
         assert log[where + 1] == ("progress", 0, f)
 
 
+@pytest.mark.slow
 def test_fixed_point_p2g_gives_the_same_bits_in_any_thread_order(rng):
     # The P2G by cells adds each window's run sums to the nodes with float atomics, in the order
     # the threads run: with one lane a block (the CPU's) in block order; with Warp's CPU fibers
@@ -1235,6 +1236,7 @@ def test_cell_crowding_counts_for_particles_not_cells():
     assert MPMSolver.auto_p2g(False, 124.0) == "scatter"
 
 
+@pytest.mark.slow
 def test_cuda_build_caps_registers_and_compiles_the_cuda_branches(tmp_path):
     """The solver's kernels build for CUDA (PTX by NVRTC, no GPU needed). G2P and the fused G2P
     (a kernel per transfer) carry the register cap that lets more of their threads hide memory

@@ -122,6 +122,7 @@ def test_first_mode_period_and_response_gap(rng):
 
 # ------------------------------------------------------------------------ a GPU's substep against the reference
 
+@pytest.mark.slow
 def test_the_gpus_substep_meets_the_reference_as_the_cpus_does():
     """The paper profile's GPU substep (GPU_SOLVER_OPTIONS, F - I in float32 component by
     component, the fixed-point sums of `deterministic: true`) replayed on the CPU at the ci
@@ -210,6 +211,7 @@ def test_mpm_agrees_with_the_reference_and_converges_towards_it(ci_table):
     assert check["traj_rmse_pct"] < finest["traj_rmse_pct"] / 4
 
 
+@pytest.mark.slow
 def test_all_includes_the_table_when_enabled(tmp_path):
     work = scratch_copy(tmp_path)
     out = snakemake(work, "-n", "all", "--configfile=config/ci.yaml")

@@ -264,6 +264,7 @@ def _planned_paths(dry_run_stdout: str) -> list[str]:
     return paths
 
 
+@pytest.mark.slow
 def test_workflow_lints_and_dry_runs_for_all_profiles(tmp_path):
     work = scratch_copy(tmp_path)
     lint = snakemake(work, "--lint", "--configfile=config/ci.yaml")
@@ -279,6 +280,7 @@ def test_workflow_lints_and_dry_runs_for_all_profiles(tmp_path):
             [p for p in paths if not p.startswith((f"results/{profile}/", f"logs/{profile}/"))][:5]
 
 
+@pytest.mark.slow
 def test_every_rule_is_a_statement(tmp_path):
     # no rule is generated in a loop: --list-rules names exactly the rule/checkpoint statements
     work = scratch_copy(tmp_path)
@@ -322,6 +324,7 @@ def test_config_schema_minimums_are_the_estimators(method, option, cls):
         estimator(**{option: low - 1 if option == "k" else -1e-9})
 
 
+@pytest.mark.slow
 def test_bad_config_is_a_clear_error(tmp_path):
     (tmp_path / "w").mkdir()
     bad = tmp_path / "bad.yaml"
@@ -330,6 +333,7 @@ def test_bad_config_is_a_clear_error(tmp_path):
     assert out.returncode != 0 and "unknown_key" in out.stdout + out.stderr
 
 
+@pytest.mark.slow
 def test_boolean_config_values_are_read_as_yaml_writes_them(tmp_path):
     # --config deterministic=true: Snakemake reads "true" as a string, which the schema's
     # boolean refused; YAML's true and false are now read as booleans, other words still refused
@@ -400,6 +404,7 @@ def _planned(work: Path, *args) -> dict:
     return counts
 
 
+@pytest.mark.slow
 def test_library_jobs_split_over_the_cards_the_run_may_hold(tmp_path):
     # library_chunk auto: six candidates a job on the CPU; on a GPU the 54 candidates split
     # evenly over --resources gpu (one job an object on one card); a number is taken as given
@@ -435,6 +440,7 @@ def _planned_runtimes(work: Path, *args) -> dict:
     return runtimes
 
 
+@pytest.mark.slow
 def test_rollout_jobs_ask_for_the_time_their_device_needs(tmp_path):
     # a Slurm job's time limit: an hour a paper-scale rollout on the CPU, 20 minutes at the
     # smaller profiles, a minute a rollout plus ten a job on a GPU (one job of 54 candidates a card)
@@ -449,6 +455,7 @@ def test_rollout_jobs_ask_for_the_time_their_device_needs(tmp_path):
     assert default["rollout_library"] == {20 * 6}
 
 
+@pytest.mark.slow
 def test_discrepancy_cases_run_at_their_configured_resolution(tmp_path):
     # default profile, cases at the ci resolution: their own asset and library, not the profile's
     work = scratch_copy(tmp_path)
@@ -462,6 +469,7 @@ def test_discrepancy_cases_run_at_their_configured_resolution(tmp_path):
     assert bad.returncode != 0 and "huge" in bad.stdout + bad.stderr
 
 
+@pytest.mark.slow
 def test_a_library_without_deformation_gradients_moves_them_to_the_evaluation_job(tmp_path):
     # render.library_deformation_gradients: false (the paper profile's setting): the library
     # writes positions only, and the evaluation job of a theta on a candidate simulates Probe A
@@ -493,6 +501,7 @@ def test_a_library_without_deformation_gradients_moves_them_to_the_evaluation_jo
     assert ladder.returncode != 0 and "library_deformation_gradients" in ladder.stdout + ladder.stderr
 
 
+@pytest.mark.slow
 def test_temporary_deformation_gradients_are_removed_once_rendered(tmp_path):
     # render.keep_deformation_gradients: false (the paper profile's setting): the evaluation job
     # writes its F to a folder of its own, which the render reads and the workflow then removes;
@@ -533,6 +542,7 @@ def test_temporary_deformation_gradients_are_removed_once_rendered(tmp_path):
             np.testing.assert_array_equal(frames["kept"][p][k], frames["temporary"][p][k])
 
 
+@pytest.mark.slow
 def test_evaluation_jobs_write_deformation_gradients_only_for_renders(tmp_path):
     # render.enabled: false: the evaluation job writes positions only (no consumer reads F), and
     # a render or a video route asked for anyway stops with the setting named
