@@ -1,8 +1,8 @@
 """Shared fixtures (seeded generators, never a global seed; the one shared ci-profile workflow
 run) and the order in which pytest-xdist's workers take the tests.
 
-With ``-n 2`` (the project's default, ``pyproject.toml``) the tests are spread over two worker
-processes by group (``--dist loadgroup``): every test that reads the shared ci-profile run is
+With ``-n auto`` (the project's default, ``pyproject.toml``: two workers on two cores) the tests are spread over
+worker processes by group (``--dist loadgroup``): every test that reads the shared ci-profile run is
 in the group ``ci_run``, so one worker makes the run once and then reads it, and every other
 module whose tests share a module-scoped fixture is a group of its own, so the fixture is built
 once. The ``ci_run`` group goes first (it is the longest), then the modules marked ``slow``, so

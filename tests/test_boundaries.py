@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from _workflow import CI_RUN_CONFIG, copy_run, scratch_copy, snakemake
+from _workflow import CI, CI_RUN_CONFIG, copy_run, scratch_copy, snakemake
 
 from knockgs_core.assets import build_asset
 from knockgs_core.calibration import calibrate
@@ -35,7 +35,6 @@ from knockgs_core.experiments import (
 from knockgs_core.rollout import run_rollout
 
 ROOT = Path(__file__).resolve().parents[1]
-CI = "results/ci"
 THETA = (0.95, 1.35)
 
 
