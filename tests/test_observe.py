@@ -126,31 +126,39 @@ def test_pointset_descriptor_matches_tracked_points_for_normal_motion():
 
 @pytest.mark.slow
 def test_discrepancy_loop_on_video_tracks_finds_a_planted_sag(pillow, tmp_path):
-    """A world with a planted sag (gravity), filmed by the contract's camera (400x300 RGB-D);
+    """A world with a planted sag (gravity), filmed by the contract's camera (200x150 RGB-D);
     `knockgs observe tracks` turns the frames into ID-free tracks; the loop, given only those,
-    names gravity with its value and improves the held-out prediction of the held-out video."""
+    names gravity with its value and improves the held-out prediction of the held-out video.
+    World and loop are the ci Pillow at 2 substeps per frame (dt = 1e-2 s, not 5e-3 s: its
+    response moves by 0.5 %, every rollout takes half the time); the loop runs without the
+    discretization term (data from its own model; tests/test_discrepancy_model_error.py)."""
+    # Over 30 s (about 35 s on an idle 2-core machine): two 31-frame videos rendered and
+    # tracked, then a loop of about 145 rollouts of the model over three catalogue terms.
+    import dataclasses
+
     from knockgs_core.cli import main
     from knockgs_core.discrepancy import LoopSettings, read_measured, run_discrepancy
     from knockgs_core.rollout import run_rollout
     from knockgs_core.sim import Gravity, with_effects
 
     c, asset = pillow
+    c = dataclasses.replace(c, sim=dataclasses.replace(c.sim, dt=c.probes["standard_x"].export.frame_dt / 2))
     theta, g = (0.7, 1.2), -0.3
     p = with_effects(c.sim, Gravity(g=g))
     tracks = {}
     for probe in ("standard_x", "standard_y"):
         ro = run_rollout(c, theta, probe, particles=asset.particles, export_F=True,
                          sim_overrides={"effects": p.effects, "boundaries": p.boundaries})
-        write_rgbd(tmp_path / f"{probe}.npz", _render(pillow, ro.positions, ro.F, width=400, height=300))
+        write_rgbd(tmp_path / f"{probe}.npz", _render(pillow, ro.positions, ro.F, width=200, height=150))
         out = tmp_path / f"{probe}.parquet"
         assert main(["observe", "tracks", str(tmp_path / f"{probe}.npz"), "--object", "pillow", "--profile", "ci",
                      "--probe", probe, "-o", str(out)]) == 0
         tracks[probe] = read_measured(out)
-        assert not tracks[probe].has_identity and tracks[probe].n_points >= 50
+        assert not tracks[probe].has_identity and tracks[probe].n_points >= 40
     res = run_discrepancy(tracks["standard_x"], c, asset.particles, heldout_probes=["standard_y"],
                           heldout_measured={"standard_y": tracks["standard_y"]},
-                          settings=LoopSettings(catalogue=("damping", "gravity", "stiffness_gradient_z", "support_slip"),
-                                                joint_iterations=5))
+                          settings=LoopSettings(catalogue=("damping", "gravity", "stiffness_gradient_z"), joint_iterations=5,
+                                                model_error_refine=None))
     assert res.identified == ["gravity"]
     assert res.effects[0]["value"] == pytest.approx(g, rel=0.1)
     m = res.metrics["standard_y"]
