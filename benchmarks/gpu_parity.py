@@ -152,7 +152,7 @@ def main() -> None:
         res["render"] = {"skipped": str(exc)}
     print(json.dumps(res, indent=1))
     if args.json:
-        from knockgs_core._io import write_json
+        from knockgs_core.io import write_json
 
         write_json(args.json, res, indent=1)
 

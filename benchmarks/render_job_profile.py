@@ -36,7 +36,7 @@ def main() -> None:
                          "(every frame's scene checked in full), not render_frames (the rest scene checked once)")
     args = ap.parse_args()
 
-    from knockgs_core._io import write_npz
+    from knockgs_core.io import write_npz
     from knockgs_core.assets import load_scene, read_ply
     from knockgs_core.contract import load_contract
     from knockgs_core.experiments import camera_from_contract, render_rollout

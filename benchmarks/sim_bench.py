@@ -174,7 +174,7 @@ def main() -> None:
         out["cold_compile_s"] = cold_compile_seconds()
         print(f"cold compile (import + init + build + first step, empty cache): {out['cold_compile_s']:.1f} s")
     if args.json:
-        from knockgs_core._io import write_json
+        from knockgs_core.io import write_json
 
         write_json(args.json, out, indent=1)
 

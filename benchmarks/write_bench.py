@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from knockgs_core._io import write_parquet
+from knockgs_core.io import write_parquet
 from knockgs_core.rollout import (Rollout, RolloutStream, read_deformation, read_rollout, write_deformation,
                                   write_rollout)
 

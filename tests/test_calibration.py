@@ -411,7 +411,7 @@ def test_joint_error_pct():
 
 
 def test_estimate_record_is_json_safe():
-    # the package-wide policy of knockgs_core._io.json_safe: NaN -> None, +-inf -> "inf"/"-inf"
+    # the package-wide policy of knockgs_core.io.json_safe: NaN -> None, +-inf -> "inf"/"-inf"
     details = {"cond": float("inf"), "low": -np.inf, "se": float("nan"), "a": np.float64(2.0), "t": (1, 2)}
     est = Estimate("q", 1.0, 1.0, "x", details)
     record = est.to_dict()

@@ -267,7 +267,7 @@ def test_disk_full_while_writing_a_rollout_leaves_the_previous_file(shared, refu
 
 
 def test_permission_denied_while_writing_names_the_file(shared, refuse, tmp_path, monkeypatch):
-    import knockgs_core._io as io_mod
+    import knockgs_core.io._files as io_mod
 
     def deny(src, dst):
         raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), dst)

@@ -1,4 +1,4 @@
-"""The one atomic writer and JSON sanitizer (knockgs_core._io), and the library writers on it."""
+"""The one atomic writer and JSON sanitizer (knockgs_core.io), and the library writers on it."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from knockgs_core import _io
-from knockgs_core._io import atomic_write, json_safe, write_bytes, write_json, write_npz, write_parquet, write_text
+import knockgs_core.io._files as _io
+from knockgs_core.io import atomic_write, json_safe, write_bytes, write_json, write_npz, write_parquet, write_text
 from knockgs_core.errors import InputError
 
 
@@ -124,7 +124,6 @@ def test_write_json_is_strict_json_with_a_final_newline(tmp_path):
 # --------------------------------------------------------------------------- library writers
 
 def test_library_writers_refuse_a_directory_and_leave_no_temporary(tmp_path):
-    from knockgs_core.experiments import write_json as write_estimates
     from knockgs_core.reporting import write_table
 
     folder = tmp_path / "main.csv"
@@ -133,7 +132,7 @@ def test_library_writers_refuse_a_directory_and_leave_no_temporary(tmp_path):
     with pytest.raises(InputError, match="directory"):
         write_table(df, folder)
     with pytest.raises(InputError, match="directory"):
-        write_estimates({"a": 1}, folder)
+        write_json(folder, {"a": 1})
     write_table(df, tmp_path / "t.csv", tmp_path / "t.md", title="T")
     assert (tmp_path / "t.csv").read_text() == "method,x\na,1\n"
     assert (tmp_path / "t.md").read_text().startswith("# T\n")
@@ -169,7 +168,7 @@ def test_ply_and_particle_writers_are_atomic(tmp_path, monkeypatch):
 def test_a_failed_or_interrupted_job_leaves_no_output_folder(tmp_path, error):
     import io
 
-    from knockgs_core._io import staged_folders
+    from knockgs_core.io import staged_folders
 
     folder, F_folder = tmp_path / "eval" / "theta", tmp_path / "evalF" / "theta"
     log = io.StringIO()
@@ -184,7 +183,7 @@ def test_a_failed_or_interrupted_job_leaves_no_output_folder(tmp_path, error):
 
 
 def test_output_folders_appear_only_when_the_job_ends(tmp_path):
-    from knockgs_core._io import staged_folders, staging_folder
+    from knockgs_core.io import staged_folders, staging_folder
 
     folder, F_folder = tmp_path / "lib" / "chunk0", tmp_path / "libF" / "chunk0"
     with staged_folders(folder, F_folder, folder) as stages:
@@ -211,7 +210,7 @@ def test_output_folders_appear_only_when_the_job_ends(tmp_path):
 
 
 def test_a_jobs_files_map_into_the_staging_folders_of_their_folders(tmp_path):
-    from knockgs_core._io import StagedFolders, check_files_in, staged_folders
+    from knockgs_core.io import StagedFolders, check_files_in, staged_folders
 
     folder, F_folder = tmp_path / "eval" / "theta", tmp_path / "evalF" / "theta"
     with staged_folders(folder, F_folder) as stages:
@@ -234,7 +233,7 @@ def test_a_jobs_files_map_into_the_staging_folders_of_their_folders(tmp_path):
 _KILLED_JOB = """
 import os, signal, sys
 from pathlib import Path
-from knockgs_core._io import staged_folders
+from knockgs_core.io import staged_folders
 folder = Path(sys.argv[1])
 with staged_folders(folder) as (stage,):
     (stage / "standard_x.parquet").write_bytes(b"written")
@@ -249,7 +248,7 @@ def test_a_killed_job_leaves_no_output_folder_and_its_rerun_clears_the_staging(t
     import subprocess
     import sys
 
-    from knockgs_core._io import staged_folders
+    from knockgs_core.io import staged_folders
 
     folder = tmp_path / "frames" / "theta"
     out = subprocess.run([sys.executable, "-c", _KILLED_JOB, str(folder), sig], capture_output=True, text=True)
@@ -272,7 +271,7 @@ def _frames(t=6, n=700, c=3, seed=0):
 
 
 def _streamed(path, values, columns, meta=b'{"a": 1}', **kw):
-    from knockgs_core._long_writer import LongFormatStream
+    from knockgs_core.io import LongFormatStream
 
     stream = LongFormatStream(path, columns, **kw)
     for t, frame in enumerate(values):
@@ -287,9 +286,9 @@ def test_a_long_file_written_frame_by_frame_decodes_as_the_whole_table(tmp_path,
     # without pyarrow's add_key_value_metadata (older pyarrow): the file written whole at the end
     import pyarrow.parquet as pq
 
-    from knockgs_core import _long_writer
-    from knockgs_core._long_format import read_long_values, read_metadata
-    from knockgs_core._long_writer import LONG_COMPRESSION, long_encoding, long_table
+    import knockgs_core.io._long_writer as _long_writer
+    from knockgs_core.io import read_long_values, read_metadata
+    from knockgs_core.io import LONG_COMPRESSION, long_encoding, long_table
 
     X = _frames(t=7)
     whole = long_table(X, ["x", "y", "z"]).replace_schema_metadata({b"knockgs": b'{"a": 1}'})
@@ -309,7 +308,7 @@ def test_a_long_file_written_frame_by_frame_decodes_as_the_whole_table(tmp_path,
 
 
 def test_a_frame_by_frame_writer_refuses_a_dropped_or_repeated_frame_and_leaves_nothing(tmp_path):
-    from knockgs_core._long_writer import LongFormatStream
+    from knockgs_core.io import LongFormatStream
 
     X = _frames()
     for bad in ([0, 1, 1], [0, 2], [1]):
@@ -345,7 +344,7 @@ def test_a_frame_by_frame_writer_refuses_a_dropped_or_repeated_frame_and_leaves_
 def test_a_frame_by_frame_writer_that_fails_midway_leaves_no_file_and_no_temporary(tmp_path, failure, monkeypatch):
     import time
 
-    from knockgs_core._long_writer import LongFormatStream
+    from knockgs_core.io import LongFormatStream
 
     X = _frames(t=8)
     if failure == "non-finite":
@@ -376,7 +375,7 @@ def test_a_program_that_ends_before_finishing_a_stream_leaves_nothing_and_exits(
     import subprocess
     import sys
 
-    code = ("import numpy as np; from knockgs_core._long_writer import LongFormatStream as S; "
+    code = ("import numpy as np; from knockgs_core.io import LongFormatStream as S; "
             f"s = S({str(tmp_path / 'r.parquet')!r}, ['x'], group_rows=1); s.put(0, np.zeros((5, 1), np.float32)); "
             "raise KeyboardInterrupt")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}

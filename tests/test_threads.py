@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from knockgs_core._threads import ordered_map
+from knockgs_core.io import ordered_map
 from knockgs_core.errors import InputError
 
 

@@ -230,7 +230,7 @@ def test_the_completion_audit_lists_staging_folders_left_by_stopped_jobs(tmp_pat
     # a job killed by SIGKILL leaves its hidden staging folder; if the job never runs again
     # nothing removes it, so the completion audit (run when every job has ended) lists it, warns
     # with the command that removes it, and still passes: no output is read from such a folder
-    from knockgs_core._io import staging_folder
+    from knockgs_core.io import staging_folder
 
     results = tmp_path / "results" / "ci"
     table = results / "tables" / "main_pillow.csv"
@@ -374,7 +374,7 @@ def test_every_simulating_rule_takes_the_reproducible_setting():
 
 def test_every_folder_output_is_built_in_a_staging_folder():
     # a rule whose output is a folder appears whole or not at all: its script builds the folder
-    # under a hidden name and moves it into place at the end (_io.staged_folders), so a job
+    # under a hidden name and moves it into place at the end (knockgs_core.io.staged_folders), so a job
     # killed at any point (after which Snakemake may have recorded it as finished) leaves no
     # partial folder for a resumed run to trust (test_workflow_faults: SIGKILL-jobs-recorded)
     seen = {}

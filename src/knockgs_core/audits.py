@@ -4,7 +4,7 @@
   candidate library and the Probe-A query table; the query table carries no labels; no
   target is a library candidate; library rollouts are Probe-A rollouts of candidates.
 - non-finite: every rollout and table is finite (rollouts read with the one long-format
-  reader, :mod:`knockgs_core._long_format`, which also reports a malformed file).
+  reader, :mod:`knockgs_core.io`, which also reports a malformed file).
 - missing frames: every rollout holds every exported frame of every particle (a truncated
   or unreadable file is a failed verdict naming it, not a crash).
 - rollout metadata: every cached rollout (and its deformation-gradient file) is the rollout
@@ -27,8 +27,8 @@ import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 
-from ._long_format import POSITION_COLUMNS, check_rollout_meta, read_long_values, read_metadata
-from ._threads import ordered_map
+from .io import POSITION_COLUMNS, check_rollout_meta, read_long_values, read_metadata
+from .io import ordered_map
 from .descriptors import FEATURE_NAMES
 from .errors import InputError
 
@@ -151,7 +151,7 @@ def _rollout_files(dirs: Sequence) -> list[Path]:
 
 def audit_nonfinite(rollout_dirs: Sequence, tables: Iterable, *, workers: int = 1) -> dict:
     """Every rollout coordinate and every numeric table cell is finite. The rollouts are read
-    by ``workers`` threads (:func:`knockgs_core._threads.ordered_map`; the same verdict for
+    by ``workers`` threads (:func:`knockgs_core.io.ordered_map`; the same verdict for
     any count)."""
     files = _rollout_files(rollout_dirs)
 
@@ -340,7 +340,7 @@ def audit_duplicates(candidates: pd.DataFrame, targets: pd.DataFrame, library_ta
 
 
 def stale_staging_folders(root) -> list[str]:
-    """The staging folders (``.NAME.partial``, :func:`knockgs_core._io.staging_folder`) under
+    """The staging folders (``.NAME.partial``, :func:`knockgs_core.io.staging_folder`) under
     ``root``, sorted; their contents are not searched. A job builds its output folder in one and
     renames it into place when whole; a job stopped by SIGKILL leaves it, and only that job's
     next attempt removes it."""

@@ -37,7 +37,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from ._io import json_safe
+from .io import json_safe
 from .errors import InputError
 from .sim import (
     Box,

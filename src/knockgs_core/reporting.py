@@ -13,7 +13,7 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
-from ._io import atomic_write, write_text
+from .io import atomic_write, write_text
 
 __all__ = [
     "main_table",
@@ -125,7 +125,7 @@ def to_markdown(df: pd.DataFrame, *, title: str = "", note: str = "") -> str:
 
 def write_table(df: pd.DataFrame, csv_path, md_path=None, *, title: str = "", note: str = "") -> None:
     """Write ``df`` as CSV (floats ``%.8g``, no index) and, with ``md_path``, as a Markdown
-    table (:func:`to_markdown`), each file atomically (:mod:`knockgs_core._io`)."""
+    table (:func:`to_markdown`), each file atomically (:mod:`knockgs_core.io`)."""
     write_text(csv_path, df.to_csv(index=False, float_format="%.8g", lineterminator="\n"))
     if md_path is not None:
         write_text(md_path, to_markdown(df, title=title, note=note))

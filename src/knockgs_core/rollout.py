@@ -10,9 +10,9 @@ n_gs, n_fill, the total probe force, the contract hash, solver settings, guard s
 and package versions. The deformation gradient of the Gaussian-associated particles, when
 asked for, goes to a second Parquet file (``frame, particle, F00 .. F22``).
 
-Files are written through :mod:`knockgs_core._io` (a temporary name, renamed when complete),
+Files are written through :mod:`knockgs_core.io` (a temporary name, renamed when complete),
 so an interrupted run never leaves a partial rollout behind; they are read back with the one
-long-format reader, :mod:`knockgs_core._long_format`. A file is written whole once the
+long-format reader, :mod:`knockgs_core.io`. A file is written whole once the
 rollout is finished (:func:`write_rollout`, :func:`write_deformation`), or frame by frame
 while it is simulated (:class:`RolloutStream`, handed to :func:`run_rollouts`): the same
 values, order and metadata either way.
@@ -34,11 +34,10 @@ import numpy as np
 import pyarrow as pa
 
 from . import __version__
-from ._io import json_safe, remove_outputs, write_parquet
-from ._long_format import (POSITION_COLUMNS, _has_field, _meta_field, check_rollout_meta, read_long_values, read_metadata,
-                           theta_tag)
-from ._long_writer import GROUP_ROWS, LONG_COMPRESSION, LongFormatStream, long_encoding, long_table
 from .errors import InputError
+from .io import (GROUP_ROWS, LONG_COMPRESSION, POSITION_COLUMNS, LongFormatStream, check_rollout_meta, json_safe,
+                 long_encoding, long_table, read_long_values, read_metadata, remove_outputs, theta_tag, write_parquet)
+from .io._long_format import _has_field, _meta_field
 from .sim import Probe, SimResult, build_model, make_state, particle_volumes, simulate_many
 
 __all__ = [
@@ -326,7 +325,7 @@ def batches(runs: list, key: Callable[[Any], Any], *, together: bool) -> list[li
 
 
 def _long_encoding(table: pa.Table) -> dict[str, str]:
-    """Parquet encodings of a long-format table (:func:`knockgs_core._long_writer.long_encoding`)."""
+    """Parquet encodings of a long-format table (:func:`knockgs_core.io.long_encoding`)."""
     return long_encoding(table.column_names)
 
 
@@ -361,7 +360,7 @@ class RolloutStream:
     Hand it to :func:`run_rollouts` (``streams``) or :func:`run_rollout` (``stream``), which
     call :meth:`frame` after each exported frame and :meth:`finish` with the rollout's
     metadata, or :meth:`abort` when the simulation fails. Each file is written on a thread
-    of its own (:class:`knockgs_core._long_writer.LongFormatStream`), the frames appended as
+    of its own (:class:`knockgs_core.io.LongFormatStream`), the frames appended as
     Parquet row groups (at least ``group_rows`` rows each) as they come, so that when the
     simulation ends only the last frames and the footers are left to write; :meth:`wait`
     waits for them. Once decoded, the files equal :func:`write_rollout`'s and

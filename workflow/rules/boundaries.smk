@@ -1,4 +1,4 @@
-# Discretization and object boundaries of a frozen library (knockgs_core.experiments._boundaries;
+# Discretization and object boundaries of a frozen library (knockgs_core.experiments, its boundaries study;
 # paper Sec. "Discretization, object and identifiability boundaries"). Per object, one contract
 # component is changed at a time (config boundaries.conditions); the five targets are
 # re-simulated under the changed specification, and local ridge estimates them from Probe A with

@@ -52,7 +52,7 @@ ON_GPU = DEVICE.startswith("cuda")
 DETERMINISTIC = config["deterministic"] and ON_GPU
 # the paper profile's rollouts are large (0.2-0.9 GB each): the jobs that read many of them
 # (descriptors, evaluations, shift tables, audits) read them on threads; the same outputs for
-# any count (knockgs_core._threads.ordered_map)
+# any count (knockgs_core.io.ordered_map)
 READ_THREADS = 8 if PROFILE == "paper" else 1
 # their memory: a 121-frame paper-scale rollout held with its prediction and scored takes ~3 GB a
 # thread, a read alone ~1.2 GB (benchmarks/reading_memory_bench.py); the duration table's five

@@ -2,7 +2,7 @@
 import json
 import sys
 
-from knockgs_core._io import write_json
+from knockgs_core.io import write_json
 from knockgs_core.assets import asset_figure, build_asset, save_particles, save_scene, write_ply
 from knockgs_core.contract import load_contract
 

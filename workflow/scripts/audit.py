@@ -4,7 +4,7 @@ import sys
 from pathlib import Path
 
 from knockgs_core import audits
-from knockgs_core._io import write_text
+from knockgs_core.io import write_text
 from knockgs_core.contract import load_candidates, load_targets
 
 sys.stderr = open(snakemake.log[0], "w")

@@ -2,7 +2,7 @@
 import json
 import sys
 
-from knockgs_core._io import write_json
+from knockgs_core.io import write_json
 from knockgs_core.assets import build_asset, save_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.experiments import BoundarySettings, condition_world

@@ -3,7 +3,7 @@ import sys
 
 import pandas as pd
 
-from knockgs_core._io import write_text
+from knockgs_core.io import write_text
 from knockgs_core.experiments import shared_library
 
 sys.stderr = open(snakemake.log[0], "w")

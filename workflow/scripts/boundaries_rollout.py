@@ -5,7 +5,7 @@ import json
 import sys
 from pathlib import Path
 
-from knockgs_core._io import check_files_in, staged_folders
+from knockgs_core.io import check_files_in, staged_folders
 from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.experiments import BoundarySettings, condition_world

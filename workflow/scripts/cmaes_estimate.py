@@ -6,7 +6,8 @@ from pathlib import Path
 
 from knockgs_core.contract import load_candidates, load_contract
 from knockgs_core.experiments import (VideoScene, candidate_bounds, cmaes_calibrate, cmaes_estimate, rollout_video,
-                                      video_simulator, write_json)
+                                      video_simulator)
+from knockgs_core.io import write_json
 from knockgs_core.sim import set_config
 
 log = open(snakemake.log[0], "w")
@@ -36,4 +37,4 @@ doc["profile"] = contract.profile
 doc["contract_hash"] = contract.hash
 doc["config_hash"] = p.config_hash
 doc["rule_inputs"] = [str(f) for f in snakemake.input]
-write_json(doc, snakemake.output.json)
+write_json(snakemake.output.json, doc, indent=1)

@@ -3,7 +3,7 @@ import json
 import sys
 from pathlib import Path
 
-from knockgs_core._io import write_text
+from knockgs_core.io import write_text
 from knockgs_core.discrepancy import audit_truth_separation
 
 sys.stderr = open(snakemake.log[0], "w")

@@ -3,7 +3,7 @@ benchmark and the boundaries study); ``params.labels`` become the first columns.
 import json
 import sys
 
-from knockgs_core._io import write_text
+from knockgs_core.io import write_text
 from knockgs_core.contract import load_targets
 from knockgs_core.experiments import evaluate_method
 from knockgs_core.rollout import theta_tag

@@ -4,7 +4,7 @@ import sys
 
 import pandas as pd
 
-from knockgs_core._io import write_text
+from knockgs_core.io import write_text
 from knockgs_core.contract import load_candidates
 from knockgs_core.descriptors import FEATURE_NAMES
 

@@ -4,7 +4,7 @@ import sys
 
 import pandas as pd
 
-from knockgs_core._io import write_text
+from knockgs_core.io import write_text
 from knockgs_core.assets import load_scene, read_ply
 from knockgs_core.descriptors import FEATURE_NAMES
 from knockgs_core.experiments import LadderSettings, camera_from_contract, rung_descriptors

@@ -1,7 +1,7 @@
 """Candidate library table: labels + Probe-A descriptors."""
 import sys
 
-from knockgs_core._io import write_text
+from knockgs_core.io import write_text
 from knockgs_core.contract import load_candidates
 from knockgs_core.experiments import library_table
 

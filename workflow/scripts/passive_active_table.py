@@ -3,7 +3,7 @@ from passive responses, against the hidden targets."""
 import json
 import sys
 
-from knockgs_core._io import write_text
+from knockgs_core.io import write_text
 from knockgs_core.contract import load_targets
 from knockgs_core.experiments import passive_active_note, passive_active_table, plot_passive_active
 from knockgs_core.reporting import write_table

@@ -1,7 +1,7 @@
 """The object's passive protocol (gravity, no known force) and its invariance check."""
 import sys
 
-from knockgs_core._io import write_json
+from knockgs_core.io import write_json
 from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.experiments import passive_protocol

@@ -1,7 +1,7 @@
 """Target query table: Probe-A descriptors only, no labels."""
 import sys
 
-from knockgs_core._io import write_text
+from knockgs_core.io import write_text
 from knockgs_core.experiments import query_table
 
 sys.stderr = open(snakemake.log[0], "w")

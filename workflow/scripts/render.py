@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from knockgs_core._io import check_files_in, staged_folders, write_npz
+from knockgs_core.io import check_files_in, staged_folders, write_npz
 from knockgs_core.assets import load_scene, read_ply
 from knockgs_core.experiments import camera_from_contract, render_rollout
 from knockgs_core.rollout import read_deformation, read_rollout

@@ -2,7 +2,7 @@
 import json
 import sys
 
-from knockgs_core._io import write_text
+from knockgs_core.io import write_text
 from knockgs_core.contract import load_targets
 from knockgs_core.experiments import render_metrics_rows
 from knockgs_core.rollout import theta_tag

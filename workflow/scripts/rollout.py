@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from knockgs_core._io import StagedFolders, check_files_in, staged_folders
+from knockgs_core.io import StagedFolders, check_files_in, staged_folders
 from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.rollout import BackgroundWriter, batches, run_rollouts

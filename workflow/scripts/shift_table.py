@@ -3,7 +3,7 @@ re-simulated under the shift probes, against the targets' rollouts under the sam
 import json
 import sys
 
-from knockgs_core._threads import ordered_map
+from knockgs_core.io import ordered_map
 from knockgs_core.contract import load_targets
 from knockgs_core.experiments import contact_table, duration_table, evaluate_shift, protocol_distance, shift_note
 from knockgs_core.reporting import write_table

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from knockgs_core._io import atomic_write
+from knockgs_core.io import atomic_write
 
 
 def asset_figure(built, path: str | os.PathLike, *, title: str = "", max_points: int = 60000) -> None:

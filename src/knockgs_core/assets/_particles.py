@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from knockgs_core._io import write_bytes
+from knockgs_core.io import write_bytes
 from knockgs_core.errors import InputError
 
 from ._gaussians import _as_array, _readonly

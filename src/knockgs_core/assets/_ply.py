@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from knockgs_core._io import atomic_write
+from knockgs_core.io import atomic_write
 from knockgs_core.errors import InputError
 
 from ._gaussians import GaussianSet
@@ -103,7 +103,7 @@ def write_ply(gs: GaussianSet, path: str | os.PathLike) -> None:
 
     Inverse activations: ``scale_* = log(scales)``, ``opacity = logit(opacities)``
     (opacities clipped to [1e-7, 1 - 1e-7]); quaternions are written normalized.
-    The bytes depend only on ``gs``; the file is written atomically (:mod:`knockgs_core._io`).
+    The bytes depend only on ``gs``; the file is written atomically (:mod:`knockgs_core.io`).
     """
     from plyfile import PlyData, PlyElement
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from knockgs_core._io import write_npz
+from knockgs_core.io import write_npz
 from knockgs_core.errors import InputError
 
 __all__ = ["scene_path", "save_scene", "load_scene"]

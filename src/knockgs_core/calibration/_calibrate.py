@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .._io import json_safe
+from ..io import json_safe
 from ..descriptors import FEATURE_NAMES
 from ..errors import InputError
 from ._registry import METHOD_ALIASES, METHOD_OPTIONS, METHODS, canonical_method
@@ -49,7 +49,7 @@ def calibrate(library, queries, method: str, **params) -> dict:
     dict
         ``{"method", "params", "library": {"n_candidates", "sha256"}, "features",
         "predictions": [{"case_name", "E_scale", "density_scale", "details"}]}``, JSON-safe
-        (:func:`knockgs_core._io.json_safe`: no NaN), predictions in query order. ``method``
+        (:func:`knockgs_core.io.json_safe`: no NaN), predictions in query order. ``method``
         is the canonical name; ``library.sha256`` hashes the used library columns, sorted by
         case name.
 

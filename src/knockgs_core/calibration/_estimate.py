@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .._io import json_safe
+from ..io import json_safe
 
 __all__ = ["THETA_NAMES", "Estimate", "joint_error_pct"]
 
@@ -43,7 +43,7 @@ class Estimate:
         return (self.E_scale, self.density_scale)
 
     def to_dict(self) -> dict:
-        """JSON-safe record (:func:`knockgs_core._io.json_safe`: NaN becomes ``None``,
+        """JSON-safe record (:func:`knockgs_core.io.json_safe`: NaN becomes ``None``,
         +-infinity ``"inf"`` / ``"-inf"``)."""
         return json_safe(
             {

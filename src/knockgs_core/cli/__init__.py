@@ -12,7 +12,7 @@ files (``OSError`` with its file name, including a full disk or a missing permis
 ``ArrowInvalid``; ``MemoryError``) give exit code 2; Ctrl-C (``KeyboardInterrupt``)
 prints ``interrupted`` and gives exit code 130. Set ``KNOCKGS_TRACEBACK=1`` to see the
 traceback of a mapped error. Commands check their output paths before any work
-(:func:`knockgs_core._io.check_outputs`).
+(:func:`knockgs_core.io.check_outputs`).
 """
 
 from __future__ import annotations

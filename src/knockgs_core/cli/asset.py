@@ -56,7 +56,7 @@ def _load(args):
 
 
 def _make(args) -> int:
-    from knockgs_core._io import check_outputs
+    from knockgs_core.io import check_outputs
     from knockgs_core.assets import build_asset, load_source_gaussians, save_particles, save_scene, scene_path, write_ply
 
     from ._common import contract_inputs
@@ -104,7 +104,7 @@ def _summary(args) -> int:
 
 def _figure(args) -> int:
     from knockgs_core.assets import build_asset
-    from knockgs_core._io import check_outputs
+    from knockgs_core.io import check_outputs
     from knockgs_core.assets._figure import asset_figure
 
     from ._common import contract_inputs

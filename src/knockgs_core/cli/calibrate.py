@@ -72,7 +72,7 @@ def _parse_alpha(text: str):
 
 def run(args: argparse.Namespace) -> int:
     """Run ``knockgs calibrate``; bad input raises :class:`~knockgs_core.errors.InputError`."""
-    from .._io import check_outputs, write_json
+    from ..io import check_outputs, write_json
     from ..calibration import calibrate
 
     output = Path(args.output)

@@ -137,7 +137,7 @@ def _run(args) -> int:
 
 
 def _make_case(args) -> int:
-    from .._io import check_outputs
+    from ..io import check_outputs
     from ..contract import load_contract
     from ..discrepancy import CaseSpec, default_cases, make_case
 
@@ -170,7 +170,7 @@ def _evaluate(args) -> int:
 def _table(args) -> int:
     from ..discrepancy import case_table, table_figure, write_table
 
-    from .._io import check_outputs
+    from ..io import check_outputs
 
     check_outputs({"--csv": args.csv, "--md": args.md, "--figure": args.figure}, {"ROW.json": list(args.rows)})
     rows = []

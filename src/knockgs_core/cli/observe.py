@@ -58,7 +58,7 @@ def register(sub) -> None:
 
 
 def run_rgbd(args) -> int:
-    from .._io import check_outputs
+    from ..io import check_outputs
     from .._warp import warp_device
     from ..contract import load_contract
     from ..experiments import camera_from_contract
@@ -85,7 +85,7 @@ def run_rgbd(args) -> int:
 def run_tracks(args) -> int:
     import numpy as np
 
-    from .._io import check_outputs
+    from ..io import check_outputs
     from ..discrepancy import Measurement, write_measured
     from ..observe import TrackSettings, read_rgbd, track_points
 
@@ -120,7 +120,7 @@ def run_tracks(args) -> int:
 def run_describe(args) -> int:
     import pandas as pd
 
-    from .._io import check_outputs, write_text
+    from ..io import check_outputs, write_text
     from ..descriptors import FEATURE_NAMES, descriptor
     from ..discrepancy import read_measured
 

@@ -93,7 +93,7 @@ def _load(args, paths: dict, contract=None):
 
 
 def _check(args, paths: dict, pattern: str, contract=None) -> None:
-    from .._io import check_outputs
+    from ..io import check_outputs
 
     inputs = {**paths, **(contract_inputs(contract) if contract is not None else {})}
     check_outputs({"--output": args.output}, inputs, directories={"--output": (pattern,)})
@@ -122,7 +122,7 @@ def run_frames(args) -> int:
     from ..contract import load_contract
     from ..experiments import camera_from_contract, render_rollout
 
-    from .._io import atomic_write
+    from ..io import atomic_write
     from .._warp import warp_device
 
     contract = load_contract(args.object, args.profile, config_dir=args.config_dir)

@@ -41,7 +41,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from .._io import check_outputs
+    from ..io import check_outputs
     from ..contract import load_contract
     from ..rollout import RolloutStream, run_rollout
     from ._common import contract_inputs

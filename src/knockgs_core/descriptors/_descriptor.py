@@ -13,7 +13,7 @@ from typing import Union
 
 import numpy as np
 
-from .._long_format import read_positions
+from ..io import read_positions
 from ..errors import InputError
 
 __all__ = [

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._io import write_json, write_npz
+from ..io import write_json, write_npz
 from ..errors import InputError
 from ..sim import (
     BodyForcePulse,

@@ -8,7 +8,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .._io import write_json, write_text
+from ..io import write_json, write_text
 from ..errors import InputError
 from ._loop import DiscrepancyResult, LibrarySource, LoopSettings, run_discrepancy
 from ._measured import MEASUREMENT_META_FIELDS, MEASUREMENT_META_KEY, read_measured
@@ -93,7 +93,7 @@ def run_files(
     run :func:`run_discrepancy` (library base calibration when ``library_rollouts`` are
     given) and write the report into ``out_dir``. Every file read is listed in
     ``result.inputs``."""
-    from .._io import check_outputs
+    from ..io import check_outputs
     from ..contract import load_contract
     from ..rollout import check_rollout_meta, read_rollout_meta
 
@@ -137,7 +137,7 @@ def evaluate_files(run_dir, truth_dir, output, markdown=None) -> dict:
     ``markdown``, a short evaluation page: planted vs found, errors against the truth)."""
     from ._scoring import acceptance, evaluate_case
 
-    from .._io import check_outputs
+    from ..io import check_outputs
 
     run_dir, truth_dir = Path(run_dir), Path(truth_dir)
     reads = {"--run-dir": [run_dir / "result.json", run_dir / "predictions.npz"],

@@ -32,7 +32,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .._io import json_safe
+from ..io import json_safe
 from ..errors import InputError, SimulationError
 from ..sim import viscous_stability_limit
 from ._attribution import AttributionRound, _passes, attribute

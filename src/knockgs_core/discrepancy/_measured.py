@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._io import atomic_write, write_npz, write_parquet
+from ..io import atomic_write, write_npz, write_parquet
 from ..errors import InputError
 
 __all__ = ["Measurement", "read_measured", "write_measured", "Correspondence", "match_points", "MEASUREMENT_META_KEY",

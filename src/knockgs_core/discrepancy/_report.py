@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._io import atomic_write, write_json, write_npz, write_text
+from ..io import atomic_write, write_json, write_npz, write_text
 from ._loop import DiscrepancyResult
 from ._views import VIEW_METRICS
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._io import atomic_write, write_text
+from ..io import atomic_write, write_text
 from ._scoring import acceptance, world_acceptance
 
 __all__ = ["TABLE_COLUMNS", "case_table", "write_table", "table_figure"]

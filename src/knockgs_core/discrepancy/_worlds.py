@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._io import write_json, write_npz
+from ..io import write_json, write_npz
 from ..errors import InputError
 from ._cases import LEVELS, PLANTED_EFFECTS, CaseSpec, search_strength
 from ._measured import Measurement, write_measured

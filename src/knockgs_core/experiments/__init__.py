@@ -91,7 +91,6 @@ from ._main import (
     render_metrics_rows,
     render_rollout,
     theta_tag,
-    write_json,
 )
 
 __all__ = [
@@ -104,7 +103,6 @@ __all__ = [
     "estimate_thetas",
     "file_sha256",
     "theta_tag",
-    "write_json",
     "camera_from_contract",
     "render_rollout",
     "render_metrics_rows",

@@ -14,12 +14,11 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
-from .. import _io
 from ..descriptors import FEATURE_NAMES, descriptor
 from ..errors import InputError
 from ..metrics import curve_differences, joint_error_pct, rms_displacement_curve, trajectory_rmse
 from ..rollout import read_rollout, theta_tag
-from .._threads import ordered_map
+from ..io import ordered_map
 
 __all__ = [
     "library_table",
@@ -31,7 +30,6 @@ __all__ = [
     "estimate_thetas",
     "file_sha256",
     "theta_tag",
-    "write_json",
     "camera_from_contract",
     "render_rollout",
     "render_metrics_rows",
@@ -52,7 +50,7 @@ def _descriptor_of(path) -> np.ndarray:
 
 def _descriptors_of(paths, workers: int) -> list[np.ndarray]:
     """The descriptors of rollout files ``paths``, in order, read by ``workers`` threads
-    (:func:`knockgs_core._threads.ordered_map`); the first failing file's error is raised, as
+    (:func:`knockgs_core.io.ordered_map`); the first failing file's error is raised, as
     a serial loop would."""
     return ordered_map(_descriptor_of, paths, workers=int(workers))
 
@@ -172,7 +170,7 @@ def evaluate_methods(
     displacement curve, and a prediction that several methods share (the same theta) is read
     once. Returns method -> its rows, the same as :func:`evaluate_method` of it alone.
 
-    ``workers`` threads score the targets side by side (:func:`knockgs_core._threads.ordered_map`;
+    ``workers`` threads score the targets side by side (:func:`knockgs_core.io.ordered_map`;
     each holds a truth and a prediction in memory at a time); the rows are the same, in the
     same order, for any count. Every target's estimates are checked before a file is read.
     """
@@ -221,10 +219,6 @@ def evaluate_methods(
     return {m: pd.DataFrame([row for rows in per_target for row in rows[m]]) for m in thetas}
 
 
-def write_json(obj, path) -> None:
-    """Write an estimates document as JSON (indent 1), atomically, NaN as null
-    (:func:`knockgs_core._io.write_json`)."""
-    _io.write_json(path, obj, indent=1)
 
 
 # ------------------------------------------------------------------------------------

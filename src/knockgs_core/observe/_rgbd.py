@@ -96,7 +96,7 @@ def render_rgbd(gaussians, static_mask, gaussian_index, positions, F, camera: Ca
 def write_rgbd(path, frames: RGBDFrames) -> None:
     """Store a sequence as ``.npz`` (colour and coverage float16, depth float32, the camera's
     intrinsics and pose, the frame interval), atomically."""
-    from .._io import write_npz
+    from ..io import write_npz
 
     c = frames.camera
     extra = {} if frames.mask is None else {"mask": frames.mask}

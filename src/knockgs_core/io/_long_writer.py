@@ -20,8 +20,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ._io import atomic_write, check_output
-from .errors import InputError
+from ._files import atomic_write, check_output
+from ..errors import InputError
 
 __all__ = ["LONG_COMPRESSION", "GROUP_ROWS", "long_encoding", "long_table", "LongFormatStream"]
 

@@ -17,7 +17,7 @@ from typing import Union
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 
 __all__ = ["POSITION_COLUMNS", "read_long_values", "read_positions", "read_metadata", "check_rollout_meta", "theta_tag"]
 

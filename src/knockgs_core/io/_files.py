@@ -27,7 +27,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 
 __all__ = [
     "StagedFolders",

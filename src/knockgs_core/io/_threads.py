@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Callable, Iterable, TypeVar
 
-from .errors import InputError
+from ..errors import InputError
 
 T = TypeVar("T")
 R = TypeVar("R")
