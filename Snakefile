@@ -14,7 +14,8 @@
 #                                                         theta under every evaluation probe (a candidate's:
 #                                                         the held-out probes only), so every method that
 #                                                         lands on the same theta shares them
-#   P/rollouts/{object}/diag/{theta}/{probe}.parquet      a diagnostics' rollout (probe shifts, ladder), one per job
+#   P/rollouts/{object}/diag/{split}/{set}/{theta}/{probe}.parquet   a diagnostics' set's rollout (probe
+#                                                         shifts, ladder rungs), one job a set
 #   P/descriptors/{object}/library.csv                    candidate descriptors + labels
 #   P/descriptors/{object}/queries_{split}.csv            target Probe-A descriptors, no labels
 #   P/estimates/{object}/{split}/{method}.json            frozen estimates (checkpoint)

@@ -47,6 +47,17 @@ def scratch_copy(dest: Path) -> Path:
     return dest
 
 
+def small_library(work: Path, n: int) -> Path:
+    """Cut the candidate library of the scratch copy ``work`` to the first ``n`` rows of
+    ``config/candidates.csv``: its library jobs are the first ``n / library_chunk`` jobs of the
+    full library, with the same rollouts (and the first ``n`` rows of its descriptor table)."""
+    table = work / "config" / "candidates.csv"
+    lines = table.read_text().splitlines(keepends=True)
+    head = sum(1 for line in lines if line.startswith("#")) + 1  # comments and the header
+    table.write_text("".join(lines[: head + n]))
+    return work
+
+
 def snakemake(work: Path, *args: str) -> subprocess.CompletedProcess:
     """``snakemake ARGS`` in ``work`` (the installed Snakemake), output captured."""
     return subprocess.run([sys.executable, "-m", "snakemake", *args], cwd=work, capture_output=True, text=True)
@@ -72,10 +83,11 @@ def shared_root(tmp_path_factory) -> Path:
     return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
 
 
-def shared_run(tmp_path_factory, name: str, *args: str) -> Path:
+def shared_run(tmp_path_factory, name: str, *args: str, prepare=None) -> Path:
     """``snakemake ARGS`` in a scratch copy made once per test run, whichever process asks first
-    (the others wait for it under a file lock, then read it). Tests only read what it holds:
-    a test that changes files works on a copy (:func:`copy_run`)."""
+    (the others wait for it under a file lock, then read it); ``prepare(work)`` edits the copy
+    before the run. Tests only read what it holds: a test that changes files works on a copy
+    (:func:`copy_run`)."""
     root = shared_root(tmp_path_factory)
     work, done, failed = root / f"shared-{name}", root / f"shared-{name}.done", root / f"shared-{name}.failed"
     with _exclusive(root / f"shared-{name}.lock"):
@@ -83,7 +95,10 @@ def shared_run(tmp_path_factory, name: str, *args: str) -> Path:
             raise AssertionError(f"the shared run {name} failed in another process:\n{failed.read_text()}")
         if not done.exists():
             shutil.rmtree(work, ignore_errors=True)
-            out = snakemake(scratch_copy(work), *args)
+            scratch_copy(work)
+            if prepare is not None:
+                prepare(work)
+            out = snakemake(work, *args)
             if out.returncode != 0:
                 failed.write_text(out.stderr[-4000:])
                 raise AssertionError(out.stderr[-4000:])
@@ -94,6 +109,19 @@ def shared_run(tmp_path_factory, name: str, *args: str) -> Path:
 def ci_run(tmp_path_factory) -> Path:
     """The shared ci-profile run of the Pillow (:data:`CI_RUN_TARGETS` under :data:`CI_RUN_CONFIG`)."""
     return shared_run(tmp_path_factory, "ci", *CI_RUN_TARGETS, "--cores", "2", *CI_RUN_CONFIG)
+
+
+#: the candidates of the shared small library (:func:`library_run`)
+N_LIBRARY = 12
+LIBRARY_TABLE = f"{CI}/descriptors/pillow/library.csv"
+
+
+def library_run(tmp_path_factory) -> Path:
+    """The shared run of a small library: the Pillow's descriptor table of the first
+    :data:`N_LIBRARY` candidates (:func:`small_library`) under :data:`CI_RUN_CONFIG`, the asset
+    job, two library jobs of six and the descriptor job (the fault and Slurm tests' reference)."""
+    return shared_run(tmp_path_factory, "library", LIBRARY_TABLE, "--cores", "2", *CI_RUN_CONFIG,
+                      prepare=lambda work: small_library(work, N_LIBRARY))
 
 
 def copy_run(run: Path, dest: Path, *parts: str) -> Path:

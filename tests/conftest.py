@@ -5,8 +5,9 @@ With ``-n auto`` (the project's default, ``pyproject.toml``: two workers on two 
 worker processes by group (``--dist loadgroup``): every test that reads the shared ci-profile run is
 in the group ``ci_run``, so one worker makes the run once and then reads it, and every other
 module whose tests share a module-scoped fixture is a group of its own, so the fixture is built
-once. The ``ci_run`` group goes first (it is the longest), then the modules marked ``slow``, so
-that the short tests fill the other worker's time at the end.
+once. The ``ci_run`` group goes first (it is the longest), then the Slurm test's module (on the
+other worker meanwhile), then the modules marked ``slow``, so that the short tests fill the
+workers' time at the end.
 """
 
 from __future__ import annotations
@@ -48,6 +49,11 @@ def _shares_a_module_fixture(item) -> bool:
     return any(defs and defs[-1].scope == "module" for defs in info.name2fixturedefs.values())
 
 
+#: the groups that start first, in this order: the shared ci run (the longest, on one worker),
+#: then the Slurm test (a cluster's start and queue waits, on the other worker meanwhile)
+FIRST = ("ci_run", "test_slurm")
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
     slow_modules = {item.path for item in items if item.get_closest_marker("slow")}
@@ -61,8 +67,9 @@ def pytest_collection_modifyitems(config, items):
 
     def rank(item):
         group = item.get_closest_marker("xdist_group")
-        if group is not None and group.args and group.args[0] == "ci_run":
-            return 0
-        return 1 if item.path in slow_modules else 2
+        name = group.args[0] if group is not None and group.args else None
+        if name in FIRST:
+            return FIRST.index(name)
+        return len(FIRST) + (0 if item.path in slow_modules else 1)
 
     items.sort(key=rank)  # stable: the order within each rank is the collection's

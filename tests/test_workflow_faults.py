@@ -22,24 +22,19 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from _workflow import scratch_copy, snakemake
+from _workflow import CI_RUN_CONFIG, LIBRARY_TABLE, N_LIBRARY, library_run, scratch_copy, small_library, snakemake
 
 from knockgs_core.audits import audit_missing_frames, audit_nonfinite, audit_rollout_metadata, rollout_expectations
 
 P = "results/ci"
-TABLE = f"{P}/descriptors/pillow/library.csv"
-ARGS = ("--cores", "2", "--configfile=config/ci.yaml", "--config", "objects=[pillow]", "--")
-N_CANDIDATES = 12
+TABLE = LIBRARY_TABLE
+ARGS = ("--cores", "2", *CI_RUN_CONFIG, "--")  # the shared small library's settings (tests/_workflow.py)
+N_CANDIDATES = N_LIBRARY
 
 
 def _workflow(dest: Path) -> Path:
     """A scratch copy of the workflow whose candidate library is the first N_CANDIDATES rows."""
-    work = scratch_copy(dest)
-    table = work / "config" / "candidates.csv"
-    lines = table.read_text().splitlines(keepends=True)
-    head = sum(1 for line in lines if line.startswith("#")) + 1  # comments and the header
-    table.write_text("".join(lines[: head + N_CANDIDATES]))
-    return work
+    return small_library(scratch_copy(dest), N_CANDIDATES)
 
 
 def _start(work: Path, *extra: str) -> subprocess.Popen:
@@ -47,13 +42,12 @@ def _start(work: Path, *extra: str) -> subprocess.Popen:
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def reference(tmp_path_factory):
-    """An uninterrupted run: the table and the rollout cache it was computed from."""
-    work = _workflow(tmp_path_factory.mktemp("reference"))
-    out = snakemake(work, *ARGS, TABLE)
+    """An uninterrupted run: the table and the rollout cache it was computed from (the shared
+    small-library run, read only)."""
+    work = library_run(tmp_path_factory)
     assert len(pd.read_csv(work / TABLE)) == N_CANDIDATES
-    assert out.returncode == 0, out.stderr[-3000:]
     return work
 
 

@@ -48,7 +48,8 @@ P = f"results/{PROFILE}"
 DEVICE = config["device"]
 ON_GPU = DEVICE.startswith("cuda")
 # every simulating job's bitwise-reproducible P2G, on a GPU: CPU rollouts are reproducible either way,
-# and keep the scatter, 1.4x faster there than the fixed-point sums (benchmarks/README.md)
+# and keep the scatter, 1.4x faster there than the fixed-point sums
+# (benchmarks/results/2026-11-28-fixed-point-sums.md)
 DETERMINISTIC = config["deterministic"] and ON_GPU
 # the paper profile's rollouts are large (0.2-0.9 GB each): the jobs that read many of them
 # (descriptors, evaluations, shift tables, audits) read them on threads; the same outputs for
@@ -87,7 +88,7 @@ _CHUNK_OF = {case: k for k, chunk in enumerate(LIBRARY_CHUNKS) for case in chunk
 # A rollout job's time limit [min] (`runtime`, what a Slurm profile asks for) for `runs`
 # rollouts: an hour a paper-scale rollout on a CPU, 20 minutes at the smaller profiles; on a
 # GPU a paper-scale rollout takes 2-12 s (the Ficus's 75,000 substeps the longest;
-# benchmarks/README.md), so a minute a rollout and ten for the job's start leave 5x there:
+# benchmarks/results/2026-11-26-paper-tables-one-gpu.md), so a minute a rollout and ten for the job's start leave 5x there:
 # 54 candidates on one card ask for 64 minutes, not 54 hours.
 _ROLLOUT_MINUTES = (1 if ON_GPU else 60) if PROFILE == "paper" else 20
 _JOB_MINUTES = 10 if PROFILE == "paper" and ON_GPU else 0
@@ -262,9 +263,18 @@ def evaluation_runs(wc):
     ]
 
 
-def diag_rollout(obj, probe, theta):
-    """A diagnostics' rollout of (probe, theta): one job each (simulate.smk: rollout_diag)."""
-    return f"{P}/rollouts/{obj}/diag/{theta_tag(theta)}/{probe}.parquet"
+def diag_set_folder(obj, name):
+    """The folder of a diagnostics' set of rollouts (one job: simulate.smk, rollout_diag_set)."""
+    return f"{P}/rollouts/{obj}/diag/{SPLIT}/{name}"
+
+
+def diag_set_rollouts(obj, name):
+    """{"probe/theta": rollout} of a diagnostics' set: every (probe, theta) that the study
+    ``name`` simulates beyond the evaluation rollouts, known once its estimates exist
+    (:func:`diag_set_cases`, through their checkpoints)."""
+    folder = diag_set_folder(obj, name)
+    probes, thetas = diag_set_cases(obj, name)
+    return {f"{pr}/{theta_tag(th)}": f"{folder}/{theta_tag(th)}/{pr}.parquet" for pr in probes for th in thetas}
 
 
 def frames_file(obj, probe, theta):
@@ -454,29 +464,25 @@ def shift_estimates(obj):
     return {m: estimate_json(obj, SPLIT, m) for m in CONFIG_DEPLOYABLE}
 
 
-def diag_rollouts(obj, probes, targets):
-    """{"probe/theta": rollout} of every deployable estimate of ``targets`` and of the
-    targets themselves under ``probes``."""
+def shift_cases(obj, probes, targets):
+    """(probes, thetas): ``targets`` and every deployable estimate of them, each theta once."""
     truth = target_thetas()
     thetas = [truth[t] for t in targets]
     for m in shift_estimates(obj):
         est = estimated_thetas(obj, SPLIT, m)
         thetas += [est[t] for t in targets]
-    return {f"{pr}/{theta_tag(th)}": diag_rollout(obj, pr, th) for pr in probes for th in thetas}
+    return list(probes), list({theta_tag(th): th for th in thetas}.values())
 
 
 def duration_inputs(wc):
-    targets = list(target_thetas())
-    rollouts = diag_rollouts(wc.object, [SHIFTS["duration"]], targets)
     probe_a = [eval_rollout(wc.object, calibration_probe(wc.object), th) for th in target_thetas().values()]
     return {"estimates": list(shift_estimates(wc.object).values()), "targets": "config/targets.csv",
-            "rollouts": sorted(set(rollouts.values())), "probe_a": folders(probe_a)}
+            "rollouts": diag_set_folder(wc.object, "duration"), "probe_a": folders(probe_a)}
 
 
 def contact_inputs(wc):
-    rollouts = diag_rollouts(wc.object, SHIFTS["contact"], [SHIFTS["contact_target"]])
     return {"estimates": list(shift_estimates(wc.object).values()), "targets": "config/targets.csv",
-            "rollouts": sorted(set(rollouts.values()))}
+            "rollouts": diag_set_folder(wc.object, "contact")}
 
 
 def passive_target_rollouts(obj, split):
@@ -488,24 +494,51 @@ def passive_target_rollouts(obj, split):
 # ---------------------------------------------------------------- the observation ladder (ladder.smk)
 
 
-def ladder_thetas(obj, split):
-    """(rung, method) -> {target: frozen theta} of every rung's deployable estimates."""
-    out = {}
-    for rung in LADDER_RUNGS:
-        for m in CONFIG_DEPLOYABLE:
-            out[(rung, m)] = thetas_of(checkpoints.ladder_estimate.get(object=obj, split=split, rung=rung, method=m).output.json)
-    return out
+def ladder_set_cases(obj, rung):
+    """(probes, thetas) of a rung's diagnostics' set: its estimates under the first Probe B,
+    each theta once, but those of a target (its evaluation rollout has it)."""
+    targets = {theta_tag(th) for th in target_thetas(SPLIT).values()}
+    thetas = {}
+    for m in CONFIG_DEPLOYABLE:
+        est = thetas_of(checkpoints.ladder_estimate.get(object=obj, split=SPLIT, rung=rung, method=m).output.json)
+        thetas.update({theta_tag(th): th for th in est.values() if theta_tag(th) not in targets})
+    return [heldout_probes(obj)[0]], list(thetas.values())
 
 
 def ladder_probe_b_rollouts(wc):
-    """{"theta tag": rollout} under the first Probe B of every rung's estimates (diagnostics'
-    rollouts) and of the targets (their evaluation rollouts)."""
+    """{"theta tag": rollout} under the first Probe B of every rung's estimates (the rungs'
+    diagnostics' sets) and of the targets (their evaluation rollouts)."""
     probe = heldout_probes(wc.object)[0]
     out = {theta_tag(th): eval_rollout(wc.object, probe, th) for th in target_thetas(SPLIT).values()}
-    for est in ladder_thetas(wc.object, SPLIT).values():
-        for th in est.values():
-            out.setdefault(theta_tag(th), diag_rollout(wc.object, probe, th))
+    for rung in LADDER_RUNGS:
+        for key, path in diag_set_rollouts(wc.object, f"ladder-{rung}").items():
+            out.setdefault(key.split("/", 1)[1], path)
     return out
+
+
+def diag_set_cases(obj, name):
+    """(probes, thetas) of the diagnostics' set ``name``: ``duration`` and ``contact`` (the probe
+    shifts) or ``ladder-{rung}`` (the observation ladder)."""
+    if name == "duration":
+        return shift_cases(obj, [SHIFTS["duration"]], list(target_thetas()))
+    if name == "contact":
+        return shift_cases(obj, SHIFTS["contact"], [SHIFTS["contact_target"]])
+    return ladder_set_cases(obj, name.removeprefix("ladder-"))
+
+
+def diag_set_estimates(wc):
+    """The estimate files that a diagnostics' set's thetas come from."""
+    if wc.set in ("duration", "contact"):
+        return list(shift_estimates(wc.object).values())
+    rung = wc.set.removeprefix("ladder-")
+    return [checkpoints.ladder_estimate.get(object=wc.object, split=SPLIT, rung=rung, method=m).output.json
+            for m in CONFIG_DEPLOYABLE]
+
+
+def diag_set_runs(wc):
+    """The rollouts of a diagnostics' set's job, without deformation gradients."""
+    return [{"theta": parse_theta(key.split("/", 1)[1]), "probe": key.split("/", 1)[0], "rollout": path, "F": None}
+            for key, path in diag_set_rollouts(wc.object, wc.set).items()]
 
 
 def ladder_table_inputs(wc):
@@ -516,8 +549,7 @@ def ladder_table_inputs(wc):
         "observations": [f"{P}/ladder/observations/{wc.object}/lib/chunk{k}.csv" for k in range(len(LIBRARY_CHUNKS))]
         + [f"{P}/ladder/observations/{wc.object}/targets_{SPLIT}.csv"],
         "targets": "config/targets.csv",
-        "rollouts": sorted({p for p in rollouts.values() if "/diag/" in p} | set(folders(p for p in rollouts.values()
-                                                                                          if "/diag/" not in p))),
+        "rollouts": folders(rollouts.values()),
     }
 
 

@@ -6,8 +6,9 @@
 #   P/ladder/estimates/{object}/{split}/{rung}/{method}.json   every deployable estimator per rung
 #   P/tables/ladder_{object}.csv|md, P/figures/ladder_{object}.png   joint error and Probe-B
 #                                                           trajectory RMSE per rung and method
-# Probe-B rollouts of the rungs' estimates: P/rollouts/{object}/diag (rule rollout_diag).
-# Not in `all` unless config ladder.in_all: `snakemake --cores 2 ladder` (cost in the README).
+# Probe-B rollouts of the rungs' estimates: P/rollouts/{object}/diag/{split}/ladder-{rung}
+# (rule rollout_diag_set, a job a rung).
+# Not in `all` unless config ladder.in_all: `snakemake --cores 2 ladder` (its cost: docs/results.md).
 
 LADDER = config["ladder"]
 LADDER_SETTINGS = LadderSettings(depth_noise=tuple(LADDER["depth_noise"]), depth_tol=LADDER["depth_tol"],

@@ -1,6 +1,7 @@
 # Probe shifts and passive versus active observation (docs/probe_shifts.md):
-#   P/rollouts/{object}/diag/{theta}/{probe}.parquet    a target or frozen estimate under a shift probe
-#                                                       (rule rollout_diag, simulate.smk)
+#   P/rollouts/{object}/diag/{split}/duration|contact/{theta}/{probe}.parquet
+#                                                       the targets and their frozen estimates under
+#                                                       the shift probes (rule rollout_diag_set, simulate.smk)
 #   P/tables/duration_{object}.csv|md                   every deployable method's frozen Probe-A estimates
 #                                                       under the duration-shift probe, five targets
 #   P/tables/contact_{object}.csv|md                    the same under two contact locations, one target
@@ -47,7 +48,7 @@ rule duration_table:
         probe_a=lambda wc: calibration_probe(wc.object),
         split=SPLIT,
         methods=lambda wc: list(shift_estimates(wc.object)),
-        rollouts=lambda wc: diag_rollouts(wc.object, [SHIFTS["duration"]], list(target_thetas())),
+        rollouts=lambda wc: diag_set_rollouts(wc.object, "duration"),
         probe_a_rollouts=lambda wc: {theta_tag(th): eval_rollout(wc.object, calibration_probe(wc.object), th)
                                      for th in target_thetas().values()},
         targets=lambda wc: list(target_thetas()),
@@ -75,7 +76,7 @@ rule contact_table:
         probes=SHIFTS["contact"],
         split=SPLIT,
         methods=lambda wc: list(shift_estimates(wc.object)),
-        rollouts=lambda wc: diag_rollouts(wc.object, SHIFTS["contact"], [SHIFTS["contact_target"]]),
+        rollouts=lambda wc: diag_set_rollouts(wc.object, "contact"),
         targets=[SHIFTS["contact_target"]],
     resources:
         mem_mb=READ_MEM_MB,

@@ -1,7 +1,8 @@
 # MPM rollouts, cached as Parquet: one file per (object, theta, probe).
 #
 # A job simulates several rollouts in one process: a chunk of LIBRARY_CHUNK candidates
-# (library), or one theta under the evaluation probes of its object (evaluation). Process
+# (library), one theta under the evaluation probes of its object (evaluation), or every
+# rollout one diagnostics' study adds (a diagnostics' set). Process
 # start-up (Python, Warp, the contract) costs ~2 s a job on a laptop CPU, as much as a whole
 # Pillow rollout; amortizing it keeps the default `all` within its time budget. Every
 # rollout still has its own Parquet file, in the job's output folder, and a finished job is
@@ -70,30 +71,33 @@ rule rollout_eval:
         "../scripts/rollout.py"
 
 
-rule rollout_diag:
-    """One theta under one probe, without deformation gradients: the diagnostics' rollouts
-    (one job per rollout: which thetas need which probe is known only once the estimates
-    exist)."""
+rule rollout_diag_set:
+    """A diagnostics' set: every (theta, probe) a study simulates beyond the evaluation rollouts
+    (the probe shifts' ``duration`` and ``contact``, each rung's Probe B of the observation
+    ladder, ``ladder-{rung}``), without deformation gradients, in one job. Which thetas is known
+    only once the study's estimates exist (their checkpoints)."""
     conda:
         "../envs/knockgs.yaml"
     input:
         particles=f"{P}/assets/{{object}}.particles.npz",
+        estimates=diag_set_estimates,
     output:
-        rollout=f"{P}/rollouts/{{object}}/diag/{{theta}}/{{probe}}.parquet",
+        folder=directory(f"{P}/rollouts/{{object}}/diag/{SPLIT}/{{set}}"),
     log:
-        f"logs/{PROFILE}/rollouts/{{object}}/diag/{{theta}}/{{probe}}.log",
+        f"logs/{PROFILE}/rollouts/{{object}}/diag/{SPLIT}/{{set}}.log",
     benchmark:
-        f"{P}/benchmarks/rollouts/{{object}}/diag/{{theta}}/{{probe}}.tsv"
+        f"{P}/benchmarks/rollouts/{{object}}/diag/{SPLIT}/{{set}}.tsv"
+    wildcard_constraints:
+        set="duration|contact|ladder-[^/]+",
     params:
         profile=PROFILE,
         object=lambda wc: wc.object,
-        runs=lambda wc: [{"theta": parse_theta(wc.theta), "probe": wc.probe,
-                          "rollout": f"{P}/rollouts/{wc.object}/diag/{wc.theta}/{wc.probe}.parquet", "F": None}],
+        runs=diag_set_runs,
         device=DEVICE,
         deterministic=DETERMINISTIC,
     resources:
         mem_mb=16000 if PROFILE == "paper" else 2000,
-        runtime=rollout_minutes(1),
+        runtime=lambda wc: rollout_minutes(len(diag_set_runs(wc))),
         gpu=1 if ON_GPU else 0,
     threads: 1
     script:

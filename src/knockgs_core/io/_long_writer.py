@@ -26,7 +26,7 @@ from ..errors import InputError
 __all__ = ["LONG_COMPRESSION", "GROUP_ROWS", "long_encoding", "long_table", "LongFormatStream"]
 
 #: codec of the long-format files: LZ4 writes a paper-scale rollout about 4x faster than zstd's
-#: default (benchmarks/README.md, "Writing rollouts"), in a file a third smaller thanks to the encodings
+#: default (benchmarks/results/2026-11-25-rollout-writing.md), in a file a third smaller thanks to the encodings
 LONG_COMPRESSION = "lz4"
 
 #: a streamed file's frames go out in row groups of at least this many rows (a paper-scale

@@ -24,7 +24,7 @@ TILE_SIZE = 16
 TILE_SIZE_CPU = 4
 """Tile edge [px] on the CPU for small scenes, where a pixel's cost is the length of its
 tile's list and no shared memory rewards big tiles: 4 px renders the Pillow 2.6x faster
-than 16 px, with identical pixels (``benchmarks/README_render.md``)."""
+than 16 px, with identical pixels (``benchmarks/results/2026-11-22-renderer.md``)."""
 
 TILE_SIZE_CPU_LARGE = 8
 """Tile edge [px] on the CPU from ``CPU_LARGE_SCENE`` Gaussians on: binning then costs more

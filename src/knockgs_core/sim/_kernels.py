@@ -64,8 +64,8 @@ def mat33_to_f32(A: wp.mat33d) -> wp.mat33:
 # holds particle p's component k = 3 i + j at [k, p] (pitch: the particle count rounded up to
 # 32, so every row starts aligned), and a warp's 32 threads read one component of 32 particles
 # from one stretch of memory (as one 36- or 72-byte record a particle, each component's read
-# touched 32 sectors and a block's records outgrew the L1 cache: benchmarks/README.md, "the
-# matrices' layout"). On the CPU as records, an (n,) array of matrices: one load a matrix
+# touched 32 sectors and a block's records outgrew the L1 cache: benchmarks/results/2026-11-27-layout-and-instructions.md,
+# "the matrices' layout chosen per device"). On the CPU as records, an (n,) array of matrices: one load a matrix
 # (component by component, or as strided records, measured 3-12 % slower there).
 @wp.func
 def mat33_at(A: wp.array(dtype=wp.mat33), p: int) -> wp.mat33:
@@ -217,7 +217,7 @@ def polar_rotation(A: wp.mat33, q0: wp.quat, max_iter: int, step: float, rationa
     third of the error per iteration, and 1.5 nearly all of it (every error component still
     shrinks for any stretch: the factor stays below 2). Warm-started on the default Pillow,
     8.1 iterations a particle on average with 1, 2.8 with 1.5, to the same rotation
-    (benchmarks/README.md, "Polar iterations").
+    (benchmarks/results/2026-11-27-layout-and-instructions.md, "Polar iterations").
 
     ``rational = 1`` takes the corrections below 0.1 rad as the rational quaternion ``(h, 1)``,
     ``h = step omega / 2``, normalized with the product (a rotation by ``2 atan(|h|)``: short of
