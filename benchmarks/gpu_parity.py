@@ -86,7 +86,7 @@ def gpu_choices(device: str) -> dict:
 
     from knockgs_core.fem import VerificationSettings, mpm_block_rollout
     from knockgs_core.fem._verification import mpm_block_model
-    from knockgs_core.sim import GPU_SOLVER_OPTIONS, GPU_STORAGE, MPMSolver, config_context, make_state
+    from knockgs_core.sim import GPU_SOLVER_OPTIONS, GPU_STORAGE, MPMSolver, make_state
 
     root = Path(__file__).resolve().parents[1]
     block = yaml.safe_load((root / "config/ci.yaml").read_text())["verification"]
@@ -98,11 +98,10 @@ def gpu_choices(device: str) -> dict:
     chosen = {key: getattr(solver, key) for key in GPU_SOLVER_OPTIONS}
     storage = {"matrix_layout": "components" if state.particle_C.ndim == 2 else "records",
                "deformation_storage": "displacement" if state.particle_F.ndim == 3 else "float64"}
-    with config_context(deterministic=True):
-        u = {"device": mpm_block_rollout(n_grid, settings, device=device)["u"],
-             "cpu_replay": mpm_block_rollout(n_grid, settings, device="cpu", solver_options=GPU_SOLVER_OPTIONS,
-                                             storage=GPU_STORAGE)["u"],
-             "cpu": mpm_block_rollout(n_grid, settings, device="cpu")["u"]}
+    u = {"device": mpm_block_rollout(n_grid, settings, device=device, deterministic=True)["u"],
+         "cpu_replay": mpm_block_rollout(n_grid, settings, device="cpu", deterministic=True,
+                                         solver_options=GPU_SOLVER_OPTIONS, storage=GPU_STORAGE)["u"],
+         "cpu": mpm_block_rollout(n_grid, settings, device="cpu", deterministic=True)["u"]}
     rms = float(np.sqrt(np.mean(np.sum(u["cpu"] ** 2, axis=-1))))
 
     def differs(a, b):

@@ -88,18 +88,38 @@ def test_reproducible_rollouts_are_the_default_up_to_rounding_and_say_so(pillow_
     assert np.abs(b.positions - a.positions).max() < 1e-4 * disp
     assert b.meta["deterministic"] is True and "deterministic" not in a.meta
     assert b.meta["reproducible_sums"] == "fixed_point" and "reproducible_sums" not in a.meta
-    # a study's rollouts take the setting of the enclosing config_context (a workflow job's
-    # set_config), unless a call says otherwise; the former setting comes back after the block
-    from knockgs_core.sim import config_context, set_config
-
-    with config_context(deterministic=True):
-        d = run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps)
-        e = run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps, deterministic=False)
-    assert d.positions.tobytes() == b.positions.tobytes() and d.meta["reproducible_sums"] == "fixed_point"
+    # the setting is the call's own keyword, False unless given: no process-wide default
+    e = run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps, deterministic=False)
     assert e.positions.tobytes() == a.positions.tobytes() and "deterministic" not in e.meta
-    assert "deterministic" not in run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps).meta
-    with pytest.raises(InputError, match="deterministic"):
-        set_config(deterministic="yes")
+    for bad in ("yes", None, 1.5):
+        with pytest.raises(InputError, match="deterministic") as exc:
+            run_rollout(contract, (0.7, 1.2), "standard_x", particles=ps, deterministic=bad)
+        assert exc.value.field == "deterministic"
+    # a study's model holds the setting beside its device and hands it to every rollout
+    from knockgs_core.discrepancy._forward import ForwardModel, ModelSpec
+
+    fw = ForwardModel(contract, ps, deterministic=True)
+    assert fw.rollout(ModelSpec((0.7, 1.2)), "standard_x").tobytes() == b.positions.tobytes()
+
+
+def test_a_study_hands_the_reproducible_setting_to_its_solvers(monkeypatch):
+    # the verification study's block rollouts, as every study: deterministic= next to device=,
+    # given to each solver the study makes (False unless given)
+    from knockgs_core.fem import VerificationSettings, mpm_block_rollout
+    from knockgs_core.sim import MPMSolver
+
+    made = []
+    init = MPMSolver.__init__
+
+    def recording(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        made.append(self.deterministic)
+
+    monkeypatch.setattr(MPMSolver, "__init__", recording)
+    s = VerificationSettings(n_grid=(16, 24), n_frames=3, fem_cells=2, fem_dt=0.025)
+    mpm_block_rollout(16, s, device="cpu", deterministic=True)
+    mpm_block_rollout(16, s, device="cpu")
+    assert made == [True, False]
 
 
 def test_stiffer_heavier_scaling_on_an_asset(pillow_ci):

@@ -37,7 +37,7 @@ from knockgs_core.fem import (
     rms_curve,
     verification_study,
 )
-from knockgs_core.sim import GPU_SOLVER_OPTIONS, GPU_STORAGE, config_context, particle_volumes
+from knockgs_core.sim import GPU_SOLVER_OPTIONS, GPU_STORAGE, particle_volumes
 
 ROOT = Path(__file__).resolve().parents[1]
 CI = "results/ci"
@@ -135,10 +135,9 @@ def test_the_gpus_substep_meets_the_reference_as_the_cpus_does():
     and the polar iterations' 1e-7 rad are 3e-4 to 5e-4 of them), far below the gap to the
     reference (28 %)."""
     s = VerificationSettings.from_config(_config("ci.yaml"))
-    gpu = dict(solver_options=GPU_SOLVER_OPTIONS, storage=GPU_STORAGE)
+    gpu = dict(solver_options=GPU_SOLVER_OPTIONS, storage=GPU_STORAGE, deterministic=True)
     cpu_table = verification_study(s, device="cpu")
-    with config_context(deterministic=True):
-        gpu_table = verification_study(s, device="cpu", **gpu)
+    gpu_table = verification_study(s, device="cpu", **gpu)
     cpu_mpm, gpu_mpm = (t[t["model"] == "mpm"].reset_index(drop=True) for t in (cpu_table, gpu_table))
     assert (gpu_mpm["period_error_pct"] - cpu_mpm["period_error_pct"]).abs().max() < 0.05
     assert (gpu_mpm["traj_rmse_pct"] - cpu_mpm["traj_rmse_pct"]).abs().max() < 0.2
@@ -148,8 +147,7 @@ def test_the_gpus_substep_meets_the_reference_as_the_cpus_does():
     # the trajectories themselves, at the finest level
     n = s.n_grid[-1]
     u_cpu = mpm_block_rollout(n, s, device="cpu")["u"]
-    with config_context(deterministic=True):
-        u_gpu = mpm_block_rollout(n, s, device="cpu", **gpu)["u"]
+    u_gpu = mpm_block_rollout(n, s, device="cpu", **gpu)["u"]
     cpu_step = dict(GPU_SOLVER_OPTIONS, polar_step=1.0, polar_update="axis_angle")
     u_cpu_step = mpm_block_rollout(n, s, device="cpu", solver_options=cpu_step, storage=GPU_STORAGE)["u"]
     rms = np.sqrt(np.mean(np.sum(u_cpu**2, axis=-1)))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import json
 import re
 import shutil
@@ -346,12 +347,25 @@ def test_boolean_config_values_are_read_as_yaml_writes_them(tmp_path):
     assert bad.returncode != 0 and "deterministic" in bad.stdout + bad.stderr and "'maybe'" in bad.stdout + bad.stderr
 
 
+def _calls_with(code: str, keyword: str) -> list[tuple[str, list[str]]]:
+    """(called name, its keywords as written) of each call in ``code`` (Python) that passes
+    ``keyword`` (``name=value`` as written)."""
+    out = []
+    for node in ast.walk(ast.parse(code)):
+        keywords = [ast.unparse(k) for k in node.keywords] if isinstance(node, ast.Call) else []
+        if keyword in keywords:
+            f = node.func
+            out.append((f.attr if isinstance(f, ast.Attribute) else ast.unparse(f), keywords))
+    return out
+
+
 def test_every_simulating_rule_takes_the_reproducible_setting():
     # deterministic (on a GPU: every simulation of the job by fixed-point P2G sums) reaches every
-    # rule that simulates: its params carry DETERMINISTIC and its script sets it once as the
-    # job's setting for all its simulations (set_config); rules with a device that only
-    # render are listed
+    # rule that simulates: its params carry DETERMINISTIC and its script passes it, as a keyword
+    # beside the device, to every call that simulates (no process-wide setting); rules with a
+    # device that only render are listed
     render_only = {"render.py", "ladder_observe.py"}
+    renders_stored = {"rollout_video"}  # calls with the device in simulating scripts that only render
     seen = set()
     for f in sorted((ROOT / "workflow/rules").glob("*.smk")):
         text = f.read_text()
@@ -366,9 +380,14 @@ def test_every_simulating_rule_takes_the_reproducible_setting():
                 continue
             assert "deterministic=DETERMINISTIC" in body, f"{f.name}: rule {name} simulates without the setting"
             code = (ROOT / "workflow/scripts" / script).read_text()
-            # one way in: the job's setting, set once before anything simulates
-            assert "set_config(deterministic=p.deterministic)" in code, f"{script} drops the setting"
-            assert code.count("deterministic=") == 1, f"{script} passes the setting twice"
+            # every call given the job's device simulates, and is given the job's setting beside
+            # it, but for those that only render a stored rollout
+            calls = [(fn, kw) for fn, kw in _calls_with(code, "device=p.device") if fn not in renders_stored]
+            assert calls, f"{script} simulates nothing with the job's device"
+            for fn, kw in calls:
+                assert "deterministic=p.deterministic" in kw, f"{script}: {fn} drops the setting"
+            # and nowhere else: no job-wide setting beside the calls
+            assert code.count("deterministic=") == len(calls), f"{script} passes the setting outside its simulations"
     assert {"rollout.py", "convergence.py", "discrepancy_run.py", "verification_fem.py"} <= seen and render_only <= seen
 
 

@@ -83,7 +83,7 @@ def run_rollout(
     sim_overrides: dict | None = None,
     particle_order: str = "auto",
     stream: RolloutStream | None = None,
-    deterministic: bool | None = None,
+    deterministic: bool = False,
 ) -> Rollout:
     """Simulate ``contract`` at ``theta = (s_E, s_rho)`` under its probe ``probe_name``.
 
@@ -113,7 +113,7 @@ def run_rollouts(
     concurrent: bool = True,
     particle_order: str = "auto",
     streams: Sequence[RolloutStream | None] | None = None,
-    deterministic: bool | None = None,
+    deterministic: bool = False,
 ) -> list[Rollout]:
     """Several rollouts of one contract, ``runs`` = [(theta, probe_name), ...], simulated
     together (:func:`knockgs_core.sim.simulate_many`): each is what :func:`run_rollout` makes
@@ -140,8 +140,8 @@ def run_rollouts(
     GPU the same rollout, bit for bit, on every run (the float atomics of the default P2G add
     in the order the GPU schedules them); recorded in the metadata (``deterministic``, and
     ``reproducible_sums``: how the sums were made reproducible, whose bits differ). CPU rollouts are
-    reproducible either way (and differ between the two in the last bits). None: the setting
-    of the enclosing :func:`knockgs_core.sim.config_context` (False outside one)."""
+    reproducible either way (and differ between the two in the last bits). True or False
+    only; a study passes its caller's setting to every rollout it runs."""
     with _streamed(streams, len(runs), export_F) as on_frame:
         out = _simulate_rollouts(contract, runs, particles=particles, device=device, export_F=export_F, probe=probe,
                                  progress=progress, sim_overrides=sim_overrides, concurrent=concurrent,
@@ -181,7 +181,7 @@ def _streamed(streams: Sequence[RolloutStream | None] | None, n_runs: int, expor
 
 
 def _simulate_rollouts(contract, runs, *, particles, device, export_F, probe, progress, sim_overrides, concurrent,
-                       particle_order, on_frame, deterministic=None) -> list[Rollout]:
+                       particle_order, on_frame, deterministic=False) -> list[Rollout]:
     """:func:`run_rollouts` without its streams: ``on_frame`` as in
     :func:`knockgs_core.sim.simulate_many`."""
     import warp as wp

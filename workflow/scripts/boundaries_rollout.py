@@ -10,12 +10,10 @@ from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.experiments import BoundarySettings, condition_world
 from knockgs_core.rollout import write_rollout
-from knockgs_core.sim import set_config
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
 p = snakemake.params
-set_config(deterministic=p.deterministic)  # the GPU's reproducible P2G for every simulation of the job
 folder = Path(snakemake.output.folder)
 check_files_in([run["rollout"] for run in p.runs], [folder], source="boundary rollout job")
 for run in p.runs:
@@ -33,6 +31,6 @@ with staged_folders(folder, log=log) as stages:
     for i, run in enumerate(p.runs):
         theta, probe = run["theta"], run["probe"]
         tag = f"[{i + 1}/{len(p.runs)}] {p.condition}: theta ({theta[0]:.6f}, {theta[1]:.6f}) probe {probe}"
-        ro = world.rollout(theta, probe, device=p.device)
+        ro = world.rollout(theta, probe, device=p.device, deterministic=p.deterministic)
         write_rollout(stages.path(run["rollout"]), ro)
         print(f"{tag}: done, {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s", file=log, flush=True)

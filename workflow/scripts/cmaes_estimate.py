@@ -8,15 +8,13 @@ from knockgs_core.contract import load_candidates, load_contract
 from knockgs_core.experiments import (VideoScene, candidate_bounds, cmaes_calibrate, cmaes_estimate, rollout_video,
                                       video_simulator)
 from knockgs_core.io import write_json
-from knockgs_core.sim import set_config
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
 p = snakemake.params
-set_config(deterministic=p.deterministic)  # the GPU's reproducible P2G for every simulation of the job
 contract = load_contract(p.object, p.profile)
 scene = VideoScene.from_files(contract, Path(snakemake.input.ply).parent, width=p.width, height=p.height)
-simulate_render = video_simulator(contract, scene, probe=p.probe, device=p.device)
+simulate_render = video_simulator(contract, scene, probe=p.probe, device=p.device, deterministic=p.deterministic)
 bounds = candidate_bounds(load_candidates(snakemake.input.candidates))
 print(f"{contract.name} ({contract.profile}), seed {p.seed}: budget {p.budget}, render {p.width}x{p.height}, "
       f"bounds {bounds}, depth weight {p.depth_weight}", file=log, flush=True)

@@ -5,16 +5,14 @@ from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.experiments import convergence_note, convergence_study, plot_convergence
 from knockgs_core.reporting import write_table
-from knockgs_core.sim import set_config
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
 p = snakemake.params
-set_config(deterministic=p.deterministic)  # the GPU's reproducible P2G for every simulation of the job
 contract = load_contract(p.object, p.profile)
 particles = load_particles(snakemake.input.particles)
 table = convergence_study(contract, particles, theta=tuple(p.theta), n_frames=p.n_frames, device=p.device,
-                          log=lambda msg: print(msg, file=log, flush=True))
+                          deterministic=p.deterministic, log=lambda msg: print(msg, file=log, flush=True))
 write_table(table, snakemake.output.csv, snakemake.output.md, title=f"Probe-A convergence: {p.object}",
             note=convergence_note(table))
 plot_convergence(table, snakemake.output.png, grid_lim=contract.sim.grid_lim,

@@ -5,13 +5,12 @@ from pathlib import Path
 from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.discrepancy import default_cases, make_case, world_cases
-from knockgs_core.sim import set_config
 
 sys.stderr = open(snakemake.log[0], "w")
 p = snakemake.params
-set_config(deterministic=p.deterministic)  # the GPU's reproducible P2G for every simulation of the job
 out = snakemake.output
 cases = default_cases(targets_path=snakemake.input.targets) + world_cases(targets_path=snakemake.input.targets)
 spec = {c.name: c for c in cases}[snakemake.wildcards.case]
 make_case(spec, load_contract(p.object, p.profile), load_particles(snakemake.input.particles),
-          measured_dir=Path(out.calib).parent, truth_dir=Path(out.truth).parent, device=p.device)
+          measured_dir=Path(out.calib).parent, truth_dir=Path(out.truth).parent, device=p.device,
+          deterministic=p.deterministic)

@@ -11,12 +11,10 @@ from knockgs_core.io import StagedFolders, check_files_in, staged_folders
 from knockgs_core.assets import load_particles
 from knockgs_core.contract import load_contract
 from knockgs_core.rollout import BackgroundWriter, batches, run_rollouts
-from knockgs_core.sim import set_config
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
 p = snakemake.params
-set_config(deterministic=p.deterministic)  # the GPU's reproducible P2G for every simulation of the job
 # a job writes a folder of rollouts, or a single rollout (output "rollout")
 folder = Path(snakemake.output.folder) if "folder" in snakemake.output.keys() else Path(snakemake.output.rollout).parent
 # the deformation gradients: in the same folder, or in a folder of their own (output "F_folder")
@@ -70,7 +68,7 @@ with staging as stages, BackgroundWriter(output=[Path(snakemake.output.rollout)]
 
         streams = [writer.stream(stages.path(run["rollout"]), stages.path(run["F"])) for _, run in group]
         rollouts = run_rollouts(contract, [(run["theta"], run["probe"]) for _, run in group], particles=particles,
-                                device=p.device, export_F=group[0][1]["F"] is not None,
+                                device=p.device, deterministic=p.deterministic, export_F=group[0][1]["F"] is not None,
                                 progress=progress, streams=streams, **extra)
         for tag, (_, run), ro in zip(tags, group, rollouts):
             print(f"{tag}: done on {ro.meta['device']}, {ro.meta['stats']['steps']} substeps, {ro.meta['wall_seconds']:.2f} s"

@@ -3,13 +3,12 @@ import sys
 
 from knockgs_core.fem import VerificationSettings, verification_note, verification_study
 from knockgs_core.reporting import write_table
-from knockgs_core.sim import set_config
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
 p = snakemake.params
-set_config(deterministic=p.deterministic)  # the GPU's reproducible P2G for every simulation of the job
 settings = VerificationSettings.from_config(p.settings)
-table = verification_study(settings, device=p.device, log=lambda msg: print(msg, file=log, flush=True))
+table = verification_study(settings, device=p.device, deterministic=p.deterministic,
+                           log=lambda msg: print(msg, file=log, flush=True))
 write_table(table, snakemake.output.csv, snakemake.output.md, title=f"MPM vs finite-element reference ({p.profile})",
             note=verification_note(table, settings))

@@ -67,7 +67,7 @@ def run(args) -> int:
     # the files are written frame by frame while the rollout runs (atomically: none on a failure)
     stream = RolloutStream(args.output, args.export_F)
     rollout = run_rollout(contract, args.theta, args.probe, particles=particles, device=args.device,
-                          deterministic=args.deterministic or None, export_F=bool(args.export_F), progress=progress,
+                          deterministic=bool(args.deterministic), export_F=bool(args.export_F), progress=progress,
                           stream=stream)
     try:
         stream.wait()

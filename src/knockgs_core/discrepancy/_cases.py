@@ -133,11 +133,11 @@ def default_cases(targets: list[tuple[float, float]] | None = None, *, targets_p
     return out
 
 
-def _sim(contract, particles, theta, probe, effects=(), device=None):
+def _sim(contract, particles, theta, probe, effects=(), *, device=None, deterministic: bool = False):
     from ..rollout import run_rollout
 
     params = with_effects(contract.sim, *effects)
-    r = run_rollout(contract, theta, probe, particles=particles, device=device,
+    r = run_rollout(contract, theta, probe, particles=particles, device=device, deterministic=deterministic,
                     sim_overrides={"effects": params.effects, "boundaries": params.boundaries})
     return np.asarray(r.positions, dtype=np.float64)
 
@@ -148,13 +148,14 @@ def _rel_change(Y, Y0, n_gs):
     return float(np.sqrt(np.mean(np.sum(d**2, -1))) / np.sqrt(np.mean(np.sum(D**2, -1))))
 
 
-def _find_strength(contract, particles, planted, target, theta, probe, H, device, log):
+def _find_strength(contract, particles, planted, target, theta, probe, H, log, *, device, deterministic):
     """Strength of ``planted`` whose held-out change relative to the clean response is
     ``target`` (within 10%): doubling/halving to bracket, then bisection in log."""
     build, s0, _, _ = PLANTED_EFFECTS[planted]
-    Y0 = _sim(contract, particles, theta, probe, device=device)
+    Y0 = _sim(contract, particles, theta, probe, device=device, deterministic=deterministic)
     return search_strength(
-        lambda s: _rel_change(_sim(contract, particles, theta, probe, (build(s, particles, H),), device), Y0, particles.n_gs),
+        lambda s: _rel_change(_sim(contract, particles, theta, probe, (build(s, particles, H),), device=device,
+                                   deterministic=deterministic), Y0, particles.n_gs),
         s0, target, log)
 
 
@@ -223,19 +224,21 @@ def _observe(Y, n_gs, spec: CaseSpec, rng, sigma, frames):
 
 
 def make_case(spec: CaseSpec, contract, particles, *, measured_dir, truth_dir, calibration_probe=None, heldout_probe=None,
-              device=None) -> dict:
+              device=None, deterministic: bool = False) -> dict:
     """Write the case ``spec``: ``measured_dir/measured_calib.parquet`` and
     ``measured_dir/measured_heldout.parquet`` (what the loop and the report may read), and
     ``truth_dir/truth.json`` plus ``truth_dir/clean.npz`` (clean Gaussian-particle
-    trajectories under both probes; only :func:`evaluate_case` reads them). Returns the
-    truth record."""
+    trajectories under both probes; only :func:`evaluate_case` reads them). ``device`` and
+    ``deterministic``: every rollout's (:func:`knockgs_core.rollout.run_rollouts`). Returns
+    the truth record."""
     calibration_probe = calibration_probe or contract.roles["calibration"]
     heldout_probe = heldout_probe or contract.roles["heldout"][0]
     if spec.world != "same":
         from ._worlds import make_world_case
 
         return make_world_case(spec, contract, particles, measured_dir=measured_dir, truth_dir=truth_dir,
-                               calibration_probe=calibration_probe, heldout_probe=heldout_probe, device=device)
+                               calibration_probe=calibration_probe, heldout_probe=heldout_probe, device=device,
+                               deterministic=deterministic)
     rng = np.random.default_rng(spec.seed)
     export_c = contract.probes[calibration_probe].export
     H = export_c.horizon
@@ -244,15 +247,15 @@ def make_case(spec: CaseSpec, contract, particles, *, measured_dir, truth_dir, c
     if spec.planted != "none":
         build, _, in_cat, describe = PLANTED_EFFECTS[spec.planted]
         target = LEVELS[spec.level] if isinstance(spec.level, str) else float(spec.level)
-        strength, achieved = _find_strength(contract, particles, spec.planted, target, spec.theta, heldout_probe, H, device,
-                                            search)
+        strength, achieved = _find_strength(contract, particles, spec.planted, target, spec.theta, heldout_probe, H,
+                                            search, device=device, deterministic=deterministic)
         effects = (build(strength, particles, H),)
         p, v, u = describe(strength)
         param = {"parameter": p, "value": v, "unit": u}
     n_gs = particles.n_gs
     clean = {}
     for role, pr in (("calib", calibration_probe), ("heldout", heldout_probe)):
-        clean[role] = _sim(contract, particles, spec.theta, pr, effects, device)
+        clean[role] = _sim(contract, particles, spec.theta, pr, effects, device=device, deterministic=deterministic)
     Yc = clean["calib"][:, :n_gs]
     D = float(np.sqrt(np.mean(np.sum((Yc - Yc[0]) ** 2, -1))))
     sigma = spec.noise_rel * D

@@ -85,14 +85,15 @@ def run_files(
     library_rollouts: Sequence = (),
     settings: LoopSettings = LoopSettings(),
     device: str | None = None,
+    deterministic: bool = False,
     config_dir=None,
     progress: Callable[[str], None] | None = None,
 ) -> DiscrepancyResult:
     """Load the contract and particles (``particles``: a ``.npz`` from ``knockgs asset``,
     else the asset is built), read ``measured`` (and ``heldout_measured``: probe -> file),
     run :func:`run_discrepancy` (library base calibration when ``library_rollouts`` are
-    given) and write the report into ``out_dir``. Every file read is listed in
-    ``result.inputs``."""
+    given; ``device`` and ``deterministic``: its rollouts') and write the report into
+    ``out_dir``. Every file read is listed in ``result.inputs``."""
     from ..io import check_outputs
     from ..contract import load_contract
     from ..rollout import check_rollout_meta, read_rollout_meta
@@ -126,7 +127,8 @@ def run_files(
     library = library_source(library_rollouts) if library_rollouts else None
     inputs += [str(p) for p in library_rollouts]
     result = run_discrepancy(m, contract, ps, probe=probe, heldout_probes=heldout_probes, heldout_measured=held,
-                             library=library, settings=settings, device=device, progress=progress)
+                             library=library, settings=settings, device=device,
+                             deterministic=deterministic, progress=progress)
     result.inputs = inputs
     write_report(result, out_dir)
     return result

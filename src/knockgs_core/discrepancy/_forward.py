@@ -45,13 +45,15 @@ class ForwardModel:
     """Simulates ``contract`` on ``particles`` at a :class:`ModelSpec`; rollouts are cached
     by (probe, spec), oldest dropped first beyond ``max_cache`` entries or
     ``max_cache_bytes``. ``catalogue`` maps effect keys to :class:`Candidate` entries (given
-    when the model is built, or by :meth:`with_catalogue`). ``n_simulations`` and
+    when the model is built, or by :meth:`with_catalogue`). ``device`` and ``deterministic``:
+    every rollout's (:func:`knockgs_core.rollout.run_rollouts`). ``n_simulations`` and
     ``seconds`` count the simulator calls actually made."""
 
     contract: object
     particles: object
     catalogue: dict[str, Candidate] = field(default_factory=dict)
     device: str | None = None
+    deterministic: bool = False
     max_cache: int = 64
     max_cache_bytes: float = 2e9
     n_simulations: int = 0
@@ -86,6 +88,7 @@ class ForwardModel:
         t0 = time.perf_counter()
         r = run_rollout(
             self.contract, spec.theta, probe, particles=self.particles, device=self.device,
+            deterministic=self.deterministic,
             sim_overrides={"effects": params.effects, "boundaries": params.boundaries},
         )
         self.seconds += time.perf_counter() - t0
@@ -103,7 +106,8 @@ class ForwardModel:
         params = with_effects(self.contract.sim, *self.effects(spec))
         t0 = time.perf_counter()
         r = run_rollout(
-            self.contract, spec.theta, probe, particles=self.particles, device=self.device, export_F=True,
+            self.contract, spec.theta, probe, particles=self.particles, device=self.device,
+            deterministic=self.deterministic, export_F=True,
             sim_overrides={"effects": params.effects, "boundaries": params.boundaries},
         )
         self.seconds += time.perf_counter() - t0

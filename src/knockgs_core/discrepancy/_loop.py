@@ -576,6 +576,7 @@ def run_discrepancy(
     library: LibrarySource | None = None,
     settings: LoopSettings = LoopSettings(),
     device: str | None = None,
+    deterministic: bool = False,
     progress: Callable[[str], None] | None = None,
 ) -> DiscrepancyResult:
     """Run the discrepancy loop on ``measured`` (the calibration-probe response) for
@@ -585,11 +586,12 @@ def run_discrepancy(
     probe. ``heldout_probes`` are predicted before and after (never used in the loop);
     ``heldout_measured`` maps some of them to their measurements, used only to score those
     predictions in the result. ``library`` selects the library base calibration, else LM
-    from (1, 1). Returns a :class:`DiscrepancyResult`.
+    from (1, 1). ``device`` and ``deterministic``: every rollout's of the loop
+    (:class:`ForwardModel`). Returns a :class:`DiscrepancyResult`.
     """
     say = progress or (lambda msg: None)
     probe, heldout_probes, heldout_measured = _check_probes(measured, contract, probe, heldout_probes, heldout_measured)
-    pb = Problem(measured, ForwardModel(contract, particles, device=device), probe, settings)
+    pb = Problem(measured, ForwardModel(contract, particles, device=device, deterministic=deterministic), probe, settings)
     log: list = []
 
     base, base_method, lib_details = _base_calibration(pb, library, settings, log, say)

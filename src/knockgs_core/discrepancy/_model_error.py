@@ -207,7 +207,8 @@ def build_model_error(model: ForwardModel, *, factor: float, c_max: float, floor
     """The refined model of ``model`` (its contract refined by ``factor``, particles rebuilt)
     and what measures the floor (``floor``, :data:`FLOOR_KINDS`): the model at the grid
     placements :data:`FLOOR_SHIFTS` (``shifts``), the model refined by ``factor**2``
-    (``second_refinement``), or nothing (``term``: the term's own energy is the floor)."""
+    (``second_refinement``), or nothing (``term``: the term's own energy is the floor). The
+    models made here simulate on ``model``'s device with its ``deterministic``."""
     from ..assets import build_asset
 
     if floor not in FLOOR_KINDS:
@@ -215,7 +216,8 @@ def build_model_error(model: ForwardModel, *, factor: float, c_max: float, floor
 
     def refine(f):
         contract = refined_contract(model.contract, f)
-        return ForwardModel(contract, build_asset(contract).particles, catalogue=dict(model.catalogue), device=model.device)
+        return ForwardModel(contract, build_asset(contract).particles, catalogue=dict(model.catalogue), device=model.device,
+                            deterministic=model.deterministic)
 
     refined = refine(factor)
     length = refined.contract.sim.grid_lim / refined.contract.sim.n_grid
@@ -224,7 +226,7 @@ def build_model_error(model: ForwardModel, *, factor: float, c_max: float, floor
         dx = model.contract.sim.grid_lim / model.contract.sim.n_grid
         placements = tuple(
             ForwardModel(*translated(model.contract, model.particles, np.asarray(s) * dx), catalogue=dict(model.catalogue),
-                         device=model.device)
+                         device=model.device, deterministic=model.deterministic)
             for s in FLOOR_SHIFTS)
     return ModelError(refined=refined, factor=float(factor), c_max=float(c_max), length=float(length),
                       second=refine(factor * factor) if floor == "second_refinement" else None, placements=placements,

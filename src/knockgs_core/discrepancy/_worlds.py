@@ -91,10 +91,12 @@ def _surface_points(contract) -> np.ndarray:
 
 class _World:
     """Simulates one world: ``run(theta, probe, strength)`` returns (clean positions of the
-    loop's Gaussian particles [T, n_gs, 3], positions of the world's surface points [T, P, 3])."""
+    loop's Gaussian particles [T, n_gs, 3], positions of the world's surface points [T, P, 3]).
+    ``device`` and ``deterministic``: the finer world's rollouts'."""
 
-    def __init__(self, spec: CaseSpec, contract, particles, horizon: float, device=None):
+    def __init__(self, spec: CaseSpec, contract, particles, horizon: float, *, device=None, deterministic: bool = False):
         self.spec, self.contract, self.particles, self.H, self.device = spec, contract, particles, horizon, device
+        self.deterministic = deterministic
         self.loop_points = np.asarray(particles.positions[: particles.n_gs], dtype=np.float64)
         if spec.world == "finer":
             from ..assets import build_asset
@@ -127,8 +129,9 @@ class _World:
 
             effects = () if strength is None else (PLANTED_EFFECTS[planted][0](strength, self.wp, self.H),)
             p = with_effects(self.wc.sim, *effects)
-            X = np.asarray(run_rollout(self.wc, theta, probe, particles=self.wp, device=self.device,
-                                       sim_overrides={"effects": p.effects, "boundaries": p.boundaries}).positions, np.float64)
+            ro = run_rollout(self.wc, theta, probe, particles=self.wp, device=self.device, deterministic=self.deterministic,
+                             sim_overrides={"effects": p.effects, "boundaries": p.boundaries})
+            X = np.asarray(ro.positions, np.float64)
             U = X - X[0]
             length = self.wc.sim.grid_lim / self.wc.sim.n_grid
             L = self.loop_points[None] + displacement_at(X[0], U, self.loop_points, length=length)
@@ -149,14 +152,15 @@ def _rel_change(Y, Y0):
 
 
 def make_world_case(spec: CaseSpec, contract, particles, *, measured_dir, truth_dir, calibration_probe: str,
-                    heldout_probe: str, device=None) -> dict:
+                    heldout_probe: str, device=None, deterministic: bool = False) -> dict:
     """Write the case ``spec`` (world ``finer`` or ``fem``) as :func:`make_case` does: the
     measured files (tracks without identity of the world's surface points, metadata object,
     the loop's profile, probe) to ``measured_dir``; ``truth.json`` and ``clean.npz`` (the world's
-    motion of the loop's Gaussian particles) to ``truth_dir``. Returns the truth record."""
+    motion of the loop's Gaussian particles) to ``truth_dir``. ``device`` and ``deterministic``:
+    the finer world's rollouts'. Returns the truth record."""
     rng = np.random.default_rng(spec.seed)
     H = contract.probes[calibration_probe].export.horizon
-    world = _World(spec, contract, particles, H, device)
+    world = _World(spec, contract, particles, H, device=device, deterministic=deterministic)
     search, strength, achieved, param = [], None, 0.0, None
     if spec.planted != "none":
         table = PLANTED_EFFECTS if spec.world == "finer" else FEM_EFFECTS

@@ -266,8 +266,9 @@ class ConditionWorld:
     force_factors: Mapping[str, float]
 
     def rollout(self, theta: tuple[float, float], probe_name: str, *, device: str | None = None,
-                export_F: bool = False, progress: Callable | None = None):
-        """One rollout (:func:`knockgs_core.rollout.run_rollout`) of ``theta`` under the
+                deterministic: bool = False, export_F: bool = False, progress: Callable | None = None):
+        """One rollout (:func:`knockgs_core.rollout.run_rollout`, whose ``device``,
+        ``deterministic``, ``export_F`` and ``progress`` these are) of ``theta`` under the
         condition's probe ``probe_name``; the metadata gain ``boundary_condition`` and
         ``probe_force_factor``."""
         from ..rollout import run_rollout
@@ -278,8 +279,8 @@ class ConditionWorld:
         factor = float(self.force_factors[probe_name])
         if factor != 1.0:
             probe = dataclasses.replace(probe, force=tuple(float(f) * factor for f in probe.force))
-        ro = run_rollout(self.contract, theta, probe_name, particles=self.particles, device=device, export_F=export_F,
-                         probe=probe, progress=progress)
+        ro = run_rollout(self.contract, theta, probe_name, particles=self.particles, device=device,
+                         deterministic=deterministic, export_F=export_F, probe=probe, progress=progress)
         ro.meta["boundary_condition"] = self.condition.name
         ro.meta["probe_force_factor"] = factor
         return ro

@@ -306,18 +306,19 @@ class VideoScene:
                           frame_dt=frames.frame_dt, source=source)
 
 
-def video_simulator(contract, scene: VideoScene, *, probe: str | None = None,
-                    device: str = "cpu") -> Callable[[tuple[float, float]], RGBDFrames]:
+def video_simulator(contract, scene: VideoScene, *, probe: str | None = None, device: str = "cpu",
+                    deterministic: bool = False) -> Callable[[tuple[float, float]], RGBDFrames]:
     """``simulate_render(theta)`` for :func:`cmaes_calibrate`: one rollout of ``contract`` at
     ``theta`` under ``probe`` (default the contract's calibration probe, Probe A) with the
-    deformation gradients (:func:`knockgs_core.rollout.run_rollout`), rendered with depth by
-    ``scene`` (:meth:`VideoScene.render`)."""
+    deformation gradients (:func:`knockgs_core.rollout.run_rollout`, on ``device``, with
+    ``deterministic`` as there), rendered with depth by ``scene`` (:meth:`VideoScene.render`)."""
     from ..rollout import run_rollout
 
     name = probe or contract.roles["calibration"]
 
     def simulate_render(theta: tuple[float, float]) -> RGBDFrames:
-        ro = run_rollout(contract, theta, name, particles=scene.particles, export_F=True, device=device)
+        ro = run_rollout(contract, theta, name, particles=scene.particles, export_F=True, device=device,
+                         deterministic=deterministic)
         return scene.render(ro.positions, ro.F, frame_dt=ro.meta["probe"]["export"]["frame_dt"], device=device,
                             source=f"{contract.name} {name} theta ({theta[0]:.6f}, {theta[1]:.6f})")
 

@@ -235,6 +235,7 @@ def convergence_study(
     n_frames: int | None = None,
     refinements: Sequence[Refinement] = REFINEMENTS,
     device: str | None = None,
+    deterministic: bool = False,
     log: Callable[[str], None] | None = None,
 ) -> pd.DataFrame:
     """Three-level time and space convergence of the Probe-A response of one object.
@@ -245,7 +246,8 @@ def convergence_study(
     the ``dt`` and ``n_grid`` levels, its Gaussian-associated particles fixed for the
     ``n_grid+fill`` levels); ``theta = (s_E, s_rho)``; ``n_frames``: the first exported frames
     used (``None``: all of the probe's); ``refinements``: a subset of :data:`REFINEMENTS`
-    (``n_grid+fill`` is skipped, with a log line, for an object without an interior fill).
+    (``n_grid+fill`` is skipped, with a log line, for an object without an interior fill);
+    ``device``, ``deterministic``: every level's rollout's (:func:`knockgs_core.rollout.run_rollouts`).
     Returns one row per refinement: ``object, profile, s_E, s_rho, refinement, fixed`` (what the
     refinement holds fixed), ``level_1..3`` (dt [s] or n_grid), ``dt`` (the substep of the space
     levels; the profile's for the time study), ``n_grid`` (the grid of the time levels),
@@ -290,7 +292,7 @@ def convergence_study(
             pr = dataclasses.replace(variant.resolve_probes(ps)[probe_name], export=export)
             t0 = time.process_time()
             ro = run_rollout(variant, theta, probe_name, particles=ps, probe=pr, device=device,
-                             sim_overrides={"dt": key[0], "n_grid": key[1]})
+                             deterministic=deterministic, sim_overrides={"dt": key[0], "n_grid": key[1]})
             cost = time.process_time() - t0
             x = np.asarray(ro.positions[:, :n_gs], dtype=np.float64)
             cache[key] = (x - x[0], cost, len(ps.positions), particles_per_cell(ps.positions, dx=variant.sim.grid_lim / key[1]))

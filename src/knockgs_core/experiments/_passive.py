@@ -71,19 +71,22 @@ class PassiveProtocol:
         return out
 
 
-def passive_rollout(contract, theta, protocol: PassiveProtocol, *, particles, device=None):
+def passive_rollout(contract, theta, protocol: PassiveProtocol, *, particles, device=None, deterministic: bool = False):
     """The rollout of ``contract`` at ``theta`` under the passive protocol
-    (:class:`knockgs_core.rollout.Rollout`; its probe is named :data:`PASSIVE_PROBE`)."""
+    (:class:`knockgs_core.rollout.Rollout`; its probe is named :data:`PASSIVE_PROBE`).
+    ``deterministic``: as in :func:`knockgs_core.rollout.run_rollouts`."""
     from ..rollout import run_rollout
 
-    return run_rollout(contract, theta, PASSIVE_PROBE, particles=particles, device=device, **protocol.run_kwargs())
+    return run_rollout(contract, theta, PASSIVE_PROBE, particles=particles, device=device, deterministic=deterministic,
+                       **protocol.run_kwargs())
 
 
 def _mean_rms(X: np.ndarray, n_gs: int) -> float:
     return float(np.mean(rms_displacement_curve(np.asarray(X)[:, :n_gs])))
 
 
-def passive_protocol(contract, particles, *, device=None, scales: Sequence[float] = (0.5, 2.0)) -> tuple[PassiveProtocol, dict]:
+def passive_protocol(contract, particles, *, device=None, deterministic: bool = False,
+                     scales: Sequence[float] = (0.5, 2.0)) -> tuple[PassiveProtocol, dict]:
     """The object's passive protocol and the record of how it was set and checked.
 
     Gravity points along the contract camera's down direction (``-up``); its magnitude makes
@@ -92,7 +95,8 @@ def passive_protocol(contract, particles, *, device=None, scales: Sequence[float
     on ``rms ~ g^k`` until within 10 %, at most three (the record says how close it came). The
     record holds both responses, the search and the invariance check: the largest position
     difference [m] between theta = (a, a) and (1, 1) for ``a`` in ``scales``, under the
-    passive protocol (0 expected) and under Probe A (the known force breaks it)."""
+    passive protocol (0 expected) and under Probe A (the known force breaks it).
+    ``deterministic``: every rollout's, as in :func:`knockgs_core.rollout.run_rollouts`."""
     A = contract.calibration_probe
     up = np.asarray(contract.camera["up"], dtype=np.float64)
     down = -up / np.linalg.norm(up)
@@ -100,12 +104,14 @@ def passive_protocol(contract, particles, *, device=None, scales: Sequence[float
     n_gs = particles.n_gs
     from ..rollout import run_rollout
 
-    XA = run_rollout(contract, (1.0, 1.0), A.name, particles=particles, device=device).positions
+    XA = run_rollout(contract, (1.0, 1.0), A.name, particles=particles, device=device,
+                     deterministic=deterministic).positions
     rms_a = _mean_rms(XA, n_gs)
 
     def response(g: float) -> tuple[np.ndarray, float]:
         p = PassiveProtocol(gravity=tuple(float(g * x) + 0.0 for x in down), frame_dt=unit.frame_dt, n_frames=unit.n_frames)
-        X = passive_rollout(contract, (1.0, 1.0), p, particles=particles, device=device).positions
+        X = passive_rollout(contract, (1.0, 1.0), p, particles=particles, device=device,
+                            deterministic=deterministic).positions
         return X, _mean_rms(X, n_gs)
 
     # the response is nearly linear in g at small strains; where it is not (a swinging
@@ -127,8 +133,10 @@ def passive_protocol(contract, particles, *, device=None, scales: Sequence[float
     protocol = PassiveProtocol(gravity=tuple(float(g * x) + 0.0 for x in down), frame_dt=unit.frame_dt, n_frames=unit.n_frames)
     check = []
     for a in scales:
-        Xp = passive_rollout(contract, (a, a), protocol, particles=particles, device=device).positions
-        Xa = run_rollout(contract, (a, a), A.name, particles=particles, device=device).positions
+        Xp = passive_rollout(contract, (a, a), protocol, particles=particles, device=device,
+                             deterministic=deterministic).positions
+        Xa = run_rollout(contract, (a, a), A.name, particles=particles, device=device,
+                         deterministic=deterministic).positions
         check.append({"scale": float(a), "passive_max_abs_diff": float(np.max(np.abs(Xp - XP1))),
                       "passive_bitwise_equal": bool(np.array_equal(Xp, XP1)),
                       "active_max_abs_diff": float(np.max(np.abs(Xa - XA))),

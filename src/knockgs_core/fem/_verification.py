@@ -154,18 +154,20 @@ def mpm_dt(n_grid: int, settings: VerificationSettings) -> float:
 
 
 def mpm_block_rollout(n_grid: int, settings: VerificationSettings, *, device: str | None = None,
-                      solver_options: Mapping | None = None, storage: Mapping | None = None) -> dict:
+                      deterministic: bool = False, solver_options: Mapping | None = None,
+                      storage: Mapping | None = None) -> dict:
     """One MPM rollout of the block at ``n_grid``: ``x0`` rest positions [m] (n, 3), ``u``
     displacements [m] (frames, n, 3), ``dt`` [s], ``cpu_s`` CPU seconds of the rollout, and
     the probe's total impulse [N s] as the simulator accounts it (``impulse``).
-    ``solver_options`` (:func:`~knockgs_core.sim.simulate_many`'s) and ``storage``
-    (:func:`~knockgs_core.sim.build_model`'s ``matrix_layout`` and ``deformation_storage``):
+    ``deterministic``, ``solver_options`` (:func:`~knockgs_core.sim.simulate_many`'s) and
+    ``storage`` (:func:`~knockgs_core.sim.build_model`'s ``matrix_layout`` and ``deformation_storage``):
     the substep's choices where not the device's, e.g. a GPU's replayed on the CPU
     (:data:`~knockgs_core.sim.GPU_SOLVER_OPTIONS`, :data:`~knockgs_core.sim.GPU_STORAGE`)."""
     cpu0 = time.process_time()
     model, x = mpm_block_model(n_grid, settings, device=device, storage=storage)
     state = make_state(model, x)
-    out = simulate(model, state, frame_dt=settings.frame_dt, n_frames=settings.n_frames, solver_options=solver_options)
+    out = simulate(model, state, frame_dt=settings.frame_dt, n_frames=settings.n_frames, deterministic=deterministic,
+                   solver_options=solver_options)
     cpu = time.process_time() - cpu0
     u = out.positions.astype(np.float64) - x[None].astype(np.float32).astype(np.float64)
     return {"x0": x, "u": u, "dt": model.params.dt, "cpu_s": cpu, "impulse": float(model.probe_impulse[0])}
@@ -279,7 +281,7 @@ def _order(e_coarse: float, e_fine: float, h_coarse: float, h_fine: float) -> st
     return f"{math.log(e_coarse / e_fine) / math.log(h_coarse / h_fine):.2f}"
 
 
-def verification_study(settings: VerificationSettings, *, device: str | None = None,
+def verification_study(settings: VerificationSettings, *, device: str | None = None, deterministic: bool = False,
                        log: Callable[[str], None] | None = None, solver_options: Mapping | None = None,
                        storage: Mapping | None = None) -> pd.DataFrame:
     """The verification table: one row per MPM level (coarsest first), then the FEM on a
@@ -290,7 +292,7 @@ def verification_study(settings: VerificationSettings, *, device: str | None = N
     DOFs), the :func:`response_gap` columns, observed orders between successive MPM levels of
     the trajectory RMSE and of the period difference (text; ``-`` on the first level and the
     FEM rows) and ``cpu_s`` (CPU seconds of the rollout or of assembly plus integration).
-    ``solver_options`` and ``storage``: the MPM substep's choices, as in
+    ``deterministic``, ``solver_options`` and ``storage``: the MPM substep's choices, as in
     :func:`mpm_block_rollout`."""
     say = log or (lambda msg: None)
     ref = fem_block_reference(settings)
@@ -300,7 +302,8 @@ def verification_study(settings: VerificationSettings, *, device: str | None = N
     rows = []
     x_last = None
     for level, n_grid in enumerate(settings.n_grid):
-        run = mpm_block_rollout(n_grid, settings, device=device, solver_options=solver_options, storage=storage)
+        run = mpm_block_rollout(n_grid, settings, device=device, deterministic=deterministic,
+                                solver_options=solver_options, storage=storage)
         if not math.isclose(run["impulse"], ref["impulse"], rel_tol=1e-5):
             raise RuntimeError(f"MPM impulse {run['impulse']:.6g} N s differs from the FEM's {ref['impulse']:.6g} N s")
         P = interpolation_matrix(ref["system"], run["x0"])

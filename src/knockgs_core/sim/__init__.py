@@ -38,8 +38,7 @@ from ._effects import (
 )
 from ._protocol import Effect
 from ._solver import (GPU_SOLVER_OPTIONS, GPU_STORAGE, MPMSolver, Model, SimResult, State, build_model, cell_crowding,
-                      config_context, default_device, device_storage, make_state, particle_volumes, set_config, simulate,
-                      simulate_many)
+                      default_device, device_storage, make_state, particle_volumes, simulate, simulate_many)
 
 __all__ = [
     "BoundaryCondition",
@@ -66,8 +65,6 @@ __all__ = [
     "cell_crowding",
     "simulate",
     "simulate_many",
-    "config_context",
-    "set_config",
     "Effect",
     "VelocityDamping",
     "Gravity",

@@ -1032,31 +1032,6 @@ for _flip in (0, 1):
         K.p2g_windows(MPMSolver.cell_chunk, _flip, _fixed, _records)
 
 
-#: the settings a simulation takes where its caller does not say (:func:`config_context`)
-_CONFIG = {"deterministic": False}
-
-
-def set_config(*, deterministic: bool) -> None:
-    """Set the simulations' default ``deterministic`` (see :func:`config_context`) for the rest
-    of the process, as a workflow job does once from its rule's parameters."""
-    _CONFIG["deterministic"] = _flag("set_config", "deterministic", deterministic)
-
-
-@contextlib.contextmanager
-def config_context(*, deterministic: bool):
-    """Within the block, every simulation whose ``deterministic`` is not given
-    (:func:`simulate`, :func:`simulate_many`, and the rollouts built on them) takes this one,
-    as scikit-learn's ``config_context`` sets its options: a study that simulates through
-    many calls (a convergence study, the discrepancy loop) takes a workflow's setting once.
-    Process-wide (threads included); the former setting comes back when the block ends."""
-    before = dict(_CONFIG)
-    set_config(deterministic=deterministic)
-    try:
-        yield
-    finally:
-        _CONFIG.update(before)
-
-
 #: the substep a CUDA device runs where the CPU runs another, as :class:`MPMSolver`'s options:
 #: :meth:`MPMSolver.auto_options` for a CUDA device and a model without effects whose particles
 #: crowd their cells, as the paper's objects and the verification block are. Given to
@@ -1094,7 +1069,7 @@ def simulate(
     n_frames: int,
     export_F: int = 0,
     progress: Callable[[int, int, dict], None] | None = None,
-    deterministic: bool | None = None,
+    deterministic: bool = False,
     solver_options: Mapping | None = None,
 ) -> SimResult:
     """Run from ``state`` (at step 0) and export ``n_frames`` frames every ``frame_dt`` [s],
@@ -1185,7 +1160,7 @@ def simulate_many(
     concurrent: bool = False,
     export_index: np.ndarray | None = None,
     on_frame: Callable[[int, int, np.ndarray, np.ndarray | None], None] | None = None,
-    deterministic: bool | None = None,
+    deterministic: bool = False,
     solver_options: Mapping | None = None,
 ) -> list[SimResult]:
     """Run several independent simulations (``runs``: (model, state) pairs, all with the same
@@ -1208,14 +1183,13 @@ def simulate_many(
     frame's rows of the result's arrays, final once handed over (a consumer may keep them
     without a copy, and must not write to them), e.g. to write the frame while the next one
     is simulated. ``deterministic``: each run's solver with the bitwise-reproducible P2G
-    (:class:`MPMSolver`'s option: a GPU rollout the same bit for bit on every run); None: the
-    setting of the enclosing :func:`config_context` (False outside one). ``solver_options``:
+    (:class:`MPMSolver`'s option: a GPU rollout the same bit for bit on every run; True or
+    False only, refused otherwise). ``solver_options``:
     further keywords of each run's :class:`MPMSolver` (e.g. :data:`GPU_SOLVER_OPTIONS`; None:
     the device's choices); an unknown key is refused by name. Returns one :class:`SimResult`
     per run, in order."""
     options = _solver_options(solver_options)
-    if deterministic is None:
-        deterministic = _CONFIG["deterministic"]
+    deterministic = _flag("simulation", "deterministic", deterministic)
     if not runs:
         return []
     dts = {m.params.dt for m, _ in runs}
