@@ -162,7 +162,7 @@ class State:
 def matrix_pitch(n: int) -> int:
     """Columns of a per-particle matrix array for ``n`` particles: ``n`` rounded up to 32, so
     each of its 9 rows starts 128-byte aligned on the GPU (unaligned rows measured 1.5x slower
-    to stream on an H100: benchmarks/README.md)."""
+    to stream on an H100: benchmarks/results/2026-11-27-window-sums-and-reference.md)."""
     return max(32, -(-n // 32) * 32)
 
 
@@ -194,7 +194,7 @@ def matrix_array(n: int, dtype, device, *, layout: str = "auto") -> wp.array:
     component of 32 particles from one stretch of memory (on an H100 the Pillow's substep 1.06x
     faster than records); ``"records"``, shape (n,) of ``mat33``/``mat33d``: each particle's
     matrix in one piece (on the 2-core CPU 5-12 % faster than components); ``"auto"``:
-    components on a GPU, records on the CPU (benchmarks/README.md, "A layout per device"). The
+    components on a GPU, records on the CPU (benchmarks/results/2026-11-27-layout-and-instructions.md, "the matrices' layout chosen per device"). The
     values, and on the CPU the bits, are the same in both.
     """
     dev = wp.get_device(device)
@@ -217,7 +217,7 @@ def deformation_array(n: int, device, *, storage: str = "auto", layout: str = "a
     kernels compute in float64 and round F - I: a strain's increment rounds at H's precision,
     as a displacement u does in x0 + u; half the bytes a substep, beside matrices laid out
     component by component only); ``"auto"``: displacement on a GPU, float64 on the CPU, whose
-    bits stay those of F in float64 (benchmarks/README.md, "F as its displacement gradient").
+    bits stay those of F in float64 (benchmarks/results/2026-11-28-f-minus-i-and-arena.md).
     """
     dev = wp.get_device(device)
     if _deformation_storage(storage, layout, dev) == "float64":
