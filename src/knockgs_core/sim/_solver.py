@@ -194,8 +194,8 @@ def matrix_array(n: int, dtype, device, *, layout: str = "auto") -> wp.array:
     component of 32 particles from one stretch of memory (on an H100 the Pillow's substep 1.06x
     faster than records); ``"records"``, shape (n,) of ``mat33``/``mat33d``: each particle's
     matrix in one piece (on the 2-core CPU 5-12 % faster than components); ``"auto"``:
-    components on a GPU, records on the CPU (benchmarks/results/2026-11-27-layout-and-instructions.md, "the matrices' layout chosen per device"). The
-    values, and on the CPU the bits, are the same in both.
+    components on a GPU, records on the CPU (benchmarks/results/2026-11-27-layout-and-instructions.md).
+    The values, and on the CPU the bits, are the same in both.
     """
     dev = wp.get_device(device)
     kind = K.MATRIX_ARRAYS[_matrix_layout(layout, dev)][dtype is wp.float64]  # the array type the kernels take
