@@ -14,7 +14,7 @@
 #                                                         theta under every evaluation probe (a candidate's:
 #                                                         the held-out probes only), so every method that
 #                                                         lands on the same theta shares them
-#   P/rollouts/{object}/diag/{split}/{set}/{theta}/{probe}.parquet   a diagnostics' set's rollout (probe
+#   P/rollouts/{object}/diag/{split}/{set}/{theta}__{probe}.parquet   a diagnostics' set's rollout (probe
 #                                                         shifts, ladder rungs), one job a set
 #   P/descriptors/{object}/library.csv                    candidate descriptors + labels
 #   P/descriptors/{object}/queries_{split}.csv            target Probe-A descriptors, no labels

@@ -231,8 +231,8 @@ def _theta_of_tag(tag: str) -> tuple[float, float] | None:
 def _expected_from_path(f: Path, root: Path, obj: Mapping) -> dict:
     """What the path grammar says a cached rollout is (see the Snakefile):
     ``lib/chunk*/{theta}.parquet`` (Probe A), ``eval/{theta}/{probe}.parquet`` or
-    ``diag/{theta}/{probe}.parquet`` (that probe), ``passive/{job}/{theta}.parquet`` (the
-    passive protocol, exported like Probe A)."""
+    ``diag/{split}/{set}/{theta}__{probe}.parquet`` (that probe), ``passive/{job}/{theta}.parquet``
+    (the passive protocol, exported like Probe A)."""
     from .experiments import PASSIVE_PROBE
 
     rel = f.relative_to(root).parts
@@ -241,8 +241,11 @@ def _expected_from_path(f: Path, root: Path, obj: Mapping) -> dict:
     probe, frames_of = None, None
     if len(rel) == 3 and rel[0] == "lib":
         want["theta"], probe = _theta_of_tag(rel[2].removesuffix(".parquet")), obj.get("calibration_probe")
-    elif len(rel) == 3 and rel[0] in ("eval", "diag"):
+    elif len(rel) == 3 and rel[0] == "eval":
         want["theta"], probe = _theta_of_tag(rel[1]), rel[2].removesuffix(".parquet")
+    elif len(rel) == 4 and rel[0] == "diag":
+        tag, _, probe = rel[3].removesuffix(".parquet").partition("__")
+        want["theta"] = _theta_of_tag(tag)
     elif len(rel) == 3 and rel[0] == "passive":
         want["theta"], probe = _theta_of_tag(rel[2].removesuffix(".parquet")), PASSIVE_PROBE
         frames_of = obj.get("calibration_probe")

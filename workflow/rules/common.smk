@@ -274,7 +274,7 @@ def diag_set_rollouts(obj, name):
     (:func:`diag_set_cases`, through their checkpoints)."""
     folder = diag_set_folder(obj, name)
     probes, thetas = diag_set_cases(obj, name)
-    return {f"{pr}/{theta_tag(th)}": f"{folder}/{theta_tag(th)}/{pr}.parquet" for pr in probes for th in thetas}
+    return {f"{pr}/{theta_tag(th)}": f"{folder}/{theta_tag(th)}__{pr}.parquet" for pr in probes for th in thetas}
 
 
 def frames_file(obj, probe, theta):

@@ -1,5 +1,5 @@
 # Probe shifts and passive versus active observation (docs/probe_shifts.md):
-#   P/rollouts/{object}/diag/{split}/duration|contact/{theta}/{probe}.parquet
+#   P/rollouts/{object}/diag/{split}/duration|contact/{theta}__{probe}.parquet
 #                                                       the targets and their frozen estimates under
 #                                                       the shift probes (rule rollout_diag_set, simulate.smk)
 #   P/tables/duration_{object}.csv|md                   every deployable method's frozen Probe-A estimates
