@@ -294,6 +294,36 @@ def test_every_rule_is_a_statement(tmp_path):
     assert {"rollout_library", "rollout_eval", "render", "discrepancy_library"} <= set(listed)
 
 
+def test_every_registered_study_has_a_named_target_and_reaches_all_through_the_registry():
+    # a study registers its outputs (register_study, common.smk) beside a named target rule of
+    # the same name that makes exactly them; `all` takes the registry's in-all part, naming no
+    # study's list itself; and nothing in the main stages' files reads a study's names
+    rules = ROOT / "workflow" / "rules"
+    texts = {f.name: f.read_text() for f in sorted(rules.glob("*.smk"))}
+    registered = [(f, name, outputs) for f, text in texts.items()
+                  for name, outputs in re.findall(r'register_study\(\s*"(\w+)",\s*(\w+),', text)]
+    assert {name for _, name, _ in registered} >= {"diagnostics", "probe_shifts", "passive_active", "ladder", "cmaes",
+                                                   "convergence", "boundaries", "verification", "discrepancy"}
+    for f, name, outputs in registered:
+        block = re.search(rf"^rule {name}:\n((?:[ \t]+.*\n|\n)*)", texts[f], flags=re.M)
+        assert block is not None, f"{f} registers the study {name} but has no rule {name}"
+        assert re.search(rf"^    input:\n        {outputs},\n", block.group(1), flags=re.M), \
+            f"rule {name} ({f}) does not make the registered outputs {outputs}"
+    snakefile = (ROOT / "Snakefile").read_text()
+    all_inputs = re.search(r"^rule all:\n((?:[ \t]+.*\n)*)", snakefile, flags=re.M).group(1)
+    assert "studies_in_all()" in all_inputs
+    assert not re.search(r"\b[A-Z_]+_IN_ALL\b", all_inputs), all_inputs
+    includes = re.findall(r'^include: "workflow/rules/(\w+)\.smk"', snakefile, flags=re.M)
+    assert includes[-1] == "audit", "the audits read every study's outputs: their file comes last"
+    study_files = {f.removesuffix(".smk") for f, _, _ in registered}
+    main = includes[: min(includes.index(f) for f in study_files)]
+    assert main == ["common", "assets", "simulate", "describe", "calibrate", "evaluate", "render", "report"]
+    study_names = {n for f in study_files for n in re.findall(r"^([A-Z][A-Z_]+) = ", texts[f + ".smk"], flags=re.M)}
+    for f in main:
+        used = study_names & set(re.findall(r"\b[A-Z][A-Z_]+\b", texts[f + ".smk"]))
+        assert not used, f"{f}.smk reads {sorted(used)}, defined by a study's file included after it"
+
+
 def test_config_schema_method_vocabulary_is_the_registry():
     schema = yaml.safe_load((ROOT / "workflow/schemas/config.schema.yaml").read_text())["properties"]
     assert tuple(schema["methods"]["items"]["enum"]) == METHOD_NAMES
@@ -409,7 +439,9 @@ def test_every_folder_output_is_built_in_a_staging_folder():
             code = (ROOT / "workflow/scripts" / script).read_text()
             assert "staged_folders(" in code, f"{f.name}: rule {name}'s script {script} writes its folder in place"
     assert set(seen.values()) == {"rollout.py", "render.py", "boundaries_rollout.py"}, seen
-    assert len(seen) == 8, seen  # rollout_eval has two folders
+    # the library, evaluation, diagnostics' set, passive (library, targets), boundary (library,
+    # evaluation), discrepancy-library rollouts and the render
+    assert len(seen) == 9, seen
 
 
 def _planned(work: Path, *args) -> dict:

@@ -16,16 +16,15 @@ DESCRIPTOR_TABLES = [f"{P}/descriptors/{o}/{name}.csv" for o in OBJECTS for name
 # the splits whose deployable estimates the leakage audit reads: the main one and, with the
 # splits in `all`, the alternative splits (diagnostics.smk, included before this file)
 AUDITED_SPLITS = DIAGNOSTIC_SPLITS if DIAGNOSTICS["enabled"] and DIAGNOSTICS["splits_in_all"] else [SPLIT]
-# the studies `all` makes besides the main tables (diagnostics, probe shifts, passive route,
-# ladder, CMA-ES: each behind its config switch)
-STUDIES_IN_ALL = DIAGNOSTICS_IN_ALL + SHIFTS_IN_ALL + LADDER_IN_ALL + CMAES_IN_ALL
-DIAGNOSTIC_TABLES = [path for path in STUDIES_IN_ALL if path.endswith(".csv")]
+# the studies whose tables (in `all`, by their config switches) the non-finite audit reads besides
+# the main ones: every cell a number, or a word by design (the convergence tables' "not in the
+# asymptotic range")
+NONFINITE_STUDIES = ("diagnostics", "probe_shifts", "passive_active", "ladder", "cmaes", "convergence")
+STUDY_TABLES = [path for name in NONFINITE_STUDIES for path in STUDIES[name]["in_all"] if path.endswith(".csv")]
 # the objects whose passive route is in `all` (probe_shifts.smk): their passive estimates and
 # library are audited like the active ones
 PASSIVE_AUDITED = [o for o in OBJECTS if f"{P}/tables/passive_active_{o}.csv" in SHIFTS_IN_ALL]
 
-# CONVERGENCE_IN_ALL (convergence.smk, included after this file) is read when the DAG is built,
-# hence the lambdas. The convergence tables' cells "not in the asymptotic range" are words by design.
 
 
 rule audit_leakage:
@@ -58,8 +57,7 @@ rule audit_nonfinite:
     conda:
         "../envs/knockgs.yaml"
     input:
-        tables=lambda wc: REPORTED_TABLES + DESCRIPTOR_TABLES + DIAGNOSTIC_TABLES
-        + [path for path in CONVERGENCE_IN_ALL if path.endswith(".csv")],
+        tables=REPORTED_TABLES + DESCRIPTOR_TABLES + STUDY_TABLES,
     output:
         f"{P}/audits/nonfinite.json",
     log:
@@ -132,15 +130,13 @@ rule audit_completion:
         "../envs/knockgs.yaml"
     input:
         tables=REPORTED_TABLES,
-        convergence=lambda wc: CONVERGENCE_IN_ALL,
-        diagnostics=STUDIES_IN_ALL,
+        studies=studies_in_all(),
     output:
         f"{P}/audits/completion.json",
     log:
         f"logs/{PROFILE}/audits/completion.log",
     params:
-        expected=lambda wc: [path for path in REPORT_OUTPUTS + RENDER_OUTPUTS + DISCREPANCY_OUTPUTS + CONVERGENCE_IN_ALL
-                             + STUDIES_IN_ALL if not path.startswith(f"{P}/audits/")],
+        expected=[path for path in REPORT_OUTPUTS + RENDER_OUTPUTS + studies_in_all() if not path.startswith(f"{P}/audits/")],
         methods=METHODS,
         mains=[f"{P}/tables/main_{o}.csv" for o in OBJECTS],
         results=lambda wc, output: os.path.dirname(os.path.dirname(output[0])),  # the profile's results folder

@@ -14,15 +14,6 @@ from snakemake.utils import validate
 
 from knockgs_core.calibration import DEPLOYABLE_METHODS, METHOD_NAMES, ORACLE_METHOD
 from knockgs_core.contract import load_candidates, load_contract, load_targets
-from knockgs_core.experiments import (
-    BOUNDARY_LIBRARIES,
-    PASSIVE_PROBE,
-    BoundarySettings,
-    LadderSettings,
-    boundary_condition,
-    boundary_conditions,
-    ladder_rungs,
-)
 from knockgs_core.rollout import theta_tag
 
 
@@ -62,6 +53,8 @@ READ_MEM_MB = 16000 if PROFILE == "paper" else 2000
 OBJECTS = list(config["objects"])
 SPLIT = config["split"]
 METHODS = list(config["methods"])
+# the config's deployable methods (every one but the oracle)
+CONFIG_DEPLOYABLE = [m for m in METHODS if m != ORACLE_METHOD]
 RENDER = config["render"]
 # the evaluation jobs write deformation gradients only for renders (config render.enabled; at paper
 # scale 0.5 GB a rollout), and the library only where render.library_deformation_gradients
@@ -198,15 +191,6 @@ def library_runs(chunk, probe, root, *, export_F):
     ]
 
 
-def ladder_library_runs(wc):
-    """The library rollouts of chunk ``wc.chunk``, with the deformation gradients the video
-    rungs render (a library written without them cannot be observed)."""
-    if not LIBRARY_F:  # the ladder's library jobs (ladder.smk)
-        raise WorkflowError(f"config render.library_deformation_gradients is false (profile {PROFILE}), but the "
-                            "observation ladder renders the library's rollouts: set it to true")
-    return library_runs(wc.chunk, calibration_probe(wc.object), library_root(wc.object), export_F=True)
-
-
 def simulated_probes(obj, tag):
     """The probes the evaluation job of theta ``tag`` simulates: a candidate's Probe-A
     evaluation rollout is its library rollout, so a candidate needs only the held-out probes
@@ -242,15 +226,6 @@ def need_eval_F(consumer):
     if not EVAL_F:
         raise WorkflowError(f"config render.enabled is false (profile {PROFILE}), so the evaluation rollouts have "
                             f"no deformation gradients, but {consumer} renders them: set it to true")
-
-
-def ladder_target_runs(wc):
-    """The split's targets as the ladder observes them: name, theta, Probe-A rollout and its
-    deformation gradients (one run)."""
-    need_eval_F("the observation ladder")
-    probe = calibration_probe(wc.object)
-    return [{"case_name": name, "theta": th, "rollout": eval_rollout(wc.object, probe, th, with_F=True),
-             "F": eval_rollout(wc.object, probe, th, ".F.parquet")} for name, th in target_thetas(wc.split).items()]
 
 
 def evaluation_runs(wc):
@@ -310,6 +285,11 @@ def thetas_of(path):
     return {p["case_name"]: (p["E_scale"], p["density_scale"]) for p in doc["predictions"]}
 
 
+def _estimate_thetas(path):
+    with open(path) as fh:
+        return [(p["E_scale"], p["density_scale"]) for p in json.load(fh)["predictions"]]
+
+
 def estimated_thetas(obj, split, method):
     """target name -> frozen (s_E, s_rho) of a method."""
     return thetas_of(estimate_json(obj, split, method))
@@ -363,224 +343,43 @@ def qualitative_inputs(wc):
     return {"estimates": [estimate_json(wc.object, SPLIT, m) for m in METHODS], "frames": folders(qualitative_frames(wc))}
 
 
-# ---------------------------------------------------------------- boundaries (boundaries.smk)
+# ---------------------------------------------------------------- registries the studies fill in
 
-BOUNDARIES = config["boundaries"]
-BOUNDARY_SETTINGS = BoundarySettings.from_config(BOUNDARIES)
-BOUNDARY_METHOD = "local_ridge"
-BB = f"{P}/boundaries"
-
-
-def boundary_condition_names(obj):
-    """The conditions that apply to the object, in table order."""
-    return boundary_conditions(contract(obj), BOUNDARY_SETTINGS)
+#: study -> {"outputs": what its named target rule of the same name makes, "in_all": the part
+#: of them `all` makes, by the study's config switches}. Each study's .smk registers itself
+#: (register_study); the Snakefile's `all` takes every study's in_all (studies_in_all).
+STUDIES = {}
 
 
-def boundary_libraries(obj, cond):
-    """original, then rebuilt where the condition's kind is rebuilt."""
-    return ["original"] + (["rebuilt"] if boundary_condition(contract(obj), cond, BOUNDARY_SETTINGS).rebuild else [])
+def register_study(name, outputs, in_all):
+    """Register the study ``name``: its ``outputs`` and the part of them ``all`` makes, which
+    is returned."""
+    STUDIES[name] = {"outputs": list(outputs), "in_all": list(in_all)}
+    return STUDIES[name]["in_all"]
 
 
-def boundary_probe_b(obj):
-    """The held-out probe the boundary tables report: the object's first Probe B."""
-    return heldout_probes(obj)[0]
+def studies_in_all():
+    """Every registered study's outputs that `all` makes."""
+    return [path for study in STUDIES.values() for path in study["in_all"]]
 
 
-def boundary_library_root(obj, cond):
-    return f"{BB}/{obj}/{cond}/lib"
-
-
-def boundary_eval_rollout(obj, cond, probe, theta):
-    return f"{BB}/{obj}/{cond}/eval/{theta_tag(theta)}/{probe}.parquet"
-
-
-def boundary_eval_runs(wc):
-    """A target's theta under Probe A (its query) and Probe B (its truth); an estimate's under Probe B."""
-    theta = parse_theta(wc.theta)
-    is_target = wc.theta in {theta_tag(th) for th in target_thetas().values()}
-    probes = ([calibration_probe(wc.object)] if is_target else []) + [boundary_probe_b(wc.object)]
-    return [{"theta": theta, "probe": pr, "rollout": boundary_eval_rollout(wc.object, wc.condition, pr, theta), "F": None}
-            for pr in probes]
-
-
-def boundary_query_rollouts(wc):
-    return [boundary_eval_rollout(wc.object, wc.condition, calibration_probe(wc.object), th) for th in target_thetas().values()]
-
-
-def boundary_library_csv(wc):
-    if wc.library == "original":
-        return f"{P}/descriptors/{wc.object}/library.csv"
-    return f"{BB}/{wc.object}/{wc.condition}/descriptors/library.csv"
-
-
-def _estimate_thetas(path):
-    with open(path) as fh:
-        return [(p["E_scale"], p["density_scale"]) for p in json.load(fh)["predictions"]]
-
-
-def boundary_writeback_rollouts(wc):
-    """{"probe/theta": rollout}: Probe B of the frozen estimates and of the targets, under the condition."""
-    est = checkpoints.boundary_estimate.get(object=wc.object, condition=wc.condition, library=wc.library).output.json
-    probe = boundary_probe_b(wc.object)
-    ths = _estimate_thetas(est) + list(target_thetas().values())
-    return {f"{probe}/{theta_tag(th)}": boundary_eval_rollout(wc.object, wc.condition, probe, th) for th in ths}
-
-
-def boundary_metrics(obj):
-    return [f"{BB}/{obj}/{c}/metrics/{lib}.csv" for c in boundary_condition_names(obj) for lib in boundary_libraries(obj, c)]
-
-
-def loo_objects():
-    """Objects of the leave-one-object-out table: all of them, given at least two."""
-    return OBJECTS if BOUNDARIES["loo"] and len(OBJECTS) >= 2 else []
-
-
-def loo_writeback_rollouts(wc):
-    """{"probe/theta": rollout}: the main evaluation rollouts (Probe B) of the shared estimator's
-    estimates and of the targets."""
-    est = checkpoints.loo_estimate.get(object=wc.object).output.json
-    probe = boundary_probe_b(wc.object)
-    ths = _estimate_thetas(est) + list(target_thetas().values())
-    return {f"{probe}/{theta_tag(th)}": eval_rollout(wc.object, probe, th) for th in ths}
-
-
-# ---------------------------------------------------------------- probe shifts and the passive route (probe_shifts.smk)
-
-# the config's deployable methods (every one but the oracle)
-CONFIG_DEPLOYABLE = [m for m in METHODS if m != ORACLE_METHOD]
-
-
-def passive_outputs(objects):
-    return [
-        path
-        for o in objects
-        for path in (f"{P}/tables/passive_active_{o}.csv", f"{P}/tables/passive_active_{o}.md",
-                     f"{P}/tables/passive_active_targets_{o}.csv", f"{P}/figures/passive_active_{o}.png")
-    ]
-
-
-def shift_estimates(obj):
-    """method -> frozen estimate file of the split, for every deployable method."""
-    return {m: estimate_json(obj, SPLIT, m) for m in CONFIG_DEPLOYABLE}
-
-
-def shift_cases(obj, probes, targets):
-    """(probes, thetas): ``targets`` and every deployable estimate of them, each theta once."""
-    truth = target_thetas()
-    thetas = [truth[t] for t in targets]
-    for m in shift_estimates(obj):
-        est = estimated_thetas(obj, SPLIT, m)
-        thetas += [est[t] for t in targets]
-    return list(probes), list({theta_tag(th): th for th in thetas}.values())
-
-
-def duration_inputs(wc):
-    probe_a = [eval_rollout(wc.object, calibration_probe(wc.object), th) for th in target_thetas().values()]
-    return {"estimates": list(shift_estimates(wc.object).values()), "targets": "config/targets.csv",
-            "rollouts": diag_set_folder(wc.object, "duration"), "probe_a": folders(probe_a)}
-
-
-def contact_inputs(wc):
-    return {"estimates": list(shift_estimates(wc.object).values()), "targets": "config/targets.csv",
-            "rollouts": diag_set_folder(wc.object, "contact")}
-
-
-def passive_target_rollouts(obj, split):
-    """target name -> its rollout under the passive protocol, in targets.csv order."""
-    return {name: f"{P}/rollouts/{obj}/passive/targets_{split}/{theta_tag(th)}.parquet"
-            for name, th in target_thetas(split).items()}
-
-
-# ---------------------------------------------------------------- the observation ladder (ladder.smk)
-
-
-def ladder_set_cases(obj, rung):
-    """(probes, thetas) of a rung's diagnostics' set: its estimates under the first Probe B,
-    each theta once, but those of a target (its evaluation rollout has it)."""
-    targets = {theta_tag(th) for th in target_thetas(SPLIT).values()}
-    thetas = {}
-    for m in CONFIG_DEPLOYABLE:
-        est = thetas_of(checkpoints.ladder_estimate.get(object=obj, split=SPLIT, rung=rung, method=m).output.json)
-        thetas.update({theta_tag(th): th for th in est.values() if theta_tag(th) not in targets})
-    return [heldout_probes(obj)[0]], list(thetas.values())
-
-
-def ladder_probe_b_rollouts(wc):
-    """{"theta tag": rollout} under the first Probe B of every rung's estimates (the rungs'
-    diagnostics' sets) and of the targets (their evaluation rollouts)."""
-    probe = heldout_probes(wc.object)[0]
-    out = {theta_tag(th): eval_rollout(wc.object, probe, th) for th in target_thetas(SPLIT).values()}
-    for rung in LADDER_RUNGS:
-        for key, path in diag_set_rollouts(wc.object, f"ladder-{rung}").items():
-            out.setdefault(key.split("/", 1)[1], path)
-    return out
+#: diagnostics' set -> (cases(obj) -> (probes, thetas), estimates(obj) -> the estimate files
+#: the thetas come from): the rollouts a study simulates beyond the evaluation rollouts, each
+#: set in one job (simulate.smk: rollout_diag_set). The studies register their sets.
+DIAG_SETS = {}
 
 
 def diag_set_cases(obj, name):
-    """(probes, thetas) of the diagnostics' set ``name``: ``duration`` and ``contact`` (the probe
-    shifts) or ``ladder-{rung}`` (the observation ladder)."""
-    if name == "duration":
-        return shift_cases(obj, [SHIFTS["duration"]], list(target_thetas()))
-    if name == "contact":
-        return shift_cases(obj, SHIFTS["contact"], [SHIFTS["contact_target"]])
-    return ladder_set_cases(obj, name.removeprefix("ladder-"))
+    """(probes, thetas) of the diagnostics' set ``name`` (known once its estimates exist)."""
+    return DIAG_SETS[name][0](obj)
 
 
 def diag_set_estimates(wc):
     """The estimate files that a diagnostics' set's thetas come from."""
-    if wc.set in ("duration", "contact"):
-        return list(shift_estimates(wc.object).values())
-    rung = wc.set.removeprefix("ladder-")
-    return [checkpoints.ladder_estimate.get(object=wc.object, split=SPLIT, rung=rung, method=m).output.json
-            for m in CONFIG_DEPLOYABLE]
+    return DIAG_SETS[wc.set][1](wc.object)
 
 
 def diag_set_runs(wc):
     """The rollouts of a diagnostics' set's job, without deformation gradients."""
     return [{"theta": parse_theta(key.split("/", 1)[1]), "probe": key.split("/", 1)[0], "rollout": path, "F": None}
             for key, path in diag_set_rollouts(wc.object, wc.set).items()]
-
-
-def ladder_table_inputs(wc):
-    rollouts = ladder_probe_b_rollouts(wc)
-    return {
-        "estimates": [f"{P}/ladder/estimates/{wc.object}/{SPLIT}/{rung}/{m}.json" for rung in LADDER_RUNGS
-                      for m in CONFIG_DEPLOYABLE],
-        "observations": [f"{P}/ladder/observations/{wc.object}/lib/chunk{k}.csv" for k in range(len(LIBRARY_CHUNKS))]
-        + [f"{P}/ladder/observations/{wc.object}/targets_{SPLIT}.csv"],
-        "targets": "config/targets.csv",
-        "rollouts": folders(rollouts.values()),
-    }
-
-
-# ---------------------------------------------------------------- the CMA-ES video route (cmaes.smk)
-
-
-def cmaes_target_rollouts(obj, split):
-    """target name -> {"rollout", "F"}: its Probe-A evaluation rollout and deformation
-    gradients (the video CMA-ES fits), in targets.csv order."""
-    need_eval_F("the CMA-ES video route")
-    probe = calibration_probe(obj)
-    return {name: {"rollout": eval_rollout(obj, probe, th, with_F=True), "F": eval_rollout(obj, probe, th, ".F.parquet")}
-            for name, th in target_thetas(split).items()}
-
-
-def cmaes_estimate_file(obj, split, seed):
-    """The CMA-ES estimate file of (object, split, seed), as a plain path: listing every seed's
-    file as an input schedules the seeds' jobs side by side."""
-    return f"{P}/cmaes/estimates/{obj}/{split}/seed{seed}.json"
-
-
-def cmaes_json(obj, split, seed):
-    """The same file through its checkpoint, for input functions that read its thetas (they are
-    evaluated again once it exists)."""
-    return checkpoints.cmaes_estimate.get(object=obj, split=split, seed=str(seed)).output.json
-
-
-def cmaes_eval_paths(obj, split, seeds, path_of):
-    """{"probe/theta": path_of(obj, probe, theta)} of every seed's frozen CMA-ES estimates and of
-    the split's targets under every evaluation probe (path_of: eval_rollout or frames_file)."""
-    thetas = list(target_thetas(split).values())
-    for seed in seeds:
-        thetas += _estimate_thetas(cmaes_json(obj, split, seed))
-    return {f"{pr}/{theta_tag(th)}": path_of(obj, pr, th) for pr in eval_probes(obj) for th in thetas}

@@ -13,7 +13,8 @@ CONVERGENCE_OUTPUTS = [
     for o in OBJECTS
     for path in (f"{P}/tables/convergence_{o}.csv", f"{P}/tables/convergence_{o}.md", f"{P}/figures/convergence_{o}.png")
 ]
-CONVERGENCE_IN_ALL = CONVERGENCE_OUTPUTS if CONVERGENCE["enabled"] else []
+CONVERGENCE_IN_ALL = register_study("convergence", CONVERGENCE_OUTPUTS,
+                                    CONVERGENCE_OUTPUTS if CONVERGENCE["enabled"] else [])
 
 
 rule convergence_study:

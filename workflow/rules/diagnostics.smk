@@ -30,8 +30,9 @@ DIAGNOSTICS_OUTPUTS = [
 SPLITS_OUTPUTS = [path for path in DIAGNOSTICS_OUTPUTS if os.path.basename(path).startswith("splits_")]
 # the splits re-run the main protocol three times (the default profile: about 60 more
 # evaluation rollouts per object), hence their own switch
-DIAGNOSTICS_IN_ALL = [path for path in DIAGNOSTICS_OUTPUTS if DIAGNOSTICS["splits_in_all"] or path not in SPLITS_OUTPUTS] \
-    if DIAGNOSTICS["enabled"] else []
+DIAGNOSTICS_IN_ALL = register_study("diagnostics", DIAGNOSTICS_OUTPUTS, [
+    path for path in DIAGNOSTICS_OUTPUTS if DIAGNOSTICS["splits_in_all"] or path not in SPLITS_OUTPUTS
+] if DIAGNOSTICS["enabled"] else [])
 
 
 rule splits_table:

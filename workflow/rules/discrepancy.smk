@@ -47,12 +47,15 @@ DISCREPANCY_RUN_READS = {
     for case in DISCREPANCY_CASES + DISCREPANCY_WORLD_CASES
 }
 
-DISCREPANCY_OUTPUTS = (
+DISCREPANCY_STUDY_OUTPUTS = (
     [f"{P}/tables/discrepancy.csv", f"{P}/tables/discrepancy.md", f"{P}/figures/discrepancy.png", f"{P}/audits/discrepancy_truth.json"]
     + [f"{D}/reports/{case}/report.md" for case in DISCREPANCY_CASES]
-    if DISCREPANCY["enabled"]
-    else []
 )
+DISCREPANCY_OUTPUTS = register_study("discrepancy", DISCREPANCY_STUDY_OUTPUTS,
+                                     DISCREPANCY_STUDY_OUTPUTS if DISCREPANCY["enabled"] else [])
+DISCREPANCY_WORLDS_OUTPUTS = [f"{P}/tables/discrepancy_worlds.csv", f"{P}/tables/discrepancy_worlds.md",
+                              f"{P}/figures/discrepancy_worlds.png", f"{P}/audits/discrepancy_worlds_truth.json"]
+register_study("discrepancy_worlds", DISCREPANCY_WORLDS_OUTPUTS, [])
 
 
 rule discrepancy_asset:
@@ -251,9 +254,12 @@ rule audit_discrepancy_worlds_truth:
 
 
 rule discrepancy_worlds:
-    """Target: the discrepancy loop on the world cases, their table and truth audit."""
+    """Named target: the discrepancy loop on the world cases, their table and truth audit."""
     input:
-        f"{P}/tables/discrepancy_worlds.csv",
-        f"{P}/tables/discrepancy_worlds.md",
-        f"{P}/figures/discrepancy_worlds.png",
-        f"{P}/audits/discrepancy_worlds_truth.json",
+        DISCREPANCY_WORLDS_OUTPUTS,
+
+
+rule discrepancy:
+    """Named target: the discrepancy loop's cases, their reports, table and truth audit."""
+    input:
+        DISCREPANCY_STUDY_OUTPUTS,

@@ -17,6 +17,54 @@
 # Only Probe A feeds an estimator of the active route, only the passive protocol one of the
 # passive route (leakage audit).
 
+from knockgs_core.experiments import PASSIVE_PROBE
+
+def passive_outputs(objects):
+    return [
+        path
+        for o in objects
+        for path in (f"{P}/tables/passive_active_{o}.csv", f"{P}/tables/passive_active_{o}.md",
+                     f"{P}/tables/passive_active_targets_{o}.csv", f"{P}/figures/passive_active_{o}.png")
+    ]
+
+
+def shift_estimates(obj):
+    """method -> frozen estimate file of the split, for every deployable method."""
+    return {m: estimate_json(obj, SPLIT, m) for m in CONFIG_DEPLOYABLE}
+
+
+def shift_cases(obj, probes, targets):
+    """(probes, thetas): ``targets`` and every deployable estimate of them, each theta once."""
+    truth = target_thetas()
+    thetas = [truth[t] for t in targets]
+    for m in shift_estimates(obj):
+        est = estimated_thetas(obj, SPLIT, m)
+        thetas += [est[t] for t in targets]
+    return list(probes), list({theta_tag(th): th for th in thetas}.values())
+
+
+def duration_inputs(wc):
+    probe_a = [eval_rollout(wc.object, calibration_probe(wc.object), th) for th in target_thetas().values()]
+    return {"estimates": list(shift_estimates(wc.object).values()), "targets": "config/targets.csv",
+            "rollouts": diag_set_folder(wc.object, "duration"), "probe_a": folders(probe_a)}
+
+
+def contact_inputs(wc):
+    return {"estimates": list(shift_estimates(wc.object).values()), "targets": "config/targets.csv",
+            "rollouts": diag_set_folder(wc.object, "contact")}
+
+
+def passive_target_rollouts(obj, split):
+    """target name -> its rollout under the passive protocol, in targets.csv order."""
+    return {name: f"{P}/rollouts/{obj}/passive/targets_{split}/{theta_tag(th)}.parquet"
+            for name, th in target_thetas(split).items()}
+
+
+DIAG_SETS["duration"] = (lambda obj: shift_cases(obj, [SHIFTS["duration"]], list(target_thetas())),
+                         lambda obj: list(shift_estimates(obj).values()))
+DIAG_SETS["contact"] = (lambda obj: shift_cases(obj, SHIFTS["contact"], [SHIFTS["contact_target"]]),
+                        lambda obj: list(shift_estimates(obj).values()))
+
 SHIFT_OBJECTS = [o for o in OBJECTS if SHIFTS["duration"] in contract(o).probes]
 CONTACT_OBJECTS = [o for o in OBJECTS if all(p in contract(o).probes for p in SHIFTS["contact"])]
 SHIFT_OUTPUTS = [f"{P}/tables/duration_{o}.{ext}" for o in SHIFT_OBJECTS for ext in ("csv", "md")] + [
@@ -25,8 +73,9 @@ SHIFT_OUTPUTS = [f"{P}/tables/duration_{o}.{ext}" for o in SHIFT_OBJECTS for ext
 
 
 PASSIVE_OUTPUTS = passive_outputs(OBJECTS)
-SHIFTS_IN_ALL = (SHIFT_OUTPUTS + passive_outputs([o for o in OBJECTS if o in SHIFTS["passive_in_all"]])) \
-    if SHIFTS["enabled"] else []
+SHIFTS_IN_ALL = register_study("probe_shifts", SHIFT_OUTPUTS, SHIFT_OUTPUTS if SHIFTS["enabled"] else []) \
+    + register_study("passive_active", PASSIVE_OUTPUTS,
+                     passive_outputs([o for o in OBJECTS if o in SHIFTS["passive_in_all"]]) if SHIFTS["enabled"] else [])
 PASSIVE_LIBRARY = {o: [f"{P}/rollouts/{o}/passive/chunk{k}" for k in range(len(LIBRARY_CHUNKS))] for o in OBJECTS}
 
 

@@ -88,7 +88,7 @@ rule rollout_diag_set:
     benchmark:
         f"{P}/benchmarks/rollouts/{{object}}/diag/{SPLIT}/{{set}}.tsv"
     wildcard_constraints:
-        set="duration|contact|ladder-[^/]+",
+        set="[^/]+",  # a registered diagnostics' set (DIAG_SETS)
     params:
         profile=PROFILE,
         object=lambda wc: wc.object,

@@ -6,7 +6,8 @@
 
 VERIFICATION = config["verification"]
 VERIFICATION_OUTPUTS = [f"{P}/tables/verification_fem.csv", f"{P}/tables/verification_fem.md"]
-VERIFICATION_IN_ALL = VERIFICATION_OUTPUTS if VERIFICATION["enabled"] else []
+VERIFICATION_IN_ALL = register_study("verification", VERIFICATION_OUTPUTS,
+                                     VERIFICATION_OUTPUTS if VERIFICATION["enabled"] else [])
 
 
 rule verification_fem:
