@@ -14,17 +14,17 @@ falling back to inverse-distance KNN (k = 5) when it cannot fit.
 
 Modules: ``_registry`` (method names, aliases, options, :data:`METHODS`), ``_estimate``
 (:class:`Estimate`, :func:`joint_error_pct`), ``_standardize``, ``_base`` (shared fit /
-predict / neighbour search), ``_fixed_default``, ``_neighbors`` (response nearest, KNN),
-``_ridge`` (global and local ridge), ``_selection`` (k / alpha by candidate-only
-leave-one-out), ``_tables`` (library and query tables, library hash), ``_calibrate`` (the
-``knockgs calibrate`` core).
+predict / neighbour search), ``_fixed_default``, ``_selection`` (k / alpha checks, grids and
+the candidate-only leave-one-out), ``_neighbors`` (response nearest, KNN, the selection of k),
+``_ridge`` (global and local ridge, the selection of alpha), ``_tables`` (library and query
+tables, library hash), ``_calibrate`` (the ``knockgs calibrate`` core).
 """
 
 from ..descriptors import FEATURE_NAMES
 from ._calibrate import calibrate
 from ._estimate import THETA_NAMES, Estimate, joint_error_pct
 from ._fixed_default import FixedDefault
-from ._neighbors import ResponseKNN, ResponseNearest
+from ._neighbors import ResponseKNN, ResponseNearest, select_knn_k
 from ._registry import (
     DEPLOYABLE_METHODS,
     METHOD_ALIASES,
@@ -34,8 +34,8 @@ from ._registry import (
     ORACLE_METHOD,
     canonical_method,
 )
-from ._ridge import GlobalRidge, LocalRidge
-from ._selection import DEFAULT_ALPHAS, DEFAULT_KS, select_knn_k, select_ridge_alpha
+from ._ridge import GlobalRidge, LocalRidge, select_ridge_alpha
+from ._selection import DEFAULT_ALPHAS, DEFAULT_KS
 from ._standardize import Standardizer
 
 __all__ = [

@@ -1,4 +1,5 @@
-"""Response-nearest-neighbour estimators: the nearest candidate, and the k nearest averaged."""
+"""Response-nearest-neighbour estimators: the nearest candidate, and the k nearest averaged; the
+selection of k by candidate-only leave-one-out (:func:`select_knn_k`)."""
 
 from __future__ import annotations
 
@@ -6,9 +7,10 @@ from collections.abc import Sequence
 from typing import Literal
 
 from ._base import LibraryEstimator
-from ._selection import DEFAULT_KS, _check_k, _selection_label, select_knn_k
+from ._selection import DEFAULT_KS, _check_k, _loo_errors, _selection_label, _selection_table
+from ._standardize import _as_matrix
 
-__all__ = ["ResponseNearest", "ResponseKNN"]
+__all__ = ["ResponseNearest", "ResponseKNN", "select_knn_k"]
 
 
 class ResponseNearest(LibraryEstimator):
@@ -72,3 +74,35 @@ class ResponseKNN(LibraryEstimator):
         if self.cv_table_ is not None:
             params["cv_table"] = self.cv_table_.to_dict(orient="records")
         return params
+
+
+def select_knn_k(
+    features,
+    theta,
+    names,
+    *,
+    ks: Sequence[int] = DEFAULT_KS,
+    weights: Literal["distance", "uniform"] = "distance",
+):
+    """Select the KNN neighbour count by candidate-only leave-one-out.
+
+    Each candidate in turn is held out; the standardizer and the estimator are refitted on
+    the others and the held-out candidate's scales are predicted from its descriptor. The
+    k with the lowest mean joint error wins (the first in ``ks`` among equal means). Values
+    of k larger than a fold's training set (n - 1) are skipped.
+
+    Returns
+    -------
+    (k, table):
+        The chosen k and a DataFrame with one row per evaluated k: ``k``,
+        ``mean_joint_error_pct``, ``max_joint_error_pct``, ``n_folds``, ``n_fallbacks``,
+        ``selected``.
+    """
+    x = _as_matrix(features, "features")
+    grid = [_check_k(k, allow_cv=False, name="ks entry") for k in ks]
+    grid = [k for k in grid if k <= x.shape[0] - 1]
+    if not grid:
+        raise ValueError(f"no k in {tuple(ks)} fits a leave-one-out fold of {x.shape[0] - 1}")
+    runs = [_loo_errors(lambda k=k: ResponseKNN(k=k, weights=weights), x, theta, names)
+            for k in grid]
+    return _selection_table("k", grid, runs)

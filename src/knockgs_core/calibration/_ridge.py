@@ -1,4 +1,5 @@
-"""Ridge estimators: one global fit over all candidates, and the paper's local ridge (SPEC §6).
+"""Ridge estimators: one global fit over all candidates, and the paper's local ridge (SPEC §6);
+the selection of their ridge strength by candidate-only leave-one-out (:func:`select_ridge_alpha`).
 
 Ridge fits centre the data, penalize the slopes only (unregularized intercept) and fit the
 two scales independently. Local ridge takes the k nearest candidates with equal weights,
@@ -18,9 +19,9 @@ import numpy as np
 
 from ._base import LibraryEstimator
 from ._estimate import THETA_NAMES
-from ._selection import DEFAULT_ALPHAS, _check_alpha, _check_k, _selection_label, select_ridge_alpha
+from ._selection import DEFAULT_ALPHAS, _check_alpha, _check_k, _loo_errors, _selection_label, _selection_table
 
-__all__ = ["MIN_RIDGE_NEIGHBOURS", "FALLBACK_K", "GlobalRidge", "LocalRidge"]
+__all__ = ["MIN_RIDGE_NEIGHBOURS", "FALLBACK_K", "GlobalRidge", "LocalRidge", "select_ridge_alpha"]
 
 #: local ridge needs at least this many neighbours, else it falls back to KNN
 MIN_RIDGE_NEIGHBOURS = 3
@@ -282,3 +283,34 @@ class LocalRidge(LibraryEstimator):
         if self.cv_table_ is not None:
             params["cv_table"] = self.cv_table_.to_dict(orient="records")
         return params
+
+
+def select_ridge_alpha(
+    features,
+    theta,
+    names,
+    *,
+    alphas: Sequence[float] = DEFAULT_ALPHAS,
+    k: int | None = None,
+):
+    """Select the ridge strength by candidate-only leave-one-out.
+
+    As :func:`select_knn_k`, for :class:`GlobalRidge` (``k=None``) or for
+    :class:`LocalRidge` with neighbourhood size ``k``.
+
+    Returns
+    -------
+    (alpha, table):
+        The chosen alpha and a DataFrame with one row per alpha (columns as in
+        :func:`select_knn_k`, ``alpha`` first).
+    """
+    grid = [_check_alpha(a, allow_cv=False, name="alphas entry") for a in alphas]
+    if not grid:
+        raise ValueError("alphas must not be empty")
+    if k is None:
+        make = lambda a: GlobalRidge(alpha=a)  # noqa: E731
+    else:
+        k = _check_k(k, allow_cv=False)
+        make = lambda a: LocalRidge(k=k, alpha=a, uncertainty=False)  # noqa: E731
+    runs = [_loo_errors(lambda a=a: make(a), features, theta, names) for a in grid]
+    return _selection_table("alpha", grid, runs)

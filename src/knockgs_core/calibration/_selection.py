@@ -1,23 +1,24 @@
-"""Hyper-parameters of the estimators: validation, and selection by candidate-only leave-one-out.
+"""Hyper-parameters of the estimators: validation, and the candidate-only leave-one-out they are
+selected by.
 
 ``k`` (neighbour count) and ``alpha`` (ridge strength) take a fixed value or ``"cv"``: then
-:func:`select_knn_k` / :func:`select_ridge_alpha` choose them at ``fit`` from the grids
-:data:`DEFAULT_KS` / :data:`DEFAULT_ALPHAS`, holding out one candidate at a time (each fold
-refits the standardizer). Only candidates are used; queries and targets never are.
+:func:`~knockgs_core.calibration.select_knn_k` (in ``_neighbors``, beside the KNN estimator) /
+:func:`~knockgs_core.calibration.select_ridge_alpha` (in ``_ridge``, beside the ridge
+estimators) choose them at ``fit`` from the grids :data:`DEFAULT_KS` / :data:`DEFAULT_ALPHAS`,
+holding out one candidate at a time (each fold refits the standardizer; :func:`_loo_errors`,
+:func:`_selection_table` here). Only candidates are used; queries and targets never are.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from typing import Literal
 
 import numpy as np
 
 from ._estimate import joint_error_pct
 from ._standardize import _as_matrix
 
-__all__ = ["DEFAULT_KS", "DEFAULT_ALPHAS", "select_knn_k", "select_ridge_alpha"]
+__all__ = ["DEFAULT_KS", "DEFAULT_ALPHAS"]
 
 DEFAULT_KS: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 8, 10)
 DEFAULT_ALPHAS: tuple[float, ...] = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0)
@@ -89,70 +90,3 @@ def _selection_table(column, values, runs):
     best = int(np.argmin(table["mean_joint_error_pct"].to_numpy()))  # first of equal minima
     table["selected"] = np.arange(len(table)) == best
     return values[best], table
-
-
-def select_knn_k(
-    features,
-    theta,
-    names,
-    *,
-    ks: Sequence[int] = DEFAULT_KS,
-    weights: Literal["distance", "uniform"] = "distance",
-):
-    """Select the KNN neighbour count by candidate-only leave-one-out.
-
-    Each candidate in turn is held out; the standardizer and the estimator are refitted on
-    the others and the held-out candidate's scales are predicted from its descriptor. The
-    k with the lowest mean joint error wins (the first in ``ks`` among equal means). Values
-    of k larger than a fold's training set (n - 1) are skipped.
-
-    Returns
-    -------
-    (k, table):
-        The chosen k and a DataFrame with one row per evaluated k: ``k``,
-        ``mean_joint_error_pct``, ``max_joint_error_pct``, ``n_folds``, ``n_fallbacks``,
-        ``selected``.
-    """
-    from ._neighbors import ResponseKNN  # deferred: ResponseKNN calls this function at fit
-
-    x = _as_matrix(features, "features")
-    grid = [_check_k(k, allow_cv=False, name="ks entry") for k in ks]
-    grid = [k for k in grid if k <= x.shape[0] - 1]
-    if not grid:
-        raise ValueError(f"no k in {tuple(ks)} fits a leave-one-out fold of {x.shape[0] - 1}")
-    runs = [_loo_errors(lambda k=k: ResponseKNN(k=k, weights=weights), x, theta, names)
-            for k in grid]
-    return _selection_table("k", grid, runs)
-
-
-def select_ridge_alpha(
-    features,
-    theta,
-    names,
-    *,
-    alphas: Sequence[float] = DEFAULT_ALPHAS,
-    k: int | None = None,
-):
-    """Select the ridge strength by candidate-only leave-one-out.
-
-    As :func:`select_knn_k`, for :class:`GlobalRidge` (``k=None``) or for
-    :class:`LocalRidge` with neighbourhood size ``k``.
-
-    Returns
-    -------
-    (alpha, table):
-        The chosen alpha and a DataFrame with one row per alpha (columns as in
-        :func:`select_knn_k`, ``alpha`` first).
-    """
-    from ._ridge import GlobalRidge, LocalRidge  # deferred: both call this function at fit
-
-    grid = [_check_alpha(a, allow_cv=False, name="alphas entry") for a in alphas]
-    if not grid:
-        raise ValueError("alphas must not be empty")
-    if k is None:
-        make = lambda a: GlobalRidge(alpha=a)  # noqa: E731
-    else:
-        k = _check_k(k, allow_cv=False)
-        make = lambda a: LocalRidge(k=k, alpha=a, uncertainty=False)  # noqa: E731
-    runs = [_loo_errors(lambda a=a: make(a), features, theta, names) for a in grid]
-    return _selection_table("alpha", grid, runs)

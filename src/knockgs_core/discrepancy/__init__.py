@@ -19,11 +19,12 @@ unexplained. See docs/discrepancy.md.
 """
 
 from ._attribution import AttributionRound, AttributionRow
-from ._cases import PLANTED_EFFECTS, CaseSpec, default_cases, make_case
+from ._cases import default_cases, make_case
 from ._catalogue import CATALOGUE_KEYS, Candidate, CatalogueContext, default_catalogue
 from ._files import audit_truth_separation, evaluate_files, run_files
 from ._loop import DiscrepancyResult, LibrarySource, LoopSettings, run_discrepancy
 from ._measured import Correspondence, Measurement, match_points, read_measured, write_measured
+from ._planted import PLANTED_EFFECTS, CaseSpec
 from ._report import write_report, write_result
 from ._scoring import acceptance, evaluate_case, world_acceptance
 from ._tables import case_table, table_figure, write_table

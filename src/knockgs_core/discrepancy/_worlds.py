@@ -29,9 +29,9 @@ import numpy as np
 
 from ..io import write_json, write_npz
 from ..errors import InputError
-from ._cases import LEVELS, PLANTED_EFFECTS, CaseSpec, search_strength
 from ._measured import Measurement, write_measured
 from ._model_error import displacement_at
+from ._planted import LEVELS, PLANTED_EFFECTS, CaseSpec, search_strength
 
 __all__ = ["FEM_EFFECTS", "FINER_EFFECTS", "world_cases", "world_contract", "make_world_case"]
 

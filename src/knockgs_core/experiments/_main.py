@@ -17,6 +17,7 @@ import pandas as pd
 from ..descriptors import FEATURE_NAMES, descriptor
 from ..errors import InputError
 from ..metrics import curve_differences, joint_error_pct, rms_displacement_curve, trajectory_rmse
+from ..render import render_rollout  # re-exported: the workflow's render scripts import it from here
 from ..rollout import read_rollout, theta_tag
 from ..io import ordered_map
 
@@ -230,41 +231,6 @@ def camera_from_contract(camera: Mapping, *, width: int | None = None, height: i
 
     return Camera.look_at(camera["eye"], camera["target"], camera["up"], fov_deg=camera["fov_deg"],
                           width=int(width or camera["width"]), height=int(height or camera["height"]))
-
-
-def render_rollout(gaussians, static_mask, gaussian_index, positions, F, camera, *, device: str = "cpu"):
-    """Render every frame of a rollout as PhysGaussian does (:func:`knockgs_core.render.deformed_scene`):
-    Gaussian-associated particles move the means of their Gaussians, covariances become
-    F Sigma_0 F^T, static support Gaussians stay, fill particles are not rendered.
-
-    ``static_mask`` [G] bool and ``gaussian_index`` [n_gs] (which must equal
-    ``flatnonzero(~static_mask)``) come from the asset's scene file; ``positions`` (T, N, 3)
-    (the first ``n_gs`` rows are GS particles), ``F`` (T, n_gs, 3, 3).
-    Returns ``rgb`` (T, H, W, 3) and ``alpha`` (T, H, W), float32
-    (:func:`knockgs_core.observe.render_rgbd` adds the depth).
-    """
-    outs = render_outputs(gaussians, static_mask, gaussian_index, positions, F, camera, device=device)
-    return np.stack([o.rgb for o in outs]), np.stack([o.alpha for o in outs])
-
-
-def render_outputs(gaussians, static_mask, gaussian_index, positions, F, camera, *, device: str = "cpu") -> list:
-    """The :class:`knockgs_core.render.RenderOutput` of every frame of a rollout
-    (:func:`render_rollout` says how the scene deforms)."""
-    from ..render import render_frames
-
-    means0 = np.asarray(gaussians.means, dtype=np.float64)
-    cov0 = np.asarray(gaussians.covariances(), dtype=np.float64)
-    colors = np.asarray(gaussians.colors(), dtype=np.float64)
-    opac = np.asarray(gaussians.opacities, dtype=np.float64)
-    mask = np.asarray(static_mask)
-    idx = np.asarray(gaussian_index)
-    n_gs = len(idx)
-    if mask.shape != (len(means0),) or not np.array_equal(idx, np.flatnonzero(~mask)):
-        raise InputError("scene", "gaussian_index", "must list the rows where static_mask is False, in order")
-    if F is None or F.shape[1] != n_gs:
-        got = "no deformation gradients" if F is None else f"{F.shape[1]} deformation gradients"
-        raise InputError("deformation", "F", f"{got} for {n_gs} Gaussian-associated particles")
-    return render_frames(means0, cov0, colors, opac, mask, positions[:, :n_gs], F, camera, device=device)
 
 
 def render_metrics_rows(estimate: Mapping, targets: pd.DataFrame, render_path, probes: Sequence[str]) -> pd.DataFrame:

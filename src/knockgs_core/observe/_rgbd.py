@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
-from ..render import Camera
+from ..render import Camera, render, render_outputs
 
 __all__ = ["RGBDFrames", "render_rgbd", "write_rgbd", "read_rgbd", "project", "unproject"]
 
@@ -73,12 +73,8 @@ class RGBDFrames:
 def render_rgbd(gaussians, static_mask, gaussian_index, positions, F, camera: Camera, *, frame_dt: float,
                 device: str = "cpu") -> RGBDFrames:
     """Render every frame of a rollout with depth (as
-    :func:`knockgs_core.experiments.render_rollout`, which returns the same colour and
+    :func:`knockgs_core.render.render_rollout`, which returns the same colour and
     coverage): ``positions`` (T, N, 3), ``F`` (T, n_gs, 3, 3)."""
-    from ..experiments._main import render_outputs
-
-    from ..render import render
-
     outs = render_outputs(gaussians, static_mask, gaussian_index, positions, F, camera, device=device)
     # the object's frame-0 segmentation: its own Gaussians (the static support left out)
     dyn = ~np.asarray(static_mask)

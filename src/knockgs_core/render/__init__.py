@@ -5,17 +5,19 @@ the CPU; depth order) -> :func:`rasterize` (front-to-back compositing, one Warp 
 :func:`render` chains them. :func:`render_reference` is a slow NumPy reference of the
 same rule, for tests. :func:`deform_covariances` / :func:`deformed_scene` move
 Gaussians with simulated particles (PhysGaussian: ``Sigma_t = F Sigma_0 F^T``); :func:`render_frames` renders
-every frame of such a motion, checking the rest scene once; :func:`deformed_gaussians` gives one frame as a
-``GaussianSet`` for a standard 3DGS PLY.
+every frame of such a motion, checking the rest scene once; :func:`render_rollout` / :func:`render_outputs` render
+every frame of a rollout of an asset (its Gaussians, its scene's static mask, the simulated particles);
+:func:`deformed_gaussians` gives one frame as a ``GaussianSet`` for a standard 3DGS PLY.
 
 Conventions: OpenCV camera (x right, y down, z forward); pixel ``(row, col)`` has its
 centre at ``(u, v) = (col + 0.5, row + 0.5)``; colours are RGB in [0, 1].
 """
 
-from ._camera import Camera, RenderOutput
+from ._camera import Camera, Projection, RenderOutput, TileBins
 from ._constants import TILE_SIZE
-from ._deform import Scene, covariance_to_scale_rotation, deform_covariances, deformed_gaussians, deformed_scene, render_frames
-from ._pipeline import Projection, TileBins, bin_tiles, project, rasterize, render
+from ._deform import (Scene, covariance_to_scale_rotation, deform_covariances, deformed_gaussians, deformed_scene, render_frames,
+                      render_outputs, render_rollout)
+from ._pipeline import bin_tiles, project, rasterize, render
 from ._reference import render_reference
 
 __all__ = [
@@ -32,6 +34,8 @@ __all__ = [
     "render_reference",
     "deform_covariances",
     "render_frames",
+    "render_rollout",
+    "render_outputs",
     "deformed_scene",
     "deformed_gaussians",
     "covariance_to_scale_rotation",

@@ -1,4 +1,5 @@
-"""Pinhole camera (OpenCV convention) and output containers (private)."""
+"""Pinhole camera (OpenCV convention) and the containers of the pipeline's stages and output:
+:class:`Projection`, :class:`TileBins`, :class:`RenderOutput` (private)."""
 
 from __future__ import annotations
 
@@ -129,3 +130,52 @@ class RenderOutput:
     rgb: np.ndarray
     depth: np.ndarray
     alpha: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Projection:
+    """Per-Gaussian screen-space quantities (host arrays, N = number of Gaussians).
+
+    ``means2d: [N, 2]`` image coordinates (u, v) [px]; ``conics: [N, 3]`` the upper
+    triangle (a, b, c) of the inverse 2D covariance; ``covs2d: [N, 3]`` the upper
+    triangle of the 2D covariance including the 0.3 px^2 low-pass term;
+    ``depths: [N]`` camera z; ``radii: [N, 2]`` half-extents [px] of the box outside
+    which the Gaussian's alpha is below 1/255, ``(0, 0)`` when the Gaussian is culled
+    (behind the near plane, degenerate, or opacity below 1/255). Entries of culled
+    Gaussians other than ``depths`` and ``radii`` are unspecified.
+    """
+
+    means2d: np.ndarray
+    conics: np.ndarray
+    covs2d: np.ndarray
+    depths: np.ndarray
+    radii: np.ndarray
+
+    @property
+    def visible(self) -> np.ndarray:
+        """``[N]`` bool: not culled."""
+        return np.all(self.radii > 0, axis=1)
+
+
+@dataclass(frozen=True, eq=False)
+class TileBins:
+    """Gaussian lists per tile, each sorted front to back.
+
+    ``gaussian_ids: [M]`` int32 Gaussian indices of all (tile, Gaussian) pairs, sorted
+    by tile, then depth, then index; ``tile_ranges: [tiles_y * tiles_x, 2]`` int32
+    ``[start, end)`` into ``gaussian_ids`` per tile (row-major tile order).
+    """
+
+    gaussian_ids: np.ndarray
+    tile_ranges: np.ndarray
+    width: int
+    height: int
+    tile_size: int
+
+    @property
+    def tiles_x(self) -> int:
+        return -(-self.width // self.tile_size)
+
+    @property
+    def tiles_y(self) -> int:
+        return -(-self.height // self.tile_size)

@@ -16,7 +16,7 @@ import warp as wp
 from knockgs_core.errors import InputError
 
 from . import _constants as C
-from ._camera import Camera, RenderOutput
+from ._camera import Camera, RenderOutput, TileBins
 from ._kernels import (
     compact_visible_kernel,
     pair_total_kernel,
@@ -225,8 +225,6 @@ class DeviceFrames:
     def tile_bins(self):
         """The last frame's bins as a host :class:`~knockgs_core.render.TileBins` (for tests and
         comparisons): the pair's Gaussian ids [M] and each tile's ``[start, end)``."""
-        from ._pipeline import TileBins
-
         ids, starts, ends = (a.numpy().copy() for a in (self.pair_ids, self.tile_starts, self.tile_ends))
         return TileBins(gaussian_ids=ids[: self.pairs], tile_ranges=np.stack([starts, ends], axis=1),
                         width=self.camera.width, height=self.camera.height, tile_size=self.tile_size)

@@ -25,6 +25,12 @@ overrides only the stages it acts at:
 ``t`` is the time at the start of the substep [s]. Each effect has one scalar *strength*
 parameter, named by the class attribute ``parameter``, whose value ``off`` makes the
 effect a no-op.
+
+This module is the bottom of the simulator: the configuration (``_config``: ``SimParams``
+holds effects) and the solver (``_solver``: ``Model``, ``State``) import it, so it imports
+neither; the hooks' ``params``, ``model`` and ``state`` are a
+:class:`~knockgs_core.sim.SimParams`, a :class:`~knockgs_core.sim.Model` and a
+:class:`~knockgs_core.sim.State`, named in words here rather than by import.
 """
 
 from __future__ import annotations
@@ -32,12 +38,9 @@ from __future__ import annotations
 import dataclasses
 from typing import TYPE_CHECKING, Any, ClassVar
 
-if TYPE_CHECKING:  # imported for annotations only: the configuration imports this module
+if TYPE_CHECKING:  # for annotations only
     import numpy as np
     import warp as wp
-
-    from ._config import SimParams
-    from ._solver import Model, State
 
 __all__ = ["Effect"]
 
@@ -69,9 +72,10 @@ class Effect:
         return f"{self.name}: {self.parameter} = {self.value:.4g} {self.unit}".rstrip()
 
     # -- hooks (no-op defaults) ---------------------------------------------------------
-    def configure(self, params: SimParams) -> SimParams:
-        """``params`` with this effect switched on: by default appended to ``params.effects``.
-        An effect that rewrites static configuration (a support's friction) overrides it."""
+    def configure(self, params: Any) -> Any:
+        """``params`` (a :class:`~knockgs_core.sim.SimParams`) with this effect switched on: by
+        default appended to ``params.effects``. An effect that rewrites static configuration (a
+        support's friction) overrides it."""
         return dataclasses.replace(params, effects=tuple(params.effects) + (self,))
 
     def materials(self, positions: np.ndarray, E: np.ndarray, nu: np.ndarray, rho: np.ndarray):
@@ -79,17 +83,18 @@ class Effect:
         particles at ``positions`` [m] (particle_count, 3); default: unchanged."""
         return E, nu, rho
 
-    def setup(self, model: Model) -> Any:
-        """The scratch object this effect needs while ``model`` runs (None: none)."""
+    def setup(self, model: Any) -> Any:
+        """The scratch object this effect needs while ``model`` (a :class:`~knockgs_core.sim.Model`)
+        runs (None: none)."""
         return None
 
-    def apply_grid(self, model: Model, state: State, scratch: Any, lo: wp.vec3i, dims: tuple[int, int, int], t: float) -> None:
+    def apply_grid(self, model: Any, state: Any, scratch: Any, lo: wp.vec3i, dims: tuple[int, int, int], t: float) -> None:
         """Act on the grid velocities ``state.grid_mv`` of the active box; default: nothing."""
 
-    def apply_particles(self, model: Model, state: State, scratch: Any, t: float) -> None:
+    def apply_particles(self, model: Any, state: Any, scratch: Any, t: float) -> None:
         """Act on the particle state after the grid-to-particle transfer; default: nothing."""
 
-    def viscous_retardation(self, model: Model) -> float:
+    def viscous_retardation(self, model: Any) -> float:
         """The retardation time beta [s] of a Kelvin-Voigt viscous stress this effect adds to
         the elastic stress of ``model`` (stiffness-proportional damping, read once per solver;
         the solver sums the effects'); default 0."""
