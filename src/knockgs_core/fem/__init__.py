@@ -1,14 +1,15 @@
 """A finite-element reference solver, written independently of the MPM simulator.
 
 Small-strain linear elasticity on tetrahedra (P1, or P2 for convergence checks) over a
-structured mesh of a box (:mod:`._mesh`), assembled with scikit-fem (:mod:`._elasticity`),
+structured mesh of a box or a tapered plate (:mod:`._mesh`), assembled with scikit-fem
+(:mod:`._elasticity`, which also gives the natural frequencies by shift-invert Lanczos),
 Newmark average-acceleration time integration with consistent (or lumped) mass, optional
-Rayleigh damping and gravity (:mod:`._newmark`). Supports are regions whose nodes are held;
-probes are force pulses over the body or a region. The solver modules import nothing from
-:mod:`knockgs_core.sim`: the two solvers share plain data only (material constants, box
-geometry). :mod:`._verification` runs both on one problem (a block held by its bottom layer)
-and tabulates the MPM's gap to the reference. docs/verification.md has the formulation and the
-measured numbers.
+Rayleigh damping and gravity (:mod:`._newmark`). Supports are regions whose nodes are held
+(all components, or some); probes are force pulses over the body or a region. The solver
+modules import nothing from :mod:`knockgs_core.sim`: the two solvers share plain data only
+(material constants, box geometry). :mod:`._verification` runs both on one problem (a block
+held by its bottom layer) and tabulates the MPM's gap to the reference. docs/verification.md
+has the formulation and the measured numbers, and the external anchor (NAFEMS FV32).
 """
 
 from ._elasticity import (
@@ -20,10 +21,11 @@ from ._elasticity import (
     interpolate,
     interpolation_matrix,
     lame,
+    natural_frequencies,
     static_solve,
     support_dofs,
 )
-from ._mesh import Region, box_mesh, mesh_size, tensor_mesh
+from ._mesh import Region, box_mesh, mesh_size, tapered_plate_mesh, tensor_mesh
 from ._newmark import DIRECT_MAX_DOFS, SOLVERS, ForcePulse, NewmarkResult, RayleighDamping, newmark
 from ._world import FemWorld, fem_world_mesh, fem_world_rollout
 from ._verification import (
@@ -53,12 +55,14 @@ __all__ = [
     "tensor_mesh",
     "box_mesh",
     "mesh_size",
+    "tapered_plate_mesh",
     "MASS_KINDS",
     "ElasticSystem",
     "assemble_elasticity",
     "body_force_load",
     "support_dofs",
     "static_solve",
+    "natural_frequencies",
     "find_elements",
     "interpolation_matrix",
     "interpolate",

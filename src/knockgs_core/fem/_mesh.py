@@ -4,7 +4,8 @@ A box is split into a tensor grid of hexahedra, each cut into six tetrahedra
 (:meth:`skfem.MeshTet.init_tensor`): a conforming mesh whose element faces lie on the grid
 planes, so a support face or a block face on a grid plane is meshed exactly. The grid
 coordinates per axis may be non-uniform (e.g. one thick layer inside a held support and a
-fine grid in the free body).
+fine grid in the free body). A plate whose width tapers linearly is the same grid with its
+y coordinates scaled per x (:func:`tapered_plate_mesh`).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import skfem
 
 from ..errors import InputError
 
-__all__ = ["Region", "tensor_mesh", "box_mesh", "mesh_size"]
+__all__ = ["Region", "tensor_mesh", "box_mesh", "mesh_size", "tapered_plate_mesh"]
 
 Vec3 = tuple[float, float, float]
 
@@ -77,3 +78,26 @@ def box_mesh(lo: Sequence[float], hi: Sequence[float], cells: int | Sequence[int
     if len(n) != 3 or min(n) < 1:
         raise InputError("fem.box_mesh", "cells", f"need one or three positive cell counts, got {cells!r}")
     return tensor_mesh(*(np.linspace(a, b, k + 1) for a, b, k in zip(lo, hi, n)))
+
+
+def tapered_plate_mesh(length: float, root_width: float, tip_width: float, thickness: float,
+                       cells: Sequence[int]) -> skfem.MeshTet:
+    """Tetrahedral mesh of a plate along x whose width tapers linearly, symmetric about y = 0:
+    x in [0, ``length``], |y| <= w(x) / 2 with w(0) = ``root_width`` and w(length) =
+    ``tip_width``, z in [-``thickness`` / 2, ``thickness`` / 2] [m]. ``cells`` = (along x,
+    across y, through z). The tensor mesh of [0, length] x [-1/2, 1/2] x [-thickness/2,
+    thickness/2] with every node's y scaled by w(x): the tapered edges are straight lines
+    through the grid nodes, so the straight-sided tetrahedra fill the plate exactly, and the
+    mid-plane z = 0 is a grid plane when the number of layers through z is even."""
+    n = tuple(int(c) for c in np.ravel(cells))
+    if len(n) != 3 or min(n) < 1:
+        raise InputError("fem.tapered_plate_mesh", "cells", f"need three positive cell counts, got {cells!r}")
+    dims = np.array([length, root_width, tip_width, thickness], dtype=float)
+    if not (np.all(np.isfinite(dims)) and np.all(dims > 0)):
+        raise InputError("fem.tapered_plate_mesh", "length/widths/thickness",
+                         f"need finite positive sizes [m], got {length!r}, {root_width!r}, {tip_width!r}, {thickness!r}")
+    grid = tensor_mesh(np.linspace(0.0, length, n[0] + 1), np.linspace(-0.5, 0.5, n[1] + 1),
+                       np.linspace(-thickness / 2, thickness / 2, n[2] + 1))
+    p = grid.p.copy()
+    p[1] *= root_width + (tip_width - root_width) * p[0] / length
+    return skfem.MeshTet(p, grid.t)
