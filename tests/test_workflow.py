@@ -318,9 +318,12 @@ def test_every_registered_study_has_a_named_target_and_reaches_all_through_the_r
     study_files = {f.removesuffix(".smk") for f, _, _ in registered}
     main = includes[: min(includes.index(f) for f in study_files)]
     assert main == ["common", "assets", "simulate", "describe", "calibrate", "evaluate", "render", "report"]
-    study_names = {n for f in study_files for n in re.findall(r"^([A-Z][A-Z_]+) = ", texts[f + ".smk"], flags=re.M)}
+    own = {f: texts[f + ".smk"] + ((rules / "inputs" / f"{f}.smk").read_text() if (rules / "inputs" / f"{f}.smk").exists()
+                                   else "") for f in study_files}
+    study_names = {n for f in study_files for n in re.findall(r"^(?:([A-Z][A-Z_]+) = |def (\w+)\()", own[f], flags=re.M)
+                   for n in n if n}
     for f in main:
-        used = study_names & set(re.findall(r"\b[A-Z][A-Z_]+\b", texts[f + ".smk"]))
+        used = study_names & set(re.findall(r"\b\w+\b", texts[f + ".smk"]))
         assert not used, f"{f}.smk reads {sorted(used)}, defined by a study's file included after it"
 
 

@@ -243,13 +243,18 @@ def diag_set_folder(obj, name):
     return f"{P}/rollouts/{obj}/diag/{SPLIT}/{name}"
 
 
-def diag_set_rollouts(obj, name):
-    """{"probe/theta": rollout} of a diagnostics' set: every (probe, theta) that the study
+def diag_set_paths(obj, name):
+    """{(probe, theta): rollout} of a diagnostics' set: every (probe, theta) that the study
     ``name`` simulates beyond the evaluation rollouts, known once its estimates exist
     (:func:`diag_set_cases`, through their checkpoints)."""
     folder = diag_set_folder(obj, name)
     probes, thetas = diag_set_cases(obj, name)
-    return {f"{pr}/{theta_tag(th)}": f"{folder}/{theta_tag(th)}__{pr}.parquet" for pr in probes for th in thetas}
+    return {(pr, th): f"{folder}/{theta_tag(th)}__{pr}.parquet" for pr in probes for th in thetas}
+
+
+def diag_set_rollouts(obj, name):
+    """{"probe/theta tag": rollout} of a diagnostics' set (:func:`diag_set_paths`)."""
+    return {f"{pr}/{theta_tag(th)}": path for (pr, th), path in diag_set_paths(obj, name).items()}
 
 
 def frames_file(obj, probe, theta):
@@ -345,9 +350,10 @@ def qualitative_inputs(wc):
 
 # ---------------------------------------------------------------- registries the studies fill in
 
-#: study -> {"outputs": what its named target rule of the same name makes, "in_all": the part
-#: of them `all` makes, by the study's config switches}. Each study's .smk registers itself
-#: (register_study); the Snakefile's `all` takes every study's in_all (studies_in_all).
+#: study -> {"outputs", "in_all"}: what the study's named target (a rule named as the study)
+#: makes, and the part of it that `all` makes, by the study's config switches. Each study's
+#: .smk registers itself (register_study); the Snakefile's `all` takes every study's in_all
+#: (studies_in_all).
 STUDIES = {}
 
 
@@ -381,5 +387,5 @@ def diag_set_estimates(wc):
 
 def diag_set_runs(wc):
     """The rollouts of a diagnostics' set's job, without deformation gradients."""
-    return [{"theta": parse_theta(key.split("/", 1)[1]), "probe": key.split("/", 1)[0], "rollout": path, "F": None}
-            for key, path in diag_set_rollouts(wc.object, wc.set).items()]
+    return [{"theta": parse_theta(theta_tag(th)), "probe": pr, "rollout": path, "F": None}
+            for (pr, th), path in diag_set_paths(wc.object, wc.set).items()]

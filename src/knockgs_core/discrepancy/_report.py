@@ -102,6 +102,15 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
     out.mkdir(parents=True, exist_ok=True)
     write_result(result, out)
     figs = _figures(result, out)
+    L = (_calibration_lines(result) + _model_error_lines(result) + _error_lines(result) + _round_lines(result)
+         + _figure_lines(figs))
+    path = out / "report.md"
+    write_text(path, "\n".join(L))
+    return str(path)
+
+
+def _calibration_lines(result: DiscrepancyResult) -> list[str]:
+    """The verdict, the effects named and the calibration's summary."""
     L = [f"# Discrepancy report: {result.object} ({result.profile}), calibration probe {result.probe}", ""]
     L += [f"**Verdict:** {result.verdict}.", ""]
     if result.effects:
@@ -136,6 +145,12 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
                  f"{iv[1][1]:.3f}]: " + ", ".join(f"{k} ({v[0]:.3f}, {v[1]:.3f})" for k, v in at.items())
                  + " (the interval spans the model's and the refined model's fits, 2 sd each side; the continuum "
                  "extrapolation is reported, not included)")
+    return L
+
+
+def _model_error_lines(result: DiscrepancyResult) -> list[str]:
+    """The model's discretization term and floor (none without a refined model)."""
+    L = []
     me = result.model_error
     if me:
         L += [
@@ -151,6 +166,12 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
             f"{me['excess_without_term']:.3g} without the term (noise only), {me['excess_with_term']:.3g} with it "
             f"(noise + discretization floor).",
         ]
+    return L
+
+
+def _error_lines(result: DiscrepancyResult) -> list[str]:
+    """The error before and after, per probe and stage."""
+    L = []
     if result.approximation:
         L += ["", f"**Approximation, not added:** {result.approximation['note']}."]
     L += [
@@ -170,6 +191,12 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
     if missing:
         L += ["", f"Held-out probes predicted without a measurement to score against: {', '.join(missing)} "
               "(predictions in predictions.npz)."]
+    return L
+
+
+def _round_lines(result: DiscrepancyResult) -> list[str]:
+    """Every attribution round: its decision and its ranked effects."""
+    L = []
     L += ["", "## Attribution rounds", ""]
     for i, rd in enumerate(result.rounds, 1):
         L += [
@@ -217,6 +244,11 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
                 L.append(f"\nTried {t['key']}: joint recalibration cut the residual energy from {t['rss_before']:.4g} to "
                          f"{t['rss_after']:.4g} m^2 ({share}).")
         L.append("")
+    return L
+
+
+def _figure_lines(figs) -> list[str]:
+    L = []
     L += ["## Figures", ""]
     for probe, name in figs:
         L += [f"![residual views, {probe}]({name})", ""]
@@ -226,6 +258,4 @@ def write_report(result: DiscrepancyResult, out_dir) -> str:
         "per-point residual RMS (before vs after).",
         "",
     ]
-    path = out / "report.md"
-    write_text(path, "\n".join(L))
-    return str(path)
+    return L
