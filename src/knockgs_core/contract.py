@@ -615,6 +615,8 @@ def _tables_dir(path: Path, config_dir) -> Path:
 
 
 def _build(data: dict, path: Path, cfg: Path, profile: str) -> ObjectContract:
+    # ~100 lines on purpose: one validated field after another, in the schema's order, each
+    # refusal naming the file and the field.
     if profile not in data["profiles"]:
         raise InputError(path, "profile", f"unknown profile {profile!r}; the file defines "
                          f"{', '.join(data['profiles'])}")

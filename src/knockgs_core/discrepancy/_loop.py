@@ -589,6 +589,8 @@ def run_discrepancy(
     from (1, 1). ``device`` and ``deterministic``: every rollout's of the loop
     (:class:`ForwardModel`). Returns a :class:`DiscrepancyResult`.
     """
+    # One function of ~100 lines on purpose: the loop's phases (base calibration, catalogue,
+    # attribution rounds, refit, predictions) read in the order they run; each is a helper.
     say = progress or (lambda msg: None)
     probe, heldout_probes, heldout_measured = _check_probes(measured, contract, probe, heldout_probes, heldout_measured)
     pb = Problem(measured, ForwardModel(contract, particles, device=device, deterministic=deterministic), probe, settings)
