@@ -38,12 +38,12 @@ def main() -> None:
     ap.add_argument("--particles", help="the object's particles .npz: read where it exists, else built and written "
                                         "there (processes comparing code versions then share one asset)")
     ap.add_argument("--chunk", type=int, nargs="+", default=[32],
-                    help="sorted particles a window of the P2G by cells (MPMSolver.cell_chunk), each profiled")
+                    help="sorted particles a window of the P2G by cells (SolverConfig.cell_chunk), each profiled")
     ap.add_argument("--fuse", nargs="+", choices=["auto", "on", "off"], default=["auto"],
                     help="G2P fused with the next substep's per-particle P2G half (MPMSolver(fuse=...); on: "
                          "the P2G by cells only), each profiled")
     ap.add_argument("--resort", type=int, nargs="+", default=[10],
-                    help="intervals of the P2G by cells' sort in substeps (MPMSolver.resort_every), each profiled")
+                    help="intervals of the P2G by cells' sort in substeps (SolverConfig.resort_every), each profiled")
     ap.add_argument("--deterministic", nargs="+", choices=["off", "fixed"], default=["off"],
                     help="the bitwise-reproducible P2G (MPMSolver(deterministic=...); fixed: the windows' sums added "
                          "as fixed-point integers), each profiled; list one twice to compare the runs' bits (MD5 of u)")
@@ -86,9 +86,10 @@ def main() -> None:
     if options:
         wp.set_module_options(options, module=_kernels)
     particle_kernels = ("p2g_prepare", "g2p")
-    if args.max_registers:  # the same kernels, registered again with the cap (the solver looks them up by name)
+    if args.max_registers:  # the same kernels with the cap, in the solver's Warp module (the solver looks them up by name)
         for name in particle_kernels:
-            setattr(_kernels, name, wp.kernel(getattr(_kernels, name).func, cuda_max_registers=args.max_registers))
+            kernel = wp.kernel(getattr(_kernels, name).func, cuda_max_registers=args.max_registers, module=_kernels.MODULE)
+            setattr(_kernels, name, kernel)
 
     from _object_model import object_particles, probe_a_model
 
@@ -156,7 +157,7 @@ def main() -> None:
         if wp.get_device(args.device).is_cuda:
             props = []
             kernels = {name: getattr(_kernels, name) for name in particle_kernels}
-            kernels.update({k.key: k for k in getattr(_kernels, "_G2P_PREPARE_KERNELS", {}).values()})  # one a transfer
+            kernels.update({k.key: k for k in map(_kernels.g2p_prepare, (0, 1))})  # one a transfer
             for name, kernel in kernels.items():
                 try:
                     q = wp.get_cuda_kernel_properties(kernel, device=args.device)

@@ -1,5 +1,5 @@
 """How many warm-started polar iterations the particles take under each polar step and update
-(``MPMSolver.polar_step``, ``MPMSolver.polar_update``), and how far each ends from the SVD's
+(``SolverConfig.polar_step``, ``SolverConfig.polar_update``), and how far each ends from the SVD's
 rotation.
 
 Part 1: an object's rollout state every ``--steps / 3`` substeps (the solver's own, CPU by
@@ -95,7 +95,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--polar-steps", type=float, nargs="+", default=[1.0, 1.5, 1.8])
     ap.add_argument("--updates", nargs="+", choices=["axis_angle", "rational"], default=["axis_angle", "rational"],
-                    help="how an iteration rotates by a correction below the guard (MPMSolver.polar_update)")
+                    help="how an iteration rotates by a correction below the guard (SolverConfig.polar_update)")
     args = ap.parse_args()
 
     from scipy.spatial.transform import Rotation

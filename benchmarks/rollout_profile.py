@@ -31,7 +31,7 @@ def main() -> None:
     from knockgs_core.assets import build_asset
     from knockgs_core.contract import load_contract
     from knockgs_core.rollout import run_rollout, write_rollout
-    from knockgs_core.sim import _solver
+    from knockgs_core.sim import _simulate, _solver
 
     seconds, calls = defaultdict(float), defaultdict(int)
 
@@ -50,7 +50,7 @@ def main() -> None:
 
     for name in ("step", "check", "_record"):
         timed(_solver.MPMSolver, name)
-    timed(_solver._Exporter, "export")
+    timed(_simulate._Exporter, "export")
 
     contract = load_contract(args.object, args.profile)
     t = time.perf_counter()

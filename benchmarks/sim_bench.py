@@ -132,14 +132,14 @@ def main() -> None:
                     help="the particles' order: the lattice's, or sorted by stencil base cell")
     ap.add_argument("--ppc", nargs="+", type=int, default=[8], help="particles per cell of the block (cubes: 8, 27, 64)")
     ap.add_argument("--g2p-sums", nargs="+", choices=["auto", "nodes", "lines"], default=[None],
-                    help="how G2P sums its stencil (MPMSolver.g2p_sums; default: the solver's), each measured")
+                    help="how G2P sums its stencil (SolverConfig.g2p_sums; default: the solver's), each measured")
     ap.add_argument("--polar-update", nargs="+", choices=["auto", "axis_angle", "rational"], default=[None],
-                    help="how the polar iterations rotate (MPMSolver.polar_update; default: the solver's), each measured")
+                    help="how the polar iterations rotate (SolverConfig.polar_update; default: the solver's), each measured")
     ap.add_argument("--deformation-storage", nargs="+", choices=["auto", "float64", "displacement"], default=["auto"],
                     help="how the states store F (Model.deformation_storage; auto: the displacement gradient in "
                          "float32 on a GPU, F in float64 on the CPU), each measured")
     ap.add_argument("--window-atomics", nargs="+", choices=["auto", "scalar", "vector"], default=[None],
-                    help="how the window sums reach the nodes (MPMSolver.window_atomics; default: the solver's), each "
+                    help="how the window sums reach the nodes (SolverConfig.window_atomics; default: the solver's), each "
                          "measured")
     ap.add_argument("--cold", action="store_true", help="also measure a cold compile")
     ap.add_argument("--json", help="write results here")

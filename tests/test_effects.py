@@ -226,7 +226,7 @@ def test_von_mises_return_mapping_matches_numpy(rng, layout):
     mu = rng.uniform(50.0, 150.0, n)
     yield_stress = 8.0
     wp.init()
-    from knockgs_core.sim._solver import matrices, matrix_array
+    from knockgs_core.sim._model import matrices, matrix_array
 
     # F is float64 in the solver
     Fw = matrix_array(n, wp.float64, "cpu", layout=layout)

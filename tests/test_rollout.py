@@ -296,7 +296,7 @@ def test_rollouts_simulated_together_count_their_cells_once(pillow_ci, monkeypat
     # counted once for the batch, not once a model and a solver (the same values: the test above
     # holds the bits)
     from knockgs_core.rollout import run_rollouts
-    from knockgs_core.sim import _solver
+    from knockgs_core.sim import _model, _solver
 
     contract, built = pillow_ci
     calls = {"volumes": 0, "crowding": 0}
@@ -307,10 +307,10 @@ def test_rollouts_simulated_together_count_their_cells_once(pillow_ci, monkeypat
             return inner(*args, **kwargs)
         return wrapper
 
-    volumes = counted("volumes", _solver.particle_volumes)
-    monkeypatch.setattr(_solver, "particle_volumes", volumes)  # build_model's
+    volumes = counted("volumes", _model.particle_volumes)
+    monkeypatch.setattr(_model, "particle_volumes", volumes)  # build_model's
     monkeypatch.setattr("knockgs_core.rollout.particle_volumes", volumes)
-    monkeypatch.setattr(_solver, "cell_crowding", counted("crowding", _solver.cell_crowding))
+    monkeypatch.setattr(_solver, "cell_crowding", counted("crowding", _model.cell_crowding))  # MPMSolver's
     runs = [((0.95, 1.35), "standard_x"), ((1.6, 0.8), "standard_x"), ((0.7, 1.1), "standard_y")]
     run_rollouts(contract, runs, particles=dataclasses.replace(built.particles, volumes=None))
     assert calls == {"volumes": 1, "crowding": 1}

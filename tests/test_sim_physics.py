@@ -463,15 +463,16 @@ def test_the_polar_iteration_cap_never_binds(ficus_ci, step, update):
 
     c, ps = ficus_ci
     probe = dataclasses.replace(c.resolve_probes(ps)["standard_x"], export=ExportSchedule(0.04, 3))
-    saved = MPMSolver.polar_iters, MPMSolver.polar_step, MPMSolver.polar_update
-    cap = saved[0]
+    cap = MPMSolver.polar_iters
+    init = MPMSolver.__init__
 
     def run(n):
-        MPMSolver.polar_iters, MPMSolver.polar_step, MPMSolver.polar_update = n, step, update
-        try:
+        # every solver the rollout makes: the cap n, this polar step and update
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(MPMSolver, "polar_iters", n)
+            patch.setattr(MPMSolver, "__init__", lambda self, model, config=None, **options: init(
+                self, model, config, **options, polar_step=step, polar_update=update))
             return run_rollout(c, (1.15, 0.75), "standard_x", particles=ps, probe=probe).positions
-        finally:
-            MPMSolver.polar_iters, MPMSolver.polar_step, MPMSolver.polar_update = saved
 
     X, X2 = run(cap), run(2 * cap)
     np.testing.assert_array_equal(X, X2)
@@ -745,7 +746,7 @@ def test_displacement_storage_keeps_small_strain_increments():
     # rate rounds alike every substep, the worst case: a rollout's varying increments round
     # both ways.
     from knockgs_core.sim import _kernels as K
-    from knockgs_core.sim._solver import deformation_array, matrices
+    from knockgs_core.sim._model import deformation_array, matrices
 
     @wp.kernel(module="unique")
     def accumulate_F(rate: wp.mat33d, steps: int, F: Any):
@@ -781,6 +782,29 @@ def test_displacement_storage_keeps_small_strain_increments():
     assert np.abs(F32 - exact).max() / strain > 0.5
     assert errors["float64", "records"] < 1e-7 and errors["float64", "components"] < 1e-7  # measured 4.9e-9
     assert errors["displacement", "components"] < 1e-3  # measured 1.7e-4: the same rounding every substep
+
+
+def test_the_kernels_are_one_warp_module():
+    # The solver's kernels are files by stage (knockgs_core.sim._kernels) and one Warp module, as
+    # when they were one file: one build, one cache entry and one load on a device. Every kernel
+    # and function of the package, every overload, the fused G2P's kernels and the windows'
+    # kernels that the solver makes with the module are in it.
+    from knockgs_core.sim import SolverConfig
+    from knockgs_core.sim import _kernels as K
+
+    module = wp.get_module("knockgs_core.sim._kernels")
+    assert K.MODULE is module and K.NAME == module.name == K.__name__
+    kernels = [k for k in vars(K).values() if isinstance(k, wp.Kernel)]
+    kernels += [K.g2p_prepare(flip) for flip in (0, 1)]
+    kernels += [K.p2g_windows(SolverConfig.cell_chunk, flip, fixed, records) for flip in (0, 1)
+                for fixed, records in ((False, False), (True, False), (False, True))]
+    functions = [f for f in vars(K).values() if isinstance(f, wp.Function)]
+    assert len(kernels) == 23 and len(functions) == 40
+    for kernel in kernels:
+        assert module.kernels[kernel.key] is kernel, kernel.key
+        assert all(o.module is module for o in kernel.overloads.values()), kernel.key
+    for function in functions:
+        assert module.functions[function.key] is function and function.module is module, function.key
 
 
 def test_no_kernel_is_made_at_a_launch(rng):
@@ -872,18 +896,20 @@ def test_simulations_take_solver_options_and_storage_by_name(rng):
 
 
 def test_the_devices_auto_choices_are_made_in_one_place(rng, monkeypatch):
-    # MPMSolver's and build_model's "auto" ask MPMSolver.auto_options and device_storage, and
+    # MPMSolver's and build_model's "auto" ask SolverConfig.resolve and device_storage, and
     # GPU_SOLVER_OPTIONS / GPU_STORAGE are their answers for a GPU: with both answering as on a
     # GPU, a CPU run of all "auto" is bit for bit the CPU's replay of the GPU's substep
-    from knockgs_core.sim import GPU_SOLVER_OPTIONS, GPU_STORAGE, _solver, device_storage, simulate_many
+    from knockgs_core.sim import GPU_SOLVER_OPTIONS, GPU_STORAGE, SolverConfig, _model, device_storage, simulate_many
 
     assert dict(GPU_SOLVER_OPTIONS) == dict(p2g="cells", graph=True, fuse=True, polar_step=1.5, polar_update="rational",
                                             g2p_sums="lines", window_atomics="vector")
     assert dict(GPU_STORAGE) == dict(matrix_layout="components", deformation_storage="displacement")
-    assert MPMSolver.auto_options(True, crowding=1.0)["p2g"] == "scatter"
-    assert MPMSolver.auto_options(True, crowding=1.0, deterministic=True)["p2g"] == "cells"
-    hooked = MPMSolver.auto_options(True, hooks=True)
-    assert (hooked["graph"], hooked["fuse"]) == (False, False)
+    assert SolverConfig().resolve(cuda=True, crowding=1.0).p2g == "scatter"
+    assert SolverConfig(deterministic=True).resolve(cuda=True, crowding=1.0).p2g == "cells"
+    hooked = SolverConfig().resolve(cuda=True, hooks=True)
+    assert (hooked.graph, hooked.fuse) == (False, False)
+    resolved = SolverConfig().resolve(cuda=True)
+    assert resolved.resolve(cuda=True) == resolved and resolved.device_options() == dict(GPU_SOLVER_OPTIONS)
     params, X = shell_scene(rng, "affine_flip", shell=800, guard_every=10)
     V = (X - X.mean(axis=0)) @ np.array([[0.0, 0.8, 0.1], [-0.8, 0.2, 0.0], [0.1, 0.0, -0.3]], dtype=np.float32)
 
@@ -896,13 +922,14 @@ def test_the_devices_auto_choices_are_made_in_one_place(rng, monkeypatch):
     model, cpu = run()
     solver = MPMSolver(model)
     chosen = {key: getattr(solver, key) for key in GPU_SOLVER_OPTIONS}
-    assert chosen == MPMSolver.auto_options(False, crowding=solver.crowding) != dict(GPU_SOLVER_OPTIONS)
-    assert _solver._matrix_layout("auto", wp.get_device("cpu")) == device_storage(False)["matrix_layout"]
+    assert chosen == SolverConfig().resolve(cuda=False, crowding=solver.crowding).device_options() != dict(GPU_SOLVER_OPTIONS)
+    assert solver.config.device_options() == chosen
+    assert _model._matrix_layout("auto", wp.get_device("cpu")) == device_storage(False)["matrix_layout"]
     replay = run(GPU_SOLVER_OPTIONS, **GPU_STORAGE)[1]
     assert not np.array_equal(replay, cpu)
-    as_gpu = MPMSolver.auto_options
-    monkeypatch.setattr(MPMSolver, "auto_options", classmethod(lambda cls, cuda, **kw: as_gpu(True, **kw)))
-    monkeypatch.setattr(_solver, "device_storage", lambda cuda: dict(GPU_STORAGE))
+    as_gpu = SolverConfig.resolve
+    monkeypatch.setattr(SolverConfig, "resolve", lambda self, *, cuda, **kw: as_gpu(self, cuda=True, **kw))
+    monkeypatch.setattr(_model, "device_storage", lambda cuda: dict(GPU_STORAGE))
     model, auto = run()
     assert {key: getattr(MPMSolver(model), key) for key in GPU_SOLVER_OPTIONS} == dict(GPU_SOLVER_OPTIONS)
     assert make_state(model, X).particle_F.shape[:2] == (3, 3)  # F - I, component by component
@@ -919,7 +946,7 @@ def test_frames_copied_behind_the_next_substeps_are_handed_over_in_order(rng, mo
     # before its first guard check; every frame handed over by the end. With 5 substeps a frame
     # and the guard every 10, some frames end with no check inside the next: handed over then
     # before the next frame is staged.
-    from knockgs_core.sim import _solver, simulate_many
+    from knockgs_core.sim import _simulate, simulate_many
 
     params, X = shell_scene(rng, "affine_flip", shell=1500, guard_every=10)
     index = rng.permutation(len(X)).astype(np.int32)
@@ -934,7 +961,7 @@ def test_frames_copied_behind_the_next_substeps_are_handed_over_in_order(rng, mo
     kw = dict(frame_dt=per_frame * params.dt, n_frames=4, export_F=50, export_index=index)
     at_once = simulate_many(runs(), **kw)
     events, log = [], []
-    stage, check, step = _solver._Exporter.stage, MPMSolver.check, MPMSolver.step
+    stage, check, step = _simulate._Exporter.stage, MPMSolver.check, MPMSolver.step
 
     def pending_stage(self, state):
         stage(self, state)  # on the CPU: the frame copied at once; kept in "pinned" arrays, pending
@@ -949,8 +976,8 @@ def test_frames_copied_behind_the_next_substeps_are_handed_over_in_order(rng, mo
         assert event in events
         events.remove(event)
 
-    monkeypatch.setattr(_solver._Exporter, "stage", pending_stage)
-    monkeypatch.setattr(_solver.wp, "synchronize_event", waited)
+    monkeypatch.setattr(_simulate._Exporter, "stage", pending_stage)
+    monkeypatch.setattr(_simulate.wp, "synchronize_event", waited)
     monkeypatch.setattr(MPMSolver, "check", lambda self, state: (log.append(("check", state.step)), check(self, state))[1])
     monkeypatch.setattr(MPMSolver, "step", lambda self, state: (log.append(("step", state.step)), step(self, state))[1])
     frames = []
@@ -1100,6 +1127,8 @@ def test_window_sums_by_vector_atomics_give_the_scalar_atomics_bits(rng, transfe
 def test_window_sums_by_vector_atomics_are_read_from_their_records(rng):
     # the update reads the node records and zeroes them in place of the zeroing pass, so a
     # record left non-zero would reach the next substep's grid; the option is checked
+    from knockgs_core.sim import SolverConfig
+
     params, X = shell_scene(rng, "affine_flip", shell=800, guard_every=10)
     model, state, solver = pushed_shell(params, X, 3, p2g="cells", window_atomics="vector")
     solver._records.sums_mvm.fill_(wp.vec4(0.0, 0.0, 0.0, 1.0))
@@ -1109,9 +1138,9 @@ def test_window_sums_by_vector_atomics_are_read_from_their_records(rng):
     # auto: scalar on the CPU; vector only where P2G sums float windows
     assert MPMSolver(model, p2g="cells").window_atomics == "scalar"
     assert MPMSolver(model).window_atomics == "scalar"
-    assert MPMSolver.auto_options(True)["window_atomics"] == "vector"
-    assert MPMSolver.auto_options(True, crowding=1.0)["window_atomics"] == "scalar"  # the scatter
-    assert MPMSolver.auto_options(True, deterministic=True)["window_atomics"] == "scalar"
+    assert SolverConfig().resolve(cuda=True).window_atomics == "vector"
+    assert SolverConfig().resolve(cuda=True, crowding=1.0).window_atomics == "scalar"  # the scatter
+    assert SolverConfig(deterministic=True).resolve(cuda=True).window_atomics == "scalar"
     # the reproducible sums add integers: no float atomics for the option to change
     assert MPMSolver(model, deterministic=True, window_atomics="vector")._records is None
     for bad in (dict(window_atomics="vec4", p2g="cells"), dict(window_atomics="vector"),
@@ -1127,6 +1156,29 @@ def test_p2g_variant_is_checked_and_the_cpu_keeps_the_scatter():
     assert MPMSolver(model).p2g == "scatter"  # CPU rollouts stay bitwise what they were
     with pytest.raises(Exception, match="p2g"):
         MPMSolver(model, p2g="gather")
+
+
+def test_a_solver_takes_a_config_or_its_fields_by_name():
+    # MPMSolver(model, config) with a frozen SolverConfig, or its fields as keywords (replacing
+    # the given config's); the config resolved once, for the device, and kept
+    from knockgs_core.sim import SolverConfig
+
+    params = SimParams(n_grid=16, dt=1e-3, boundaries=())
+    X = block((0.9, 0.9, 0.9), (1.1, 1.1, 1.1), 1 / 16)
+    model = build_model(X, E=1e4, nu=0.3, rho=1000.0, params=params, device="cpu")
+    config = SolverConfig(p2g="cells", resort_every=3)
+    by_config, by_name = MPMSolver(model, config), MPMSolver(model, p2g="cells", resort_every=3)
+    assert by_config.config == by_name.config == config.resolve(cuda=False)
+    assert (by_config.p2g, by_config.resort_every, by_config.graph, by_config.polar_step) == ("cells", 3, False, 1.0)
+    assert "auto" not in by_config.config.device_options().values()
+    assert MPMSolver(model, config, graph=True).config.fuse is True  # fused where substeps are graphs by cells
+    assert MPMSolver(model, polar_step=None, cell_chunk=None).config == MPMSolver(model).config  # None: the default
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        config.p2g = "scatter"
+    with pytest.raises(TypeError, match="cell_sums"):
+        MPMSolver(model, config, cell_sums="list")
+    with pytest.raises(InputError, match="p2g"):
+        SolverConfig(p2g="gather").resolve(cuda=True)
 
 
 def test_guard_stops_an_unstable_run_under_the_p2g_by_cells():
@@ -1212,7 +1264,7 @@ def test_cell_crowding_counts_for_particles_not_cells():
     averaged over particles. A cluster of 100 particles in one base cell beside 100 lone ones
     gives (100 * 100 + 100 * 1) / 200; a block at 2 x 2 x 2 per cell gives 8 inside, less at
     its faces; the CPU solver keeps the scatter whatever the crowding."""
-    from knockgs_core.sim import MPMSolver, SimParams, build_model, cell_crowding
+    from knockgs_core.sim import MPMSolver, SimParams, SolverConfig, build_model, cell_crowding
 
     dx = 0.1
     cluster = np.full((100, 3), 1.07) + np.linspace(0.0, 0.02, 100)[:, None]  # base cell (10, 10, 10)
@@ -1231,9 +1283,10 @@ def test_cell_crowding_counts_for_particles_not_cells():
     # counted on every device (a batch of runs counts it once), the scatter kept on the CPU
     assert solver.p2g == "scatter" and solver.crowding == pytest.approx(100.0)
     # the GPU's choice: by cells from the threshold on (a block at 1 per cell keeps the scatter)
-    t = MPMSolver.CELLS_CROWDING
-    assert [MPMSolver.auto_p2g(True, c) for c in (1.0, t, 8.0, 124.0)] == ["scatter", "cells", "cells", "cells"]
-    assert MPMSolver.auto_p2g(False, 124.0) == "scatter"
+    t = SolverConfig.CELLS_CROWDING
+    p2g = [SolverConfig().resolve(cuda=True, crowding=c).p2g for c in (1.0, t, 8.0, 124.0)]
+    assert p2g == ["scatter", "cells", "cells", "cells"]
+    assert SolverConfig().resolve(cuda=False, crowding=124.0).p2g == "scatter"
 
 
 @pytest.mark.slow

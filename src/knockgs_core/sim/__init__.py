@@ -1,12 +1,15 @@
 """MLS-MPM simulator in NVIDIA Warp (one code path for CPU and CUDA).
 
 A static :class:`Model` (particles, materials, boundary conditions, probe) apart from a
-time-varying :class:`State`; :class:`MPMSolver` advances one substep; :func:`simulate` runs
-a rollout and exports frames. Boundary conditions and probes are data
-(:mod:`knockgs_core.sim._config`). Extra physics terms, all off by default, are effects
-(:mod:`knockgs_core.sim._effects`) following the :class:`Effect` protocol
-(:mod:`knockgs_core.sim._protocol`: no-op hooks, scratch made by ``setup(model)`` and held
-by the solver), switched on with :func:`with_effects`.
+time-varying :class:`State` (:mod:`knockgs_core.sim._model`); :class:`MPMSolver` advances one
+substep (:mod:`knockgs_core.sim._solver`) as a frozen :class:`SolverConfig` says, its
+``"auto"`` options resolved for the device in one place (:meth:`SolverConfig.resolve`);
+:func:`simulate` runs a rollout and exports frames (:mod:`knockgs_core.sim._simulate`); the
+Warp kernels are :mod:`knockgs_core.sim._kernels`, files by stage in one Warp module. Boundary
+conditions, probes and solver settings are data (:mod:`knockgs_core.sim._config`). Extra
+physics terms, all off by default, are effects (:mod:`knockgs_core.sim._effects`) following the
+:class:`Effect` protocol (:mod:`knockgs_core.sim._protocol`: no-op hooks, scratch made by
+``setup(model)`` and held by the solver), switched on with :func:`with_effects`.
 """
 
 from ._config import (
@@ -19,6 +22,8 @@ from ._config import (
     ParticleTranslation,
     Probe,
     SimParams,
+    SolverConfig,
+    GPU_SOLVER_OPTIONS,
     is_still_sticky,
 )
 from ._effects import (
@@ -37,8 +42,10 @@ from ._effects import (
     with_effects,
 )
 from ._protocol import Effect
-from ._solver import (GPU_SOLVER_OPTIONS, GPU_STORAGE, MPMSolver, Model, SimResult, State, build_model, cell_crowding,
-                      default_device, device_storage, make_state, particle_volumes, simulate, simulate_many)
+from ._model import (GPU_STORAGE, Model, State, build_model, cell_crowding, default_device, device_storage, make_state,
+                     particle_volumes)
+from ._simulate import SimResult, simulate, simulate_many
+from ._solver import MPMSolver
 
 __all__ = [
     "BoundaryCondition",
@@ -54,6 +61,7 @@ __all__ = [
     "GPU_SOLVER_OPTIONS",
     "GPU_STORAGE",
     "MPMSolver",
+    "SolverConfig",
     "Model",
     "SimResult",
     "State",

@@ -1,4 +1,5 @@
-"""Data that configures a simulation: boundary conditions, probes, solver settings.
+"""Data that configures a simulation: boundary conditions, probes, the physics' settings
+(:class:`SimParams`) and how the solver steps (:class:`SolverConfig`).
 
 Everything here is plain frozen data; the kernels in :mod:`knockgs_core.sim._kernels`
 interpret it. Units: lengths in the normalized domain [m], times [s], forces [N].
@@ -6,10 +7,14 @@ interpret it. Units: lengths in the normalized domain [m], times [s], forces [N]
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Literal, Union
+from types import MappingProxyType
+from typing import ClassVar, Literal, Union
 
+from ..errors import InputError
 from ._protocol import Effect
 
 __all__ = [
@@ -23,6 +28,8 @@ __all__ = [
     "ExportSchedule",
     "Material",
     "SimParams",
+    "SolverConfig",
+    "GPU_SOLVER_OPTIONS",
     "TRANSFERS",
 ]
 
@@ -238,3 +245,176 @@ class SimParams:
         if self.transfer == "apic":
             return 0.0
         return math.exp(-self.dt / self.pic_relaxation_time)
+
+
+def as_flag(where: str, field: str, value) -> bool:
+    """``value`` as a bool, where only True or False (or NumPy's) is accepted."""
+    if value not in (True, False):
+        raise InputError(where, field, f"must be True or False, got {value!r}")
+    return bool(value)
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """How :class:`~knockgs_core.sim.MPMSolver` steps: the P2G variant, substep graphs, fused
+    substeps, the reproducible sums, the polar iterations, G2P's sums and the P2G by cells'
+    settings. None of them changes the physics: the same sums, in another order or rounding.
+
+    An option ``"auto"`` is the device's choice; :meth:`resolve` makes every such choice for a
+    device and a model (the one place they are made) and checks every option.
+    :data:`GPU_SOLVER_OPTIONS` is its answer for a GPU. ``MPMSolver(model, config)`` resolves
+    the config it is given (a resolved one stays as it is); ``MPMSolver(model, **options)``
+    takes the same fields as keywords.
+    """
+
+    p2g: str = "auto"
+    """``"scatter"`` (one float atomic per particle and stencil node; the CPU's), ``"cells"``
+    (particles sorted by base cell every :attr:`resort_every` substeps, summed by windows of
+    :attr:`cell_chunk` sorted particles with one atomic per run of one base cell and stencil
+    node: :func:`~knockgs_core.sim._kernels.p2g_windows`) or ``"auto"``: by cells on a CUDA
+    device where the particles crowd their cells (:func:`~knockgs_core.sim.cell_crowding` at
+    least :attr:`CELLS_CROWDING`), else the scatter."""
+    graph: bool | str = "auto"
+    """Replay each substep as a captured graph (one per probe state and set of active supports,
+    captured again when the guard moves the active box), which skips the host's launch overhead:
+    a CUDA graph on a GPU; on the CPU (on request only) Warp replays the recorded launches, bit
+    for bit the same substeps. ``"auto"``: on a CUDA device, for models without effects and
+    particle translations (whose host-side hooks run every substep)."""
+    fuse: bool | str = "auto"
+    """With the P2G by cells, end each substep with G2P fused with the next substep's
+    per-particle P2G half (:func:`~knockgs_core.sim._kernels.g2p_prepare`): one pass over the
+    particles instead of two, the same bits. The next substep's probe impulse and rotation are
+    then already in the state between substeps, so the solver must step that one state on, and
+    nothing else may change it between substeps. ``"auto"``: where substeps are graphs and P2G
+    is by cells."""
+    resort_every: int = 10
+    """The P2G by cells sorts the particles by base cell every this many substeps; between sorts
+    the windows follow the last order, their runs cut where a particle has changed cells since
+    (the sums are right in any order: the interval sets speed only;
+    benchmarks/results/2026-11-26-graphs-crowding-cell-sums.md)."""
+    cell_chunk: int = 32
+    """Sorted particles a window of the P2G by cells takes (a block's threads and its staged
+    terms in shared memory: at most 256); a run of one base cell is cut at a window's ends."""
+    deterministic: bool = False
+    """A GPU rollout the same bit for bit on every run. Float atomics add a node's contributions
+    in the order the GPU schedules its threads, so the last bits of a GPU rollout vary between
+    runs. Deterministic, the P2G is by cells (chosen whatever the crowding) and the windows' run
+    sums, each summed in a fixed order, are added to the nodes as int64 fixed-point sums
+    (:attr:`~knockgs_core.sim.MPMSolver.reproducible_sums`;
+    :func:`~knockgs_core.sim._kernels.window_sums_fixed`), whose integer atomics give one sum in
+    any order: no float atomics reach the grid. True or False only."""
+    polar_step: float | str = "auto"
+    """The polar iterations' step near convergence, a multiple of Mueller et al.'s
+    (:func:`~knockgs_core.sim._kernels.polar_rotation`): 1.0 (theirs) up to 1.9; 1.5 takes about
+    a third of the iterations of 1.0 to the same rotation (within its 1e-7 rad). ``"auto"``: 1.5
+    on a GPU, 1.0 on the CPU (whose rollouts, and the tables made from them, keep their bits)."""
+    polar_update: str = "auto"
+    """How the polar iterations rotate by a correction below 0.1 rad
+    (:func:`~knockgs_core.sim._kernels.polar_rotation`): ``"axis_angle"`` (the axis and the
+    angle's sine and cosine, Mueller et al.'s) or ``"rational"`` (the quaternion ``(h, 1)``
+    normalized: no sine, cosine or square root, one division; the same converged rotation).
+    ``"auto"``: rational on a GPU, axis and angle on the CPU."""
+    g2p_sums: str = "auto"
+    """How G2P sums the node velocities into the particle's velocity and affine matrix:
+    ``"nodes"`` (an outer product a node, :func:`~knockgs_core.sim._kernels.gather_by_nodes`) or
+    ``"lines"`` (factored along the stencil's lines, ~300 multiply-adds a particle and field
+    instead of ~700: :func:`~knockgs_core.sim._kernels.gather_by_lines`; the same sums in another
+    order). ``"auto"``: lines on a GPU, nodes on the CPU."""
+    window_atomics: str = "auto"
+    """How the float window sums reach the nodes: ``"scalar"`` (one float atomic a component into
+    the grid's momentum, mass and stress-free momentum arrays, zeroed before P2G) or ``"vector"``
+    (into vec4 node records of momentum and mass, and of the stress-free momentum, one 16-byte
+    atomic each on a device of compute capability 9.0 or later; the grid update reads and zeroes
+    them: :func:`~knockgs_core.sim._kernels.grid_update_records`). The same sums, added to each
+    node in the same order wherever the atomics arrive in order (the CPU: the same bits).
+    ``"auto"``: vector on a GPU where P2G sums by cells, scalar elsewhere. The reproducible sums
+    (``deterministic``) add no floats to the nodes, so the option does not apply there. Measured
+    in benchmarks/results/2026-11-29-vector-atomics.md."""
+
+    #: ``p2g="auto"`` on a CUDA device sums by cells from this crowding on (particles sharing a
+    #: particle's base cell, on average), and scatters below it: where particles crowd their cells
+    #: the scatter's atomics serialize on the shared nodes (measured on blocks at 1 and 8
+    #: particles a cell: benchmarks/results/2026-11-26-graphs-crowding-cell-sums.md)
+    CELLS_CROWDING: ClassVar[float] = 4.0
+    #: the options whose ``"auto"`` depends on the device (:meth:`device_options`)
+    DEVICE_OPTIONS: ClassVar[tuple[str, ...]] = ("p2g", "graph", "fuse", "polar_step", "polar_update", "g2p_sums",
+                                                 "window_atomics")
+    #: the options for which MPMSolver's keyword None keeps the field as it is
+    NONE_KEEPS: ClassVar[tuple[str, ...]] = ("resort_every", "cell_chunk", "polar_step", "polar_update", "g2p_sums",
+                                             "window_atomics")
+
+    def with_options(self, **options) -> SolverConfig:
+        """This config with the fields given as :class:`~knockgs_core.sim.MPMSolver`'s keyword
+        options (None keeps the field of the options in :attr:`NONE_KEEPS`); an unknown
+        keyword is a TypeError naming it."""
+        if not options:
+            return self
+        return dataclasses.replace(self, **{key: value for key, value in options.items()
+                                            if value is not None or key not in self.NONE_KEEPS})
+
+    @property
+    def counts_crowding(self) -> bool:
+        """Whether :meth:`resolve` needs the particles' crowding: only ``p2g="auto"`` of a solver
+        that is not deterministic chooses by it."""
+        return self.p2g == "auto" and not self.deterministic
+
+    def device_options(self) -> dict:
+        """The options whose ``"auto"`` depends on the device (:attr:`DEVICE_OPTIONS`), by name."""
+        return {name: getattr(self, name) for name in self.DEVICE_OPTIONS}
+
+    def resolve(self, *, cuda: bool, crowding: float | None = math.inf, hooks: bool = False) -> SolverConfig:
+        """This config with every ``"auto"`` chosen for a CUDA device (``cuda``) or the CPU, for
+        particles crowding their cells by ``crowding`` (:func:`~knockgs_core.sim.cell_crowding`;
+        inf: as crowded as can be) and a model with host-side hooks (``hooks``: effects or particle
+        translations) or not, and every option checked (an :class:`~knockgs_core.errors.InputError`
+        naming it). Resolving a resolved config for the same device and model changes nothing."""
+        def bad(option: str, message: str) -> InputError:
+            return InputError("MPMSolver", option, message)
+
+        deterministic = as_flag("MPMSolver", "deterministic", self.deterministic)
+        polar_step = (1.5 if cuda else 1.0) if self.polar_step == "auto" else self.polar_step
+        if isinstance(polar_step, bool) or not isinstance(polar_step, (int, float)) or not 1.0 <= polar_step <= 1.9:
+            raise bad("polar_step", f"must be 'auto' or a number in [1, 1.9], got {polar_step!r}")
+        polar_update = ("rational" if cuda else "axis_angle") if self.polar_update == "auto" else self.polar_update
+        if polar_update not in ("axis_angle", "rational"):
+            raise bad("polar_update", f"must be 'auto', 'axis_angle' or 'rational', got {polar_update!r}")
+        g2p_sums = ("lines" if cuda else "nodes") if self.g2p_sums == "auto" else self.g2p_sums
+        if g2p_sums not in ("nodes", "lines"):
+            raise bad("g2p_sums", f"must be 'auto', 'nodes' or 'lines', got {g2p_sums!r}")
+        graph = (bool(cuda) and not hooks) if self.graph == "auto" else self.graph
+        if graph not in (True, False):
+            raise bad("graph", f"must be 'auto', True or False, got {graph!r}")
+        if graph and hooks:
+            raise bad("graph", "substep graphs take models without effects and particle translations")
+        p2g = self.p2g
+        if p2g == "auto":  # by cells where the scatter's atomics would serialize on crowded nodes
+            crowded = cuda and crowding is not None and crowding >= self.CELLS_CROWDING
+            p2g = "cells" if deterministic or crowded else "scatter"
+        if p2g not in ("scatter", "cells"):
+            raise bad("p2g", f"must be 'auto', 'scatter' or 'cells', got {p2g!r}")
+        if deterministic and p2g != "cells":
+            raise bad("deterministic", "the bitwise-reproducible P2G sums by cells (p2g='cells' or 'auto')")
+        fuse = (bool(graph) and p2g == "cells") if self.fuse == "auto" else self.fuse
+        if fuse not in (True, False):
+            raise bad("fuse", f"must be 'auto', True or False, got {fuse!r}")
+        if fuse and (p2g != "cells" or hooks):
+            raise bad("fuse", "fused substeps take the P2G by cells and models without effects and particle translations")
+        window_atomics = self.window_atomics
+        if window_atomics not in ("auto", "scalar", "vector"):
+            raise bad("window_atomics", f"must be 'auto', 'scalar' or 'vector', got {window_atomics!r}")
+        if window_atomics == "vector" and p2g != "cells":
+            raise bad("window_atomics", f"vector atomics add the window sums of p2g='cells', not {p2g!r}")
+        if window_atomics == "auto":  # the reproducible sums add no floats to the nodes
+            window_atomics = "vector" if cuda and p2g == "cells" and not deterministic else "scalar"
+        return dataclasses.replace(self, p2g=p2g, graph=bool(graph), fuse=bool(fuse), deterministic=deterministic,
+                                   polar_step=float(polar_step), polar_update=polar_update, g2p_sums=g2p_sums,
+                                   window_atomics=window_atomics)
+
+
+#: the substep a CUDA device runs where the CPU runs another, as :class:`SolverConfig`'s device
+#: options: :meth:`SolverConfig.resolve` for a CUDA device and a model without effects whose
+#: particles crowd their cells, as the paper's objects and the verification block are. Given to
+#: :func:`~knockgs_core.sim.simulate_many` on the CPU (``solver_options=GPU_SOLVER_OPTIONS``, the
+#: model built with :data:`~knockgs_core.sim.GPU_STORAGE`), they replay a GPU's substep there:
+#: the same sums, in the order the CPU adds them. The paper profile adds ``deterministic=True``.
+GPU_SOLVER_OPTIONS: Mapping = MappingProxyType(SolverConfig().resolve(cuda=True).device_options())

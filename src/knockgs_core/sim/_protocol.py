@@ -27,7 +27,7 @@ parameter, named by the class attribute ``parameter``, whose value ``off`` makes
 effect a no-op.
 
 This module is the bottom of the simulator: the configuration (``_config``: ``SimParams``
-holds effects) and the solver (``_solver``: ``Model``, ``State``) import it, so it imports
+holds effects) and the model (``_model``: ``Model``, ``State``) import it, so it imports
 neither; the hooks' ``params``, ``model`` and ``state`` are a
 :class:`~knockgs_core.sim.SimParams`, a :class:`~knockgs_core.sim.Model` and a
 :class:`~knockgs_core.sim.State`, named in words here rather than by import.
