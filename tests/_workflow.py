@@ -8,6 +8,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import yaml
@@ -58,9 +59,30 @@ def small_library(work: Path, n: int) -> Path:
     return work
 
 
+def snakemake_env() -> dict:
+    """The environment of the tests' Snakemake runs that do not use Slurm.
+
+    Snakemake loads its Slurm executor plugin (the ``slurm`` extra) at every start, and the
+    plugin asks ``scontrol show config`` for the controller's MinJobAge when it is imported.
+    Where Slurm is installed but no controller runs (``.ci/run`` installs it; the Slurm test
+    starts the cluster only for itself), that call waits about 9 s for the controller, at each
+    of the test run's many Snakemake starts. These runs see an ``scontrol`` first on ``PATH``
+    that fails at once, so the plugin takes its default, as on a machine without Slurm."""
+    shim = Path(tempfile.gettempdir()) / f"knockgs-tests-{os.getuid()}" / "no-slurm"
+    if not (shim / "scontrol").exists():
+        shim.mkdir(parents=True, exist_ok=True)
+        tmp = shim / f".scontrol.{os.getpid()}"
+        tmp.write_text("#!/bin/sh\necho 'scontrol: no Slurm controller in this test run' >&2\nexit 1\n")
+        tmp.chmod(0o755)
+        os.replace(tmp, shim / "scontrol")
+    return {**os.environ, "PATH": f"{shim}{os.pathsep}{os.environ.get('PATH', '')}"}
+
+
 def snakemake(work: Path, *args: str) -> subprocess.CompletedProcess:
-    """``snakemake ARGS`` in ``work`` (the installed Snakemake), output captured."""
-    return subprocess.run([sys.executable, "-m", "snakemake", *args], cwd=work, capture_output=True, text=True)
+    """``snakemake ARGS`` in ``work`` (the installed Snakemake), output captured, without Slurm
+    (:func:`snakemake_env`)."""
+    return subprocess.run([sys.executable, "-m", "snakemake", *args], cwd=work, capture_output=True, text=True,
+                          env=snakemake_env())
 
 
 @contextlib.contextmanager

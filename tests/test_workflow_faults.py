@@ -22,7 +22,8 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from _workflow import CI_RUN_CONFIG, LIBRARY_TABLE, N_LIBRARY, library_run, scratch_copy, small_library, snakemake
+from _workflow import (CI_RUN_CONFIG, LIBRARY_TABLE, N_LIBRARY, library_run, scratch_copy, small_library, snakemake,
+                       snakemake_env)
 
 from knockgs_core.audits import audit_missing_frames, audit_nonfinite, audit_rollout_metadata, rollout_expectations
 
@@ -39,6 +40,7 @@ def _workflow(dest: Path) -> Path:
 
 def _start(work: Path, *extra: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "snakemake", *extra, *ARGS, TABLE], cwd=work, start_new_session=True,
+                            env=snakemake_env(),
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 
