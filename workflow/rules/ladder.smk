@@ -3,7 +3,7 @@
 #                                                           (rendered RGB-D, tracked, not stored)
 #   P/ladder/observations/{object}/targets_{split}.csv      the same for the split's targets
 #   P/ladder/descriptors/{object}/{rung}/library.csv, queries_{split}.csv   one rung's tables
-#   P/ladder/estimates/{object}/{split}/{rung}/{method}.json   every deployable estimator per rung
+#   P/ladder/estimates/{object}/{split}/{rung}/{method}.json   every deployable estimator per rung (a job a rung)
 #   P/tables/ladder_{object}.csv|md, P/figures/ladder_{object}.png   joint error and Probe-B
 #                                                           trajectory RMSE per rung and method
 # Probe-B rollouts of the rungs' estimates: P/rollouts/{object}/diag/{split}/ladder-{rung}
@@ -126,24 +126,23 @@ rule ladder_query_descriptors:
 
 
 checkpoint ladder_estimate:
-    """A deployable estimator on one rung's tables."""
+    """Every deployable estimator on one rung's tables (one job: an estimate costs less than the
+    job's start)."""
     conda:
         "../envs/knockgs.yaml"
     input:
         library=f"{P}/ladder/descriptors/{{object}}/{{rung}}/library.csv",
         queries=f"{P}/ladder/descriptors/{{object}}/{{rung}}/queries_{{split}}.csv",
     output:
-        json=f"{P}/ladder/estimates/{{object}}/{{split}}/{{rung}}/{{method}}.json",
+        json=[f"{P}/ladder/estimates/{{object}}/{{split}}/{{rung}}/{m}.json" for m in CONFIG_DEPLOYABLE],
     log:
-        f"logs/{PROFILE}/ladder/estimates/{{object}}/{{split}}/{{rung}}/{{method}}.log",
-    wildcard_constraints:
-        method="|".join(DEPLOYABLE_METHODS),
+        f"logs/{PROFILE}/ladder/estimates/{{object}}/{{split}}/{{rung}}.log",
     params:
-        method=lambda wc: wc.method,
-        options=lambda wc: config["method_params"].get(wc.method, {}),
+        methods=CONFIG_DEPLOYABLE,
+        options={m: config["method_params"].get(m, {}) for m in CONFIG_DEPLOYABLE},
         config_hash=config_hash(),
     script:
-        "../scripts/estimate.py"
+        "../scripts/ladder_estimate.py"
 
 
 rule ladder_table:

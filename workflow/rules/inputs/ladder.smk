@@ -25,7 +25,7 @@ def ladder_set_cases(obj, rung):
     targets = {theta_tag(th) for th in target_thetas(SPLIT).values()}
     thetas = {}
     for m in CONFIG_DEPLOYABLE:
-        est = thetas_of(checkpoints.ladder_estimate.get(object=obj, split=SPLIT, rung=rung, method=m).output.json)
+        est = thetas_of(ladder_estimate_json(obj, rung, m))
         thetas.update({theta_tag(th): th for th in est.values() if theta_tag(th) not in targets})
     return [heldout_probes(obj)[0]], list(thetas.values())
 
@@ -53,7 +53,12 @@ def ladder_table_inputs(wc):
     }
 
 
+def ladder_estimate_json(obj, rung, method):
+    """A deployable method's estimate file of a rung, through the rung's checkpoint."""
+    outputs = checkpoints.ladder_estimate.get(object=obj, split=SPLIT, rung=rung).output.json
+    return outputs[CONFIG_DEPLOYABLE.index(method)]
+
+
 def ladder_estimates(obj, rung):
     """Every deployable method's estimate file of a rung (through its checkpoint)."""
-    return [checkpoints.ladder_estimate.get(object=obj, split=SPLIT, rung=rung, method=m).output.json
-            for m in CONFIG_DEPLOYABLE]
+    return [ladder_estimate_json(obj, rung, m) for m in CONFIG_DEPLOYABLE]

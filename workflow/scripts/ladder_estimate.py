@@ -1,0 +1,14 @@
+"""Frozen estimates of every deployable method on one rung of the observation ladder (the
+rung's library and Probe-A query descriptors only), one file a method."""
+import sys
+
+from knockgs_core.experiments import frozen_estimate
+from knockgs_core.io import write_json
+
+sys.stderr = open(snakemake.log[0], "w")
+p = snakemake.params
+for method, out in zip(p.methods, snakemake.output.json):
+    doc = frozen_estimate(method, snakemake.input.library, snakemake.input.queries, dict(p.options[method]),
+                          config_hash=p.config_hash)
+    doc["rule_inputs"] = [str(f) for f in snakemake.input]
+    write_json(out, doc, indent=1)
