@@ -273,14 +273,14 @@ def test_default_cases_cycle_through_the_main_targets():
 
 
 def test_case_table_files(tmp_path):
-    from knockgs_core.discrepancy import case_table, write_table
+    from knockgs_core.discrepancy import case_table, write_case_table
     from knockgs_core.discrepancy._tables import TABLE_COLUMNS
 
     row = {c: 1.0 for c in TABLE_COLUMNS if c not in ("accepted", "note")}
     row.update(case="null", planted_effect="none", identified_effect="none", first_ranked="damping", unexplained=False,
                in_catalogue=True, observation="gs_identity", parameter="", planted_value="", estimated_value="")
     df = case_table([row])
-    write_table(df, tmp_path / "t.csv", tmp_path / "t.md")
+    write_case_table(df, tmp_path / "t.csv", tmp_path / "t.md")
     assert (tmp_path / "t.csv").read_text().splitlines()[0] == ",".join(TABLE_COLUMNS)
     md = (tmp_path / "t.md").read_text()
     assert "1 of 1 cases meet the acceptance rule" in md and not md.endswith("\n\n")

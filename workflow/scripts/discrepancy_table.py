@@ -2,10 +2,10 @@
 import json
 import sys
 
-from knockgs_core.discrepancy import case_table, table_figure, write_table
+from knockgs_core.discrepancy import case_table, table_figure, write_case_table
 
 sys.stderr = open(snakemake.log[0], "w")
 df = case_table([json.loads(open(path).read()) for path in snakemake.input.rows])
 title = getattr(snakemake.params, "title", None)
-write_table(df, snakemake.output.csv, snakemake.output.md, **({"title": title} if title else {}))
+write_case_table(df, snakemake.output.csv, snakemake.output.md, **({"title": title} if title else {}))
 table_figure(df, snakemake.output.figure)

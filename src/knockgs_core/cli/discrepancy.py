@@ -168,7 +168,7 @@ def _evaluate(args) -> int:
 
 
 def _table(args) -> int:
-    from ..discrepancy import case_table, table_figure, write_table
+    from ..discrepancy import case_table, table_figure, write_case_table
 
     from ..io import check_outputs
 
@@ -187,7 +187,7 @@ def _table(args) -> int:
     except KeyError as exc:
         raise InputError("ROW.json", str(exc).strip("'"),
                          "missing from a row (not written by `knockgs discrepancy evaluate`?)") from None
-    write_table(df, args.csv, args.md)
+    write_case_table(df, args.csv, args.md)
     if args.figure:
         table_figure(df, args.figure)
     print(f"{int(df['accepted'].sum())}/{len(df)} cases accepted -> {args.csv}", file=sys.stderr)

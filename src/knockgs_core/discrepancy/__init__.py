@@ -12,7 +12,7 @@ unexplained. See docs/discrepancy.md.
   files to a report folder (the command line's and the workflow's entry point);
 * :func:`make_case` / :func:`default_cases` (case definitions and generation, the truth
   side, never used by the loop), :func:`evaluate_case` / :func:`acceptance` (scoring
-  against the truth), :func:`case_table` / :func:`write_table` / :func:`table_figure`
+  against the truth), :func:`case_table` / :func:`write_case_table` / :func:`table_figure`
   (the table of cases); :func:`audit_truth_separation`: verdict that no run read the truth.
 * :class:`AttributionRow` / :class:`AttributionRound`: one candidate's line and one round
   of the attribution (``DiscrepancyResult.rounds`` holds their dicts).
@@ -27,7 +27,7 @@ from ._measured import Correspondence, Measurement, match_points, read_measured,
 from ._planted import PLANTED_EFFECTS, CaseSpec
 from ._report import write_report, write_result
 from ._scoring import acceptance, evaluate_case, world_acceptance
-from ._tables import case_table, table_figure, write_table
+from ._tables import case_table, table_figure, write_case_table
 from ._views import residual_views, view_summary
 from ._worlds import FEM_EFFECTS, FINER_EFFECTS, make_world_case, world_cases, world_contract
 
@@ -64,7 +64,7 @@ __all__ = [
     "evaluate_case",
     "case_table",
     "acceptance",
-    "write_table",
+    "write_case_table",
     "table_figure",
     "run_files",
     "evaluate_files",

@@ -9,7 +9,7 @@ import numpy as np
 from ..io import atomic_write, write_text
 from ._scoring import acceptance, world_acceptance
 
-__all__ = ["TABLE_COLUMNS", "case_table", "write_table", "table_figure"]
+__all__ = ["TABLE_COLUMNS", "case_table", "write_case_table", "table_figure"]
 
 
 TABLE_COLUMNS = [
@@ -47,7 +47,7 @@ _MD_COLUMNS = [
 _MD_PERCENT = ("theta_error_before_pct", "theta_error_after_pct", "residual_excess_pct")
 
 
-def write_table(df, csv_path, md_path, *, title="Discrepancy loop: planted effects found and errors before/after") -> None:
+def write_case_table(df, csv_path, md_path, *, title="Discrepancy loop: planted effects found and errors before/after") -> None:
     """Write the table as CSV (every column, ``%.6g``) and Markdown (a one-line acceptance
     summary and the main columns), each atomically.
 

@@ -15,7 +15,7 @@ another probe duration and contact) and :mod:`._passive` (passive versus active 
 from ._boundaries import (
     BOUNDARY_KINDS,
     BOUNDARY_LIBRARIES,
-    BoundaryCondition,
+    BoundaryStudyCondition,
     BoundarySettings,
     ConditionWorld,
     RESOLUTION_NEIGHBOURS,
@@ -114,7 +114,7 @@ __all__ = [
     "BOUNDARY_KINDS",
     "BOUNDARY_LIBRARIES",
     "BoundarySettings",
-    "BoundaryCondition",
+    "BoundaryStudyCondition",
     "ConditionWorld",
     "RESOLUTION_NEIGHBOURS",
     "resolution_profile",

@@ -56,7 +56,7 @@ __all__ = [
     "BOUNDARY_KINDS",
     "BOUNDARY_LIBRARIES",
     "BoundarySettings",
-    "BoundaryCondition",
+    "BoundaryStudyCondition",
     "ConditionWorld",
     "boundary_condition",
     "boundary_conditions",
@@ -122,7 +122,7 @@ class BoundarySettings:
 
 
 @dataclass(frozen=True)
-class BoundaryCondition:
+class BoundaryStudyCondition:
     """One condition: ``name`` (a path component), ``kind`` (:data:`BOUNDARY_KINDS`),
     ``component`` (what changed), ``force`` (``per_particle``: the original per-particle
     probe force; ``total``: the original total force; ``contract``: the changed contract's
@@ -201,7 +201,7 @@ def _kind_of(name: str) -> tuple[str, int | None]:
                      f"{', '.join(k if k != 'fill_seed' else 'fill_seed<k>' for k in BOUNDARY_KINDS)}")
 
 
-def boundary_condition(contract, name: str, settings: BoundarySettings) -> BoundaryCondition:
+def boundary_condition(contract, name: str, settings: BoundarySettings) -> BoundaryStudyCondition:
     """The condition ``name`` (e.g. ``fill_density``, ``fill_seed2``) of ``contract``."""
     kind, k = _kind_of(name)
     if kind in _FILL_KINDS and not contract.fill.enabled:
@@ -209,32 +209,32 @@ def boundary_condition(contract, name: str, settings: BoundarySettings) -> Bound
                          "which this contract does not have")
     rebuild = kind in settings.rebuild
     if kind == "reference":
-        return BoundaryCondition(name, kind, "none", "per_particle", True, rebuild)
+        return BoundaryStudyCondition(name, kind, "none", "per_particle", True, rebuild)
     if kind == "fill_seed":
         if not 1 <= k <= int(settings.fill_seeds):
             raise InputError(_SOURCE, "fill_seeds", f"condition {name!r}: seed index outside 1 .. {settings.fill_seeds}")
-        return BoundaryCondition(name, kind, "fill seed", "per_particle", True, rebuild, int(contract.fill.seed) + k)
+        return BoundaryStudyCondition(name, kind, "fill seed", "per_particle", True, rebuild, int(contract.fill.seed) + k)
     if kind == "grid":
         n = int(round(contract.sim.n_grid * float(settings.n_grid_scale)))
         if n < 4 or n == contract.sim.n_grid:
             raise InputError(_SOURCE, "n_grid_scale", f"n_grid {contract.sim.n_grid} x {settings.n_grid_scale} "
                              f"gives {n}: not a changed grid of at least 4 cells")
-        return BoundaryCondition(name, kind, "grid", "per_particle", False, rebuild, n)
+        return BoundaryStudyCondition(name, kind, "grid", "per_particle", False, rebuild, n)
     if kind == "resolution":
         other = resolution_profile(contract, settings)
         if _same_resolution(contract, _resolution_contract(contract, other)):
             raise InputError(_SOURCE, "resolution_profile", f"{contract.name}'s {other!r} profile has the resolution "
                              f"of {contract.profile!r}: not a changed condition")
-        return BoundaryCondition(name, kind, "resolution profile", "contract", False, rebuild, other)
+        return BoundaryStudyCondition(name, kind, "resolution profile", "contract", False, rebuild, other)
     m = int(settings.fill_particles_per_cell)
     if m == contract.fill.max_particles_per_cell:
         raise InputError(_SOURCE, "fill_particles_per_cell",
                          f"equals the contract's fill density ({m}): not a changed condition")
     force = "total" if kind == "fill_density_equal_force" else "per_particle"
-    return BoundaryCondition(name, kind, "fill density", force, False, rebuild, m)
+    return BoundaryStudyCondition(name, kind, "fill density", force, False, rebuild, m)
 
 
-def condition_contract(contract, condition: BoundaryCondition):
+def condition_contract(contract, condition: BoundaryStudyCondition):
     """The contract with the condition's one component changed (a copy; the grid condition
     also shortens the substep where the new grid's CFL bound needs it)."""
     replace = dataclasses.replace
@@ -259,7 +259,7 @@ class ConditionWorld:
     ``force_factors`` (probe name -> the factor on the changed contract's resolved probe
     force, see the module docstring)."""
 
-    condition: BoundaryCondition
+    condition: BoundaryStudyCondition
     original: object
     contract: object
     particles: object
