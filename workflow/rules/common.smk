@@ -291,8 +291,8 @@ def thetas_of(path):
 
 
 def _estimate_thetas(path):
-    with open(path) as fh:
-        return [(p["E_scale"], p["density_scale"]) for p in json.load(fh)["predictions"]]
+    """The frozen thetas of an estimate file, in its targets' order (:func:`thetas_of`)."""
+    return list(thetas_of(path).values())
 
 
 def estimated_thetas(obj, split, method):
