@@ -35,13 +35,15 @@
 #                                                         duration_{object}, contact_{object},
 #                                                         passive_active_{object} (+ _targets_): probe
 #                                                         shifts, passive vs active (probe_shifts.smk),
-#                                                         ladder_{object} (ladder.smk), cmaes_{object} (cmaes.smk)
+#                                                         ladder_{object} (ladder.smk), cmaes_{object} (cmaes.smk),
+#                                                         floor_{object} (MPM levels vs the FEM reference, floor.smk)
 #   P/figures/{name}.png|gif                              reported figures: main_{object}, fill_{object},
 #                                                         qualitative_{object}, compare_{object} (gif),
 #                                                         objects, discrepancy, convergence_{object},
 #                                                         boundaries_{object}, discrepancy_worlds,
 #                                                         splits_{object}, sensitivity_{object},
-#                                                         identifiability_{object}, passive_active_{object}
+#                                                         identifiability_{object}, passive_active_{object},
+#                                                         floor_{object}
 #   P/audits/{name}.json                                  audit verdicts ({"passed": bool, ...})
 #   P/ladder/...                                          the observation ladder's observations, descriptors and
 #                                                         estimates (grammar at the top of workflow/rules/ladder.smk)
@@ -85,6 +87,7 @@ include: "workflow/rules/cmaes.smk"
 include: "workflow/rules/convergence.smk"
 include: "workflow/rules/boundaries.smk"
 include: "workflow/rules/verification.smk"
+include: "workflow/rules/floor.smk"
 include: "workflow/rules/audit.smk"
 
 

@@ -3,6 +3,7 @@
 Workflow scripts call one function here each. :mod:`._main` is the main benchmark
 (descriptor tables, frozen estimates, Probe-A/B write-back evaluation, rendered frames);
 :mod:`._convergence` the discretization study of the Probe-A response (time and space);
+:mod:`._floor` the MPM at several resolutions against the finite-element reference (the floor);
 :mod:`._boundaries` the library's discretization and object boundaries (leave-one-object-out);
 the paper's generalization diagnostics: :mod:`._splits` (alternative target splits, strict
 gate), :mod:`._sensitivity` (library size, k x alpha) and :mod:`._identifiability`
@@ -77,6 +78,7 @@ from ._passive import (
     plot_passive_active,
     ratio_span_pct,
 )
+from ._floor import FloorSettings, at_resolution, cells_through, fit_theta, floor_note, floor_study, plot_floor, probe_period
 from ._convergence import NOT_ASYMPTOTIC, convergence_note, convergence_study, observed_order, plot_convergence
 from ._main import (
     camera_from_contract,
@@ -110,6 +112,14 @@ __all__ = [
     "convergence_note",
     "observed_order",
     "plot_convergence",
+    "FloorSettings",
+    "at_resolution",
+    "cells_through",
+    "probe_period",
+    "fit_theta",
+    "floor_study",
+    "floor_note",
+    "plot_floor",
     "NOT_ASYMPTOTIC",
     "BOUNDARY_KINDS",
     "BOUNDARY_LIBRARIES",

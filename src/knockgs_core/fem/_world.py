@@ -40,7 +40,10 @@ class FemWorld:
     body acceleration along -z from t = 0, the body starting at rest and unloaded;
     ``stiffness_slope`` [-]: Young's modulus varying along z as the simulator's
     :class:`~knockgs_core.sim.StiffnessGradient` (``E exp(slope s)``, ``s = (z - mid) / extent``
-    over the particles' extent along z, so the modulus ratio top/bottom is ``exp(slope)``)."""
+    over the particles' extent along z, so the modulus ratio top/bottom is ``exp(slope)``);
+    ``n_grid``: the grid the body is voxelized on (cell ``grid_lim / n_grid``); None: the
+    contract's own, the MPM's cells. A fixed ``n_grid`` gives a mesh that does not change with
+    the contract's resolution (the floor study, :mod:`knockgs_core.experiments._floor`)."""
 
     degree: int = 2
     steps_per_frame: int = 2
@@ -48,12 +51,15 @@ class FemWorld:
     rayleigh_beta: float = 0.0
     gravity: float = 0.0
     stiffness_slope: float = 0.0
+    n_grid: int | None = None
 
     def __post_init__(self):
         if self.degree not in (1, 2):
             raise InputError("FemWorld", "degree", f"must be 1 or 2, got {self.degree!r}")
         if int(self.steps_per_frame) < 1:
             raise InputError("FemWorld", "steps_per_frame", f"must be >= 1, got {self.steps_per_frame!r}")
+        if self.n_grid is not None and (isinstance(self.n_grid, bool) or int(self.n_grid) != self.n_grid or self.n_grid < 2):
+            raise InputError("FemWorld", "n_grid", f"must be an integer >= 2 or None, got {self.n_grid!r}")
         for name in ("rayleigh_alpha", "rayleigh_beta", "gravity", "stiffness_slope"):
             v = getattr(self, name)
             signed = name in ("gravity", "stiffness_slope")
@@ -69,10 +75,10 @@ def _cells(positions: np.ndarray, dx: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fem_world_mesh(contract, particles, *, world: FemWorld = FemWorld()) -> dict:
-    """The voxel mesh of ``particles`` on ``contract``'s grid: ``mesh`` (scikit-fem MeshTet),
-    ``dx`` [m], ``cells`` [K, 3] occupied cell indices, ``counts`` [K] particles per cell,
-    ``volume`` [m^3] (= K dx^3, the MPM's)."""
-    dx = contract.sim.grid_lim / contract.sim.n_grid
+    """The voxel mesh of ``particles`` on ``contract``'s grid (or ``world.n_grid``'s): ``mesh``
+    (scikit-fem MeshTet), ``dx`` [m], ``cells`` [K, 3] occupied cell indices, ``counts`` [K]
+    particles per cell, ``volume`` [m^3] (= K dx^3, the MPM's on its own grid)."""
+    dx = contract.sim.grid_lim / (contract.sim.n_grid if world.n_grid is None else int(world.n_grid))
     cells, counts = _cells(particles.positions, dx)
     lo = cells.min(axis=0)
     shape = cells.max(axis=0) - lo + 1
@@ -100,8 +106,10 @@ def _probe_load(system: ElasticSystem, cells: np.ndarray, counts: np.ndarray, dx
     @skfem.LinearForm
     def load(v, w):
         x = w.x
-        i = [np.clip(np.floor(x[k] / dx).astype(np.int64) - lo[k], 0, shape[k] - 1) for k in range(3)]
-        d = density[i[0], i[1], i[2]]
+        j = [np.floor(x[k] / dx).astype(np.int64) - lo[k] for k in range(3)]
+        inside = (j[0] >= 0) & (j[0] < shape[0]) & (j[1] >= 0) & (j[1] < shape[1]) & (j[2] >= 0) & (j[2] < shape[2])
+        i = [np.clip(j[k], 0, shape[k] - 1) for k in range(3)]
+        d = np.where(inside, density[i[0], i[1], i[2]], 0.0)    # no load outside the selected cells' box
         return d * (force[0] * v[0] + force[1] * v[1] + force[2] * v[2])
 
     return load.assemble(system.basis)

@@ -1,0 +1,337 @@
+"""Where the model-error floor lives: an object's MPM against the finite-element reference.
+
+For one object contract, its calibration probe (Probe A) and one theta (the base material,
+(1, 1)), the MPM is run at several resolutions and compared with the finite-element reference
+(:func:`knockgs_core.fem.fem_world_rollout`) of the same object, supports and impulse:
+
+- *MPM levels* (``FloorSettings.n_grid``): the contract with its grid at ``n_grid``, its
+  interior fill resolution scaled by the same factor (the Gaussians unchanged, the fill rebuilt
+  by the asset build) and the substep by the contracts' rule (the largest frame-commensurate dt
+  at most ``0.3 dx / c_p`` at the stiffest candidate), :func:`at_resolution`.
+- *The reference*: the object's particle set built at ``fem_n_grid`` (fill refined likewise)
+  and voxelized on that grid, P2 tetrahedra, Newmark (``FemWorld(n_grid=fem_n_grid)``). Its
+  mesh depends on ``fem_n_grid`` only, never on the MPM level judged, so the comparison is not
+  circular. Its own discretization is shown by the same particle set voxelized on the coarser
+  ``fem_check_n_grid`` (the *check*): the check's gap to the reference bounds what the
+  reference itself still changes (geometry staircase and mesh together).
+- *Compared* at the Gaussian-associated particles' rest positions (the same points at every
+  level; the FEM is evaluated there), displacements ``u = x(t) - x(0)`` [m]:
+  the trajectory RMSE over the Probe-A record (the frames a calibration sees) as a percentage
+  of the reference's RMS displacement; the first-mode period of the points' mean displacement
+  along the probe's force (:func:`~knockgs_core.fem.first_mode_period`, least-squares sinusoid)
+  over a record ``record_factor`` times as long (a Probe-A record of 0.6 s holds less than one
+  period of the Pillow); observed orders between successive levels.
+- *Calibrated theta*: the theta the MPM at that level needs to reproduce the reference's
+  Probe-A trajectory, by least squares in ``(log s_E, log s_rho)``: ``fit_steps`` Gauss-Newton
+  steps from the base material with forward-difference sensitivities (step ``fit_step`` in
+  log theta; each step's three rollouts simulated together). It is the theta a calibration
+  that matched the whole trajectory would return: not the library's local ridge, which sees
+  the 5-D descriptor only.
+
+``cells_through`` measures how many grid cells a body has across: for each occupied cell of
+the particle set on the level's grid, the shortest of its three axis-aligned runs of occupied
+cells through it; the median over the cells (1 for a shell one cell thick).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable, Mapping
+
+import numpy as np
+import pandas as pd
+
+from ..errors import InputError
+
+__all__ = ["FloorSettings", "at_resolution", "cells_through", "probe_period", "fit_theta", "floor_study", "floor_note",
+           "plot_floor"]
+
+_SOURCE = "config floor"
+
+
+@dataclass(frozen=True)
+class FloorSettings:
+    """The floor study's settings (the config's ``floor`` block mirrors them).
+
+    ``n_grid``: the MPM levels, increasing; ``fem_n_grid``: the grid the reference's body is
+    voxelized and meshed on; ``fem_check_n_grid``: the coarser grid of the reference's own
+    check (< ``fem_n_grid``); ``fem_degree``: 1 (P1) or 2 (P2) tetrahedra;
+    ``fem_steps_per_frame``: Newmark steps per exported frame; ``record_factor``: the record
+    simulated, in Probe-A records (for the period); ``fit_steps``: Gauss-Newton steps of the
+    theta fit (0: no fit); ``fit_step``: the finite-difference step in log theta."""
+
+    n_grid: tuple[int, ...] = (32, 48, 64)
+    fem_n_grid: int = 48
+    fem_check_n_grid: int = 32
+    fem_degree: int = 2
+    fem_steps_per_frame: int = 2
+    record_factor: int = 4
+    fit_steps: int = 2
+    fit_step: float = 0.05
+
+    def __post_init__(self):
+        object.__setattr__(self, "n_grid", tuple(int(n) for n in self.n_grid))
+        if not self.n_grid or any(n < 8 for n in self.n_grid) or any(b <= a for a, b in zip(self.n_grid, self.n_grid[1:])):
+            raise InputError(_SOURCE, "n_grid", f"need increasing levels >= 8, got {list(self.n_grid)}")
+        if not (8 <= int(self.fem_check_n_grid) < int(self.fem_n_grid)):
+            raise InputError(_SOURCE, "fem_check_n_grid",
+                             f"must be >= 8 and below fem_n_grid ({self.fem_n_grid}), got {self.fem_check_n_grid}")
+        if self.fem_degree not in (1, 2):
+            raise InputError(_SOURCE, "fem_degree", f"must be 1 or 2, got {self.fem_degree}")
+        for name in ("fem_steps_per_frame", "record_factor"):
+            if int(getattr(self, name)) < 1:
+                raise InputError(_SOURCE, name, f"must be >= 1, got {getattr(self, name)}")
+        if int(self.fit_steps) < 0:
+            raise InputError(_SOURCE, "fit_steps", f"must be >= 0, got {self.fit_steps}")
+        if not (0 < self.fit_step < 1 and math.isfinite(self.fit_step)):
+            raise InputError(_SOURCE, "fit_step", f"must lie in (0, 1), got {self.fit_step}")
+
+    @classmethod
+    def from_config(cls, block: Mapping) -> "FloorSettings":
+        """Settings from the config's ``floor`` block (workflow-only keys ignored)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in block.items() if k in names})
+
+
+def at_resolution(contract, n_grid: int):
+    """``contract`` on a grid of ``n_grid`` cells per axis, its fill resolution scaled by
+    ``n_grid / contract.sim.n_grid`` (rounded) and the substep by the contracts' rule
+    (:meth:`~knockgs_core.contract.ObjectContract.cfl_dt`). Gaussians and probes unchanged."""
+    n = int(n_grid)
+    factor = n / contract.sim.n_grid
+    fill = dataclasses.replace(contract.fill, resolution=max(2, int(round(contract.fill.resolution * factor))))
+    out = dataclasses.replace(contract, sim=dataclasses.replace(contract.sim, n_grid=n), fill=fill)
+    return dataclasses.replace(out, sim=dataclasses.replace(out.sim, dt=float(out.cfl_dt())))
+
+
+def _with_record(contract, probe: str, n_frames: int):
+    """``contract`` with ``probe`` exporting ``n_frames`` frames at its frame interval."""
+    pr = contract.probes[probe]
+    longer = dataclasses.replace(pr, export=dataclasses.replace(pr.export, n_frames=int(n_frames)))
+    return dataclasses.replace(contract, probes={**contract.probes, probe: longer})
+
+
+def cells_through(positions: np.ndarray, dx: float) -> float:
+    """Median over the cells occupied by ``positions`` [N, 3] (cell size ``dx`` [m]) of the
+    shortest of the three axis-aligned runs of occupied cells through each cell [cells]."""
+    idx = np.floor(np.asarray(positions, dtype=np.float64) / dx).astype(np.int64)
+    cells = np.unique(idx, axis=0)
+    lo = cells.min(axis=0)
+    occ = np.zeros(tuple(cells.max(axis=0) - lo + 1), dtype=bool)
+    occ[tuple((cells - lo).T)] = True
+    runs = []
+    for axis in range(3):
+        o = np.moveaxis(occ, axis, -1)
+        length = np.zeros(o.shape, dtype=np.int64)
+        for k in range(o.shape[-1]):                                  # run lengths along the axis
+            prev = length[..., k - 1] if k else 0
+            length[..., k] = np.where(o[..., k], prev + 1, 0)
+        full = length.copy()
+        for k in range(o.shape[-1] - 2, -1, -1):                      # each cell gets its run's length
+            full[..., k] = np.where(o[..., k] & o[..., k + 1], full[..., k + 1], full[..., k])
+        runs.append(np.moveaxis(full, -1, axis)[occ])
+    return float(np.median(np.min(np.stack(runs), axis=0)))
+
+
+def probe_period(times: np.ndarray, u: np.ndarray, direction) -> float:
+    """First-mode period [s] of the mean displacement along ``direction`` (3,) of ``u``
+    [T, P, 3] m sampled at ``times`` [T] s (:func:`~knockgs_core.fem.first_mode_period`)."""
+    from ..fem import first_mode_period
+
+    d = np.asarray(direction, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    return first_mode_period(times, (np.asarray(u, dtype=np.float64) @ d).mean(axis=1))
+
+
+def _rel(u: np.ndarray, ref: np.ndarray) -> float:
+    """``100 ||u - ref|| / ||ref||`` [%] over frames, points and axes."""
+    return 100.0 * float(np.linalg.norm(u - ref) / np.linalg.norm(ref))
+
+
+def fit_theta(simulate: Callable[[list], list], target: np.ndarray, *, start=(1.0, 1.0), steps: int = 2,
+              step: float = 0.05, first: np.ndarray | None = None) -> dict:
+    """Least-squares theta of a model against ``target`` displacements [T, P, 3] m:
+    ``steps`` Gauss-Newton steps in ``(log s_E, log s_rho)`` from ``start``, forward-difference
+    sensitivities of step ``step``. ``simulate(thetas)`` returns the model's displacements
+    [T, P, 3] at each theta of the list (simulated together); ``first``, the model at
+    ``start`` when already known. A step is limited to 0.5 in log theta. Returns ``theta``
+    (2,), ``residual_pct`` (``100 ||u(theta) - target|| / ||target||``) and ``start_residual_pct``."""
+    y = np.log(np.asarray(start, dtype=np.float64))
+    target = np.asarray(target, dtype=np.float64)
+    u = first
+    start_res = None
+    for _ in range(int(steps)):
+        thetas = [tuple(np.exp(y + step * e)) for e in np.eye(2)]
+        out = simulate(([tuple(np.exp(y))] if u is None else []) + thetas)
+        if u is None:
+            u, out = out[0], out[1:]
+        r = (u - target).ravel()
+        if start_res is None:
+            start_res = 100.0 * float(np.linalg.norm(r) / np.linalg.norm(target))
+        J = np.stack([(o - u).ravel() / step for o in out], axis=1)
+        dy = np.linalg.lstsq(J, -r, rcond=None)[0]
+        dy *= min(1.0, 0.5 / max(float(np.abs(dy).max()), 1e-300))
+        y = y + dy
+        u = None
+    u = simulate([tuple(np.exp(y))])[0] if u is None else u
+    res = _rel(u, target)
+    return {"theta": np.exp(y), "residual_pct": res, "start_residual_pct": res if start_res is None else start_res}
+
+
+def _order(e_coarse: float, e_fine: float, h_coarse: float, h_fine: float) -> float:
+    """Observed order ``log(e_coarse / e_fine) / log(h_coarse / h_fine)`` (NaN if an error is 0)."""
+    if not (e_coarse > 0 and e_fine > 0):
+        return float("nan")
+    return math.log(e_coarse / e_fine) / math.log(h_coarse / h_fine)
+
+
+def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1.0, 1.0), device: str | None = None,
+                deterministic: bool = False, log: Callable[[str], None] | None = None) -> pd.DataFrame:
+    """The floor table of ``contract``'s object (one base material region): one row per MPM
+    level of ``settings.n_grid`` (coarsest first), then the reference's check and the reference
+    (module docstring). Columns: ``model`` (``mpm``, ``fem (check)``, ``fem (reference)``),
+    ``n_grid``, ``dx_m``, ``dt_s``, ``particles`` (MPM particles, or the FEM's DOFs),
+    ``cells_through``, ``mass_kg`` (the body's: occupied cells x dx^3 x rho), ``rmse_pct``
+    (Probe-A record), ``period_s``, ``period_fem_s``, ``period_error_pct``, ``order_rmse`` and
+    ``order_period`` (to the previous level), ``s_E_fit``, ``s_rho_fit`` and
+    ``fit_residual_pct`` (the theta fit; NaN without one), ``cost_s`` (wall seconds of the
+    level's rollouts and fit, or of the FEM run). ``theta``: the material compared;
+    ``device``, ``deterministic``: the MPM rollouts'."""
+    from ..assets import build_asset
+    from ..fem import FemWorld, fem_world_mesh, fem_world_rollout
+    from ..rollout import run_rollouts
+
+    say = log or (lambda msg: None)
+    if set(contract.region_names) != {"base"}:
+        raise InputError(contract.source, "regions", "the floor study's FEM reference supports one material region (base)")
+    probe = contract.roles["calibration"]
+    pr = contract.probes[probe]
+    n_record = int(pr.export.n_frames)
+    n_long = (n_record - 1) * int(settings.record_factor) + 1
+    times = np.arange(n_long) * float(pr.export.frame_dt)
+    direction = np.asarray(pr.force, dtype=np.float64)
+    rho = contract.materials["base"].rho * float(theta[1])
+    gs = build_asset(contract).particles
+    points = np.asarray(gs.positions[: gs.n_gs], dtype=np.float64)   # the Gaussians: the same at every level
+
+    # the reference: one particle set, voxelized on fem_n_grid (and on the coarser check grid)
+    ref_contract = _with_record(at_resolution(contract, settings.fem_n_grid), probe, n_long)
+    ref_particles = build_asset(at_resolution(contract, settings.fem_n_grid)).particles
+    fem = {}
+    for name, n in (("fem (reference)", settings.fem_n_grid), ("fem (check)", settings.fem_check_n_grid)):
+        world = FemWorld(degree=settings.fem_degree, steps_per_frame=settings.fem_steps_per_frame, n_grid=int(n))
+        t0 = time.perf_counter()
+        Y = fem_world_rollout(ref_contract, ref_particles, theta, probe, points, world=world)
+        geo = fem_world_mesh(ref_contract, ref_particles, world=world)
+        fem[name] = {"u": Y - Y[0], "n_grid": int(n), "cost": time.perf_counter() - t0, "geo": geo}
+        say(f"{name}: n_grid {n}, {len(geo['cells'])} cells, {time.perf_counter() - t0:.1f} s")
+    u_ref = fem["fem (reference)"]["u"]
+    p_ref = probe_period(times, u_ref, direction)
+    rec = slice(0, n_record)
+
+    rows = []
+    for n in settings.n_grid:
+        c = at_resolution(contract, n)
+        particles = build_asset(c).particles
+        same = particles.n_gs == len(points) and np.array_equal(particles.positions[: particles.n_gs], gs.positions[: gs.n_gs])
+        if not same:
+            raise RuntimeError(f"n_grid {n}: the Gaussian particles differ from the profile's")
+        dx = c.sim.grid_lim / c.sim.n_grid
+        t0 = time.perf_counter()
+        long_c = _with_record(c, probe, n_long)
+        X = np.asarray(run_rollouts(long_c, [(tuple(theta), probe)], particles=particles, device=device,
+                                    deterministic=deterministic)[0].positions, dtype=np.float64)[:, : len(points)]
+        u = X - X[0]
+
+        def simulate(thetas, c=c, particles=particles):
+            out = run_rollouts(c, [(th, probe) for th in thetas], particles=particles, device=device, deterministic=deterministic)
+            X = [np.asarray(r.positions, dtype=np.float64)[:, : len(points)] for r in out]
+            return [x - x[0] for x in X]
+
+        fit = None
+        if settings.fit_steps:
+            fit = fit_theta(simulate, u_ref[rec], start=theta, steps=settings.fit_steps, step=settings.fit_step, first=u[rec])
+        cells = np.unique(np.floor(np.asarray(particles.positions, dtype=np.float64) / dx).astype(np.int64), axis=0)
+        period = probe_period(times, u, direction)
+        rows.append({"model": "mpm", "n_grid": n, "dx_m": dx, "dt_s": c.sim.dt, "particles": len(particles.positions),
+                     "cells_through": cells_through(particles.positions, dx), "mass_kg": len(cells) * dx**3 * rho,
+                     "rmse_pct": _rel(u[rec], u_ref[rec]), "period_s": period, "period_fem_s": p_ref,
+                     "period_error_pct": 100.0 * (period - p_ref) / p_ref,
+                     "s_E_fit": float(fit["theta"][0]) if fit else float("nan"),
+                     "s_rho_fit": float(fit["theta"][1]) if fit else float("nan"),
+                     "fit_residual_pct": fit["residual_pct"] if fit else float("nan"),
+                     "cost_s": time.perf_counter() - t0})
+        r = rows[-1]
+        say(f"MPM n_grid {n}: {r['particles']} particles, dt {r['dt_s']:.3g} s, RMSE {r['rmse_pct']:.1f} %, "
+            f"period {r['period_s']:.4f} s ({r['period_error_pct']:+.1f} %), theta fit "
+            f"({r['s_E_fit']:.3f}, {r['s_rho_fit']:.3f}), {r['cost_s']:.1f} s")
+    for k, row in enumerate(rows):
+        prev = rows[k - 1] if k else None
+        row["order_rmse"] = _order(prev["rmse_pct"], row["rmse_pct"], prev["dx_m"], row["dx_m"]) if prev else float("nan")
+        row["order_period"] = (_order(abs(prev["period_error_pct"]), abs(row["period_error_pct"]), prev["dx_m"], row["dx_m"])
+                               if prev else float("nan"))
+    for name in ("fem (check)", "fem (reference)"):
+        f = fem[name]
+        dx = contract.sim.grid_lim / f["n_grid"]
+        period = probe_period(times, f["u"], direction)
+        ndofs = 3 * (len(f["geo"]["mesh"].p.T) + (len(f["geo"]["mesh"].edges.T) if settings.fem_degree == 2 else 0))
+        rows.append({"model": name, "n_grid": f["n_grid"], "dx_m": dx,
+                     "dt_s": float(pr.export.frame_dt) / settings.fem_steps_per_frame,
+                     "particles": ndofs, "cells_through": cells_through(ref_particles.positions, dx),
+                     "mass_kg": len(f["geo"]["cells"]) * dx**3 * rho, "rmse_pct": _rel(f["u"][rec], u_ref[rec]),
+                     "period_s": period, "period_fem_s": p_ref, "period_error_pct": 100.0 * (period - p_ref) / p_ref,
+                     "order_rmse": float("nan"), "order_period": float("nan"), "s_E_fit": float("nan"),
+                     "s_rho_fit": float("nan"), "fit_residual_pct": float("nan"), "cost_s": f["cost"]})
+    columns = ["model", "n_grid", "dx_m", "dt_s", "particles", "cells_through", "mass_kg", "rmse_pct", "period_s",
+               "period_fem_s", "period_error_pct", "order_rmse", "order_period", "s_E_fit", "s_rho_fit",
+               "fit_residual_pct", "cost_s"]
+    return pd.DataFrame(rows, columns=columns)
+
+
+def floor_note(table: pd.DataFrame, contract, settings: FloorSettings, *, theta=(1.0, 1.0)) -> str:
+    """The table's note: the object, probe, theta, what is compared, the reference's check."""
+    probe = contract.roles["calibration"]
+    pr = contract.probes[probe]
+    check = table[table.model == "fem (check)"].iloc[0]
+    return (f"{contract.name} ({contract.profile} contract), Probe A ({probe}), theta ({theta[0]:g}, {theta[1]:g}). "
+            f"MPM levels: grid and fill refined together, dt by the contracts' rule. Reference: the particle set at "
+            f"n_grid {settings.fem_n_grid} voxelized on that grid, P{settings.fem_degree} tetrahedra, Newmark, "
+            f"{settings.fem_steps_per_frame} steps per frame; its check (the same particles on n_grid "
+            f"{settings.fem_check_n_grid}) is {check.rmse_pct:.1f} % and {check.period_error_pct:+.2f} % (period) from it. "
+            f"rmse_pct: trajectory RMSE of the Gaussian particles over the Probe-A record ({pr.export.n_frames} frames), "
+            f"% of the reference's RMS displacement; periods: mean displacement along the force over "
+            f"{settings.record_factor}x the record. s_E_fit, s_rho_fit: {settings.fit_steps} Gauss-Newton steps of the "
+            f"MPM at that level against the reference's Probe-A trajectory (least squares, not the library's local ridge). "
+            f"particles: the FEM rows' DOFs. cells_through: median shortest axis run of occupied cells.")
+
+
+def plot_floor(table: pd.DataFrame, path, *, title: str = "") -> None:
+    """RMSE and |period error| [%] of the MPM levels against dx [m], log-log, with the observed
+    order between the coarsest and the finest level in the legend; the reference's check as
+    horizontal lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..reporting import save_figure
+
+    mpm = table[table.model == "mpm"]
+    check = table[table.model == "fem (check)"].iloc[0]
+    fig, ax = plt.subplots(figsize=(5.2, 3.8))
+    for col, label, colour in (("rmse_pct", "trajectory RMSE", "C0"), ("period_error_pct", "|period error|", "C1")):
+        e = np.abs(mpm[col].to_numpy(dtype=float))
+        h = mpm.dx_m.to_numpy(dtype=float)
+        p = _order(e[0], e[-1], h[0], h[-1]) if len(e) > 1 else float("nan")
+        ax.loglog(h, np.maximum(e, 1e-3), "o-", color=colour, label=f"{label} (order {p:.2f})")
+        ax.axhline(max(abs(float(check[col])), 1e-3), color=colour, ls=":", lw=1, label=f"{label}, FEM check")
+    ax.set_xlabel("MPM dx [m]")
+    ax.set_ylabel("gap to the FEM reference [%]")
+    ax.set_title(title)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=120)
+    plt.close(fig)

@@ -1,0 +1,153 @@
+"""Where the floor lives: the MPM at several resolutions against the finite-element reference
+(knockgs_core.experiments._floor; docs/floor.md), and the FEM world's probe load."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from knockgs_core.errors import InputError
+from knockgs_core.experiments import FloorSettings, at_resolution, cells_through, fit_theta, floor_study, probe_period
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_settings_defaults_are_the_config_schema_defaults():
+    schema = yaml.safe_load((ROOT / "workflow/schemas/config.schema.yaml").read_text())
+    props = schema["properties"]["floor"]["properties"]
+    assert set(props) == {f.name for f in dataclasses.fields(FloorSettings)} | {"enabled", "objects"}
+    for f in dataclasses.fields(FloorSettings):
+        default = props[f.name]["default"]
+        assert (tuple(default) if isinstance(default, list) else default) == f.default, f.name
+    for profile in ("ci.yaml", "config.yaml", "paper.yaml"):
+        FloorSettings.from_config(yaml.safe_load((ROOT / "config" / profile).read_text())["floor"])
+    with pytest.raises(InputError, match="fem_check_n_grid"):
+        FloorSettings(fem_n_grid=32, fem_check_n_grid=32)
+    with pytest.raises(InputError, match="n_grid"):
+        FloorSettings(n_grid=(32, 24))
+
+
+def test_the_fem_worlds_box_probe_delivers_the_contracts_impulse_on_its_cells_only():
+    """The Vasedeck's Probe A is a contact box: its load is the contract's total force on the
+    selected particles' cells and nothing elsewhere (the load used to be clamped onto the
+    whole body outside the box's cells: 4.0x the impulse at ci, the s_rho collapse)."""
+    from knockgs_core.assets import build_asset
+    from knockgs_core.contract import load_contract
+    from knockgs_core.fem import assemble_elasticity, fem_world_mesh
+    from knockgs_core.fem._elasticity import _dof_components
+    from knockgs_core.fem._world import _cells, _probe_load
+
+    contract = load_contract("vasedeck", "ci")
+    particles = build_asset(contract).particles
+    geo = fem_world_mesh(contract, particles)
+    m = contract.materials["base"]
+    system = assemble_elasticity(geo["mesh"], E=m.E, nu=m.nu, rho=m.rho, degree=2)
+    pr = contract.resolve_probes(particles)["standard_x"]
+    sel = contract.probe_selection(pr, particles.positions)
+    cells, counts = _cells(np.asarray(particles.positions)[sel], geo["dx"])
+    force = np.asarray(pr.force) * contract.probe_reference_particles / len(particles.positions)
+    load = _probe_load(system, cells, counts, geo["dx"], force)
+    comp = _dof_components(system)
+    total = np.array([load[comp == k].sum() for k in range(3)])
+    # the contract's total force: |f| x selected_reference at every profile
+    expected = np.asarray(contract.probes["standard_x"].force) * contract.probe_selected_reference["standard_x"]
+    np.testing.assert_allclose(total, expected, rtol=1e-9, atol=1e-12)
+    # no load on a DOF farther than one cell from every selected cell
+    loc = system.basis.doflocs.T
+    far = np.min(np.abs(loc[:, None, :] / geo["dx"] - (cells[None] + 0.5)).max(axis=2), axis=1) > 1.5
+    assert far.sum() > 0.5 * len(far) and np.all(load[far] == 0.0)
+
+
+def test_the_reference_mesh_does_not_change_with_the_mpm_resolution():
+    from knockgs_core.assets import build_asset
+    from knockgs_core.contract import load_contract
+    from knockgs_core.fem import FemWorld, fem_world_mesh
+
+    contract = load_contract("vasedeck", "ci")
+    particles = build_asset(contract).particles
+    world = FemWorld(n_grid=24)
+    meshes = [fem_world_mesh(at_resolution(contract, n), particles, world=world)["mesh"] for n in (16, 32, 48)]
+    for mesh in meshes[1:]:
+        np.testing.assert_array_equal(mesh.p, meshes[0].p)
+        np.testing.assert_array_equal(mesh.t, meshes[0].t)
+    own = [fem_world_mesh(at_resolution(contract, n), particles)["mesh"] for n in (16, 32)]   # the MPM's cells
+    assert own[0].p.shape != own[1].p.shape
+    with pytest.raises(InputError, match="n_grid"):
+        FemWorld(n_grid=1)
+
+
+def test_at_resolution_refines_grid_and_fill_together_with_the_contracts_dt_rule():
+    from knockgs_core.contract import cfl_dt, load_contract
+
+    c = load_contract("pillow", "ci")
+    r = at_resolution(c, 48)
+    assert (r.sim.n_grid, r.fill.resolution) == (48, round(c.fill.resolution * 1.5))
+    assert r.sim.dt <= cfl_dt(r.materials, n_grid=48, grid_lim=r.sim.grid_lim) * (1 + 1e-12) < c.sim.dt
+    assert r.asset == c.asset and r.probes == c.probes
+
+
+def test_probe_period_recovers_a_sinusoids_period_along_the_force(rng):
+    """An oscillation of period 0.73 s along (1, 2, 0), a stronger one of 0.31 s across it
+    (along (2, -1, 0)), a drift along z and noise, sampled like 61 frames at 20 ms: the period
+    along the force to 0.2 % (the x component alone is dominated by the 0.31 s motion)."""
+    t = np.arange(61) * 0.02
+    d = np.array([1.0, 2.0, 0.0]) / np.sqrt(5.0)
+    amp = rng.uniform(0.5, 1.5, size=40)
+    u = (amp[None, :, None] * np.sin(2 * np.pi * t / 0.73)[:, None, None]) * d[None, None, :]
+    across = np.array([2.0, -1.0, 0.0]) / np.sqrt(5.0)
+    u += 2.0 * np.sin(2 * np.pi * t / 0.31)[:, None, None] * across    # motion across the force: ignored
+    u[..., 2] += 0.3 * t[:, None]
+    u += 1e-3 * rng.standard_normal(u.shape)
+    assert probe_period(t, u, (1.0, 2.0, 0.0)) == pytest.approx(0.73, rel=2e-3)
+
+
+def test_fit_theta_recovers_the_theta_of_an_oscillator_family():
+    """A family whose response is an impulse-driven oscillator of stiffness s_E and mass s_rho
+    (``u = I / sqrt(k m) sin(sqrt(k / m) t)``): Gauss-Newton from (1, 1) finds the target's theta."""
+    t = np.arange(31) * 0.02
+    shape = np.linspace(0.5, 1.5, 20)[None, :, None] * np.array([1.0, 0.0, 0.0])
+
+    def response(theta):
+        k, m = 40.0 * theta[0], 1.0 * theta[1]
+        return (np.sin(np.sqrt(k / m) * t) / np.sqrt(k * m))[:, None, None] * shape
+
+    calls = []
+
+    def simulate(thetas):
+        calls.append(len(thetas))
+        return [response(th) for th in thetas]
+
+    fit = fit_theta(simulate, response((0.8, 1.3)), steps=6)
+    np.testing.assert_allclose(fit["theta"], (0.8, 1.3), rtol=1e-3)
+    assert fit["residual_pct"] < 0.1 < fit["start_residual_pct"] and calls[0] == 3
+
+
+def test_cells_through_counts_a_slab_and_a_one_cell_shell():
+    dx = 0.1
+    g = np.stack(np.meshgrid(np.arange(10), np.arange(12), np.arange(3), indexing="ij"), -1).reshape(-1, 3)
+    assert cells_through((g + 0.5) * dx, dx) == 3.0                  # a slab three cells thick
+    u = np.random.default_rng(1).standard_normal((4000, 3))
+    sphere = 1.0 + 0.6 * u / np.linalg.norm(u, axis=1, keepdims=True)  # a surface: 1-2 cells across
+    assert cells_through(sphere, dx) <= 2.0
+
+
+@pytest.mark.slow
+def test_the_pillows_gap_to_the_fem_reference_falls_under_refinement():
+    """The ci Pillow at n_grid 16 and 24 against a reference at 24 (its check at 16): the
+    trajectory RMSE falls from the coarser level to the finer, the body's mass with it, and one
+    Gauss-Newton step of the theta fit lowers the residual. ~25 s on two shared cores (two FEM
+    runs and six MPM rollouts: the smallest grids that give two levels and a check)."""
+    from knockgs_core.contract import load_contract
+
+    contract = load_contract("pillow", "ci")
+    table = floor_study(contract, FloorSettings(n_grid=(16, 24), fem_n_grid=24, fem_check_n_grid=16, fit_steps=1,
+                                                record_factor=1))
+    mpm = table[table.model == "mpm"].reset_index()
+    assert list(table.model) == ["mpm", "mpm", "fem (check)", "fem (reference)"]
+    assert mpm.rmse_pct[1] < 0.75 * mpm.rmse_pct[0]
+    assert table.rmse_pct.iloc[-1] == 0.0 and np.all(mpm.fit_residual_pct < mpm.rmse_pct)
+    assert mpm.mass_kg[1] < mpm.mass_kg[0]                          # the voxel body thins towards the solid
