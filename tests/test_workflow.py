@@ -93,9 +93,9 @@ def test_ci_audits_pass_and_rerun_is_a_no_op(ci_run):
         verdict = json.loads((ci_run / f"{CI}/audits/{name}.json").read_text())
         assert verdict["passed"], verdict
     leak = json.loads((ci_run / f"{CI}/audits/leakage.json").read_text())
-    # the main and the alternative split's estimates and the passive route's; the Probe-A and the
-    # passive libraries; the k x alpha grid's selection
-    assert leak["deployable_estimates_checked"] == 2 * 5 + 5 and leak["library_rollouts_checked"] == 2 * 54
+    # the main split's estimates and the passive route's; the Probe-A and the passive libraries;
+    # the k x alpha grid's selection
+    assert leak["deployable_estimates_checked"] == 5 + 5 and leak["library_rollouts_checked"] == 2 * 54
     assert leak["sensitivity_grids_checked"] == 1
     dry = snakemake(ci_run, "-n", f"{CI}/tables/main_pillow.csv", *CI_RUN_CONFIG)
     assert dry.returncode == 0 and "Nothing to be done" in dry.stdout + dry.stderr
@@ -106,7 +106,7 @@ def test_ci_diagnostics_tables(ci_run):
     P = ci_run / CI
     main = pd.read_csv(P / "tables/main_pillow.csv").set_index("method")["joint_error_pct"]
     sp = pd.read_csv(P / "tables/splits_pillow.csv")
-    assert list(sp["split"]) == ["main", "alt_1"] and (sp["n_targets"] == 5).all()
+    assert list(sp["split"]) == ["main"] and (sp["n_targets"] == 5).all()
     # the main split's row is the main table's
     row = sp.iloc[0]
     assert row["local_ridge_pct"] == pytest.approx(main["local_ridge"], rel=1e-9)
@@ -270,15 +270,23 @@ def test_workflow_lints_and_dry_runs_for_all_profiles(tmp_path):
     work = scratch_copy(tmp_path)
     lint = snakemake(work, "--lint", "--configfile=config/ci.yaml")
     assert lint.returncode == 0 and "good condition" in lint.stdout + lint.stderr, lint.stdout[-3000:]
+    planned = {}
     for cfg, profile in [("config/config.yaml", "default"), ("config/ci.yaml", "ci"), ("config/paper.yaml", "paper")]:
         out = snakemake(work, "-n", "all", f"--configfile={cfg}")
         assert out.returncode == 0, out.stderr[-3000:]
         # each profile writes only under its own results/ and logs/ folders: the ci command
         # never overwrites the default run's tables, figures or audits
-        paths = _planned_paths(out.stdout)
+        paths = planned[profile] = _planned_paths(out.stdout)
         assert len(paths) > 100 and f"results/{profile}/tables/main_pillow.csv" in paths
         assert all(p.startswith((f"results/{profile}/", f"logs/{profile}/")) for p in paths), \
             [p for p in paths if not p.startswith((f"results/{profile}/", f"logs/{profile}/"))][:5]
+    # the ci profile's `all` plans every configured target split through the whole protocol: its
+    # queries and each deployable method's estimate (the shared test run keeps the main split alone)
+    diagnostics = yaml.safe_load((work / "config/ci.yaml").read_text())["diagnostics"]
+    assert diagnostics["splits_in_all"] and len(diagnostics["splits"]) == 3
+    for split in ["main", *diagnostics["splits"]]:
+        assert f"results/ci/descriptors/pillow/queries_{split}.csv" in planned["ci"], split
+        assert f"results/ci/estimates/pillow/{split}/local_ridge.json" in planned["ci"], split
 
 
 @pytest.mark.slow
