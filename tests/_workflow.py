@@ -27,14 +27,15 @@ CI = "results/ci"  # every output of a ci-profile run lies under it
 CI_TESTS_OVERRIDES = {"diagnostics": {"splits": []}, "ladder": {"depth_noise": [0.01]}}
 CI_RUN_CONFIG = ("--configfile=config/ci_tests.yaml", "--config", "objects=[pillow]")
 
-#: What the shared run makes: the Pillow's main, render, diagnostics, probe-shift, passive and
-#: ladder tables and figures, and the audits that read them.
+#: What the shared run makes: the Pillow's main, render, diagnostics, probe-shift, passive,
+#: ladder and convergence tables and figures, and the audits that read them.
 CI_RUN_TARGETS = tuple(f"{CI}/{path}" for path in (
     "tables/main_pillow.csv", "tables/render_pillow.csv", "figures/qualitative_pillow.png", "figures/compare_pillow.gif",
     "figures/main_pillow.png", "audits/leakage.json", "audits/duplicates.json", "audits/nonfinite.json",
     "audits/missing_frames.json", "tables/splits_pillow.csv", "tables/sensitivity_size_pillow.csv",
     "tables/identifiability_pillow.csv", "tables/duration_pillow.csv", "tables/contact_pillow.csv",
-    "tables/passive_active_pillow.csv", "audits/rollout_metadata.json", "tables/ladder_pillow.csv"))
+    "tables/passive_active_pillow.csv", "audits/rollout_metadata.json", "tables/ladder_pillow.csv",
+    "tables/convergence_pillow.csv"))
 
 
 def scratch_copy(dest: Path) -> Path:

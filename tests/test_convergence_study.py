@@ -20,7 +20,6 @@ import yaml
 
 from knockgs_core.contract import cfl_dt, load_candidates, load_contract, load_targets
 from knockgs_core.errors import InputError
-from _workflow import scratch_copy, snakemake
 
 from knockgs_core.experiments import NOT_ASYMPTOTIC, convergence_study, observed_order
 from knockgs_core.experiments._convergence import (
@@ -202,14 +201,11 @@ def test_the_configured_theta_is_a_candidate_and_no_target():
 
 # --------------------------------------------------------------------------- the study on the ci profile
 
-@pytest.fixture(scope="module")
-def ci_study(tmp_path_factory):
-    """The Pillow convergence table of the ci profile, made by the workflow in a scratch copy."""
-    work = scratch_copy(tmp_path_factory.mktemp("conv"))
-    out = snakemake(work, f"{CI}/tables/convergence_pillow.csv", "--cores", "2", "--configfile=config/ci.yaml",
-                    "--config", "objects=[pillow]")
-    assert out.returncode == 0, out.stderr[-4000:]
-    return work
+@pytest.fixture
+def ci_study(ci_run):
+    """The Pillow convergence table of the ci profile, as the shared ci run made it (its job
+    runs the table's script on the profile's settings)."""
+    return ci_run
 
 
 @pytest.mark.slow

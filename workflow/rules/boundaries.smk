@@ -169,12 +169,12 @@ checkpoint boundary_estimate:
         library=boundary_library_csv,
         queries=f"{BB}/{{object}}/{{condition}}/descriptors/queries.csv",
     output:
-        json=f"{BB}/{{object}}/{{condition}}/estimates/{{library}}.json",
+        json=[f"{BB}/{{object}}/{{condition}}/estimates/{{library}}.json"],
     log:
         f"logs/{PROFILE}/boundaries/{{object}}/{{condition}}/estimates/{{library}}.log",
     params:
-        method=BOUNDARY_METHOD,
-        options=config["method_params"].get(BOUNDARY_METHOD, {}),
+        methods=[BOUNDARY_METHOD],
+        options={BOUNDARY_METHOD: config["method_params"].get(BOUNDARY_METHOD, {})},
         config_hash=config_hash(),
     script:
         "../scripts/estimate.py"
@@ -262,12 +262,12 @@ checkpoint loo_estimate:
         library=f"{BB}/loo/{{object}}/library.csv",
         queries=f"{P}/descriptors/{{object}}/queries_{SPLIT}.csv",
     output:
-        json=f"{BB}/loo/{{object}}/estimate.json",
+        json=[f"{BB}/loo/{{object}}/estimate.json"],
     log:
         f"logs/{PROFILE}/boundaries/loo/{{object}}/estimate.log",
     params:
-        method=BOUNDARY_METHOD,
-        options=config["method_params"].get(BOUNDARY_METHOD, {}),
+        methods=[BOUNDARY_METHOD],
+        options={BOUNDARY_METHOD: config["method_params"].get(BOUNDARY_METHOD, {})},
         config_hash=config_hash(),
     script:
         "../scripts/estimate.py"

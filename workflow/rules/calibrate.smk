@@ -4,20 +4,20 @@
 
 
 checkpoint estimate:
+    """Every deployable method of the config on one split's tables, one file a method (one job:
+    an estimate costs less than the job's start)."""
     conda:
         "../envs/knockgs.yaml"
     input:
         library=f"{P}/descriptors/{{object}}/library.csv",
         queries=f"{P}/descriptors/{{object}}/queries_{{split}}.csv",
     output:
-        json=f"{P}/estimates/{{object}}/{{split}}/{{method}}.json",
+        json=[f"{P}/estimates/{{object}}/{{split}}/{m}.json" for m in CONFIG_DEPLOYABLE],
     log:
-        f"logs/{PROFILE}/estimates/{{object}}/{{split}}/{{method}}.log",
-    wildcard_constraints:
-        method="|".join(DEPLOYABLE_METHODS),
+        f"logs/{PROFILE}/estimates/{{object}}/{{split}}.log",
     params:
-        method=lambda wc: wc.method,
-        options=lambda wc: config["method_params"].get(wc.method, {}),
+        methods=CONFIG_DEPLOYABLE,
+        options={m: config["method_params"].get(m, {}) for m in CONFIG_DEPLOYABLE},
         config_hash=config_hash(),
     script:
         "../scripts/estimate.py"

@@ -12,7 +12,7 @@ from functools import cache
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
-from knockgs_core.calibration import DEPLOYABLE_METHODS, METHOD_NAMES, ORACLE_METHOD
+from knockgs_core.calibration import METHOD_NAMES, ORACLE_METHOD
 from knockgs_core.contract import load_candidates, load_contract, load_targets
 from knockgs_core.rollout import theta_tag
 
@@ -279,8 +279,9 @@ def render_jobs(wc):
 def estimate_json(obj, split, method):
     """The frozen-estimate file of (object, split, method): a checkpoint, so rules that
     depend on the estimated thetas are scheduled once it exists."""
-    cp = checkpoints.oracle_estimate if method == ORACLE_METHOD else checkpoints.estimate
-    return cp.get(object=obj, split=split, method=method).output.json
+    if method == ORACLE_METHOD:
+        return checkpoints.oracle_estimate.get(object=obj, split=split).output.json
+    return checkpoints.estimate.get(object=obj, split=split).output.json[CONFIG_DEPLOYABLE.index(method)]
 
 
 def thetas_of(path):

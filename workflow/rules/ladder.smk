@@ -142,7 +142,7 @@ checkpoint ladder_estimate:
         options={m: config["method_params"].get(m, {}) for m in CONFIG_DEPLOYABLE},
         config_hash=config_hash(),
     script:
-        "../scripts/ladder_estimate.py"
+        "../scripts/estimate.py"
 
 
 rule ladder_table:

@@ -207,21 +207,20 @@ rule passive_query_descriptors:
 
 
 rule passive_estimate:
-    """A deployable estimator from the passive library and the targets' passive queries."""
+    """Every deployable method of the config from the passive library and the targets' passive
+    queries, one file a method (one job)."""
     conda:
         "../envs/knockgs.yaml"
     input:
         library=f"{P}/passive/descriptors/{{object}}/library.csv",
         queries=f"{P}/passive/descriptors/{{object}}/queries_{{split}}.csv",
     output:
-        json=f"{P}/passive/estimates/{{object}}/{{split}}/{{method}}.json",
+        json=[f"{P}/passive/estimates/{{object}}/{{split}}/{m}.json" for m in CONFIG_DEPLOYABLE],
     log:
-        f"logs/{PROFILE}/passive/estimates/{{object}}/{{split}}/{{method}}.log",
-    wildcard_constraints:
-        method="|".join(DEPLOYABLE_METHODS),
+        f"logs/{PROFILE}/passive/estimates/{{object}}/{{split}}.log",
     params:
-        method=lambda wc: wc.method,
-        options=lambda wc: config["method_params"].get(wc.method, {}),
+        methods=CONFIG_DEPLOYABLE,
+        options={m: config["method_params"].get(m, {}) for m in CONFIG_DEPLOYABLE},
         config_hash=config_hash(),
     script:
         "../scripts/estimate.py"

@@ -45,7 +45,7 @@ def boundary_library_csv(wc):
 
 def boundary_writeback_rollouts(wc):
     """{"probe/theta": rollout}: Probe B of the frozen estimates and of the targets, under the condition."""
-    est = checkpoints.boundary_estimate.get(object=wc.object, condition=wc.condition, library=wc.library).output.json
+    est = checkpoints.boundary_estimate.get(object=wc.object, condition=wc.condition, library=wc.library).output.json[0]
     probe = boundary_probe_b(wc.object)
     ths = _estimate_thetas(est) + list(target_thetas().values())
     return {f"{probe}/{theta_tag(th)}": boundary_eval_rollout(wc.object, wc.condition, probe, th) for th in ths}
@@ -63,7 +63,7 @@ def loo_objects():
 def loo_writeback_rollouts(wc):
     """{"probe/theta": rollout}: the main evaluation rollouts (Probe B) of the shared estimator's
     estimates and of the targets."""
-    est = checkpoints.loo_estimate.get(object=wc.object).output.json
+    est = checkpoints.loo_estimate.get(object=wc.object).output.json[0]
     probe = boundary_probe_b(wc.object)
     ths = _estimate_thetas(est) + list(target_thetas().values())
     return {f"{probe}/{theta_tag(th)}": eval_rollout(wc.object, probe, th) for th in ths}
