@@ -127,8 +127,11 @@ def test_pointset_descriptor_matches_tracked_points_for_normal_motion():
 @pytest.mark.slow
 def test_discrepancy_loop_on_video_tracks_finds_a_planted_sag(pillow, tmp_path):
     """A world with a planted sag (gravity), filmed by the contract's camera (200x150 RGB-D);
-    `knockgs observe tracks` turns the frames into ID-free tracks; the loop, given only those,
-    names gravity with its value and improves the held-out prediction of the held-out video.
+    `knockgs observe tracks` turns the frames into ID-free tracks (at least 20: its seeds are
+    only where the object, not the basket's haze, makes the pixel, and a track that fails its
+    forward-backward check is dropped) with its error estimate, which the loop takes as its
+    noise; the loop, given only those, names gravity with its value and improves the held-out
+    prediction of the held-out video.
     World and loop are the ci Pillow at 2 substeps per frame (dt = 1e-2 s, not 5e-3 s: its
     response moves by 0.5 %, every rollout takes half the time); the loop runs without the
     discretization term (data from its own model; tests/test_discrepancy_model_error.py)."""
@@ -154,7 +157,7 @@ def test_discrepancy_loop_on_video_tracks_finds_a_planted_sag(pillow, tmp_path):
         assert main(["observe", "tracks", str(tmp_path / f"{probe}.npz"), "--object", "pillow", "--profile", "ci",
                      "--probe", probe, "-o", str(out)]) == 0
         tracks[probe] = read_measured(out)
-        assert not tracks[probe].has_identity and tracks[probe].n_points >= 40
+        assert not tracks[probe].has_identity and tracks[probe].n_points >= 20
     res = run_discrepancy(tracks["standard_x"], c, asset.particles, heldout_probes=["standard_y"],
                           heldout_measured={"standard_y": tracks["standard_y"]},
                           settings=LoopSettings(catalogue=("damping", "gravity", "stiffness_gradient_z"), joint_iterations=5,

@@ -3,22 +3,30 @@
 ``knockgs observe rgbd`` renders a rollout as an RGB-D sequence (``.npz``: colour, coverage,
 expected depth, the camera's intrinsics and pose, the frame interval), the format a calibrated
 RGB-D capture is stored in too. ``knockgs observe tracks`` follows frame-0 features through
-such a sequence by optical flow, lifts them to 3-D by the depth and writes them in the
-tracked-points format that ``knockgs discrepancy run`` reads (``frame, track, x, y, z``, no
-particle identity; docs/ladder.md). ``knockgs observe describe`` computes their query
+such a sequence by optical flow (by default a sparse pyramidal Lucas-Kanade anchored on frame
+0), lifts them to 3-D by the depth and writes them in the tracked-points format that
+``knockgs discrepancy run`` reads (``frame, track, x, y, z``, no particle identity;
+docs/ladder.md), with the tracker's estimate of its own error per coordinate in the metadata
+(``tracker_error_std`` [m]), which the loop takes as its noise unless ``--noise-std`` declares
+one (docs/discrepancy.md, "Video observations: the tracker's error"). ``knockgs observe describe`` computes their query
 descriptors for ``knockgs calibrate --queries``, to be used with a library described through
 the same observation (the observation ladder's ``flow`` tables).
 """
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
 from ..errors import InputError
 from ._common import image_side
 
-__all__ = ["register", "run_rgbd", "run_tracks", "run_describe"]
+__all__ = ["register", "run_rgbd", "run_tracks", "run_describe", "TRACKS_SETTINGS"]
+
+#: the tracker settings of ``knockgs observe tracks`` (its defaults; the rest is
+#: :class:`knockgs_core.observe.TrackSettings`')
+TRACKS_SETTINGS = {"method": "lk", "radius": 7}
 
 
 def register(sub) -> None:
@@ -43,11 +51,18 @@ def register(sub) -> None:
     tr.add_argument("--object", help="object of the measurement's metadata")
     tr.add_argument("--profile", help="profile of the measurement's metadata")
     tr.add_argument("--probe", help="probe of the measurement's metadata (the frames are its export frames 0, 1, ...)")
-    tr.add_argument("--method", choices=("ilk", "tvl1"), default="ilk", help="optical flow (default ilk: Lucas-Kanade)")
+    tr.add_argument("--method", choices=("lk", "ilk", "tvl1"), default=TRACKS_SETTINGS["method"],
+                    help="lk (default): sparse pyramidal Lucas-Kanade against frame 0, sub-pixel; ilk, tvl1: dense flow "
+                         "between consecutive frames (scikit-image)")
     tr.add_argument("--max-seeds", type=int, default=400, help="frame-0 corners tracked at most (default 400)")
-    tr.add_argument("--radius", type=int, default=5, help="Lucas-Kanade window radius in pixels (default 5)")
+    tr.add_argument("--radius", type=int, default=TRACKS_SETTINGS["radius"],
+                    help=f"Lucas-Kanade window radius in pixels (default {TRACKS_SETTINGS['radius']})")
+    tr.add_argument("--fb-max", type=float, help="lk: forward-backward tolerance in pixels; a track beyond it is dropped "
+                    "(default: TrackSettings.fb_max, 0.3)")
     tr.add_argument("--depth-noise", type=float, default=0.0, help="Gaussian depth noise std added [m] (default 0)")
     tr.add_argument("--seed", type=int, default=0, help="seed of the depth noise")
+    tr.add_argument("--noise-std", type=float, help="declare the tracks' noise std per coordinate [m] (metadata noise_std; "
+                    "default: none, the loop then uses the tracker's error estimate)")
     tr.add_argument("-o", "--output", required=True, help="output tracked points (.parquet, .csv or .npz)")
     tr.set_defaults(func=run_tracks)
     de = s.add_parser("describe", help="query descriptors (a CSV for `knockgs calibrate --queries`) of tracked points")
@@ -94,10 +109,15 @@ def run_tracks(args) -> int:
         raise InputError(str(out), "--output", "tracked points are written as .parquet, .csv or .npz")
     check_outputs({"--output": out}, {"frames": args.frames})
     frames = read_rgbd(args.frames)
+    if args.noise_std is not None and not (math.isfinite(args.noise_std) and args.noise_std >= 0):
+        raise InputError("command line", "--noise-std", f"must be a finite number >= 0 [m], got {args.noise_std!r}")
     settings = TrackSettings(method=args.method, max_seeds=args.max_seeds, radius=args.radius, depth_noise=args.depth_noise,
-                             seed=args.seed)
+                             seed=args.seed, **({} if args.fb_max is None else {"fb_max": args.fb_max}))
     points, info = track_points(frames, settings)
     meta = {k: v for k, v in (("object", args.object), ("profile", args.profile), ("probe", args.probe)) if v}
+    meta["tracker_error_std"] = info["error_std"]
+    if args.noise_std is not None:
+        meta["noise_std"] = float(args.noise_std)
     if args.probe and args.object:
         from ..contract import load_contract
 
@@ -108,12 +128,16 @@ def run_tracks(args) -> int:
             raise InputError(args.frames, "frame_dt", f"{frames.frame_dt} s between frames, but probe '{args.probe}' "
                              f"exports every {probe.export.frame_dt} s")
     meta["description"] = (f"optical-flow tracks ({info['method']}) lifted by depth from {Path(args.frames).name}: "
-                           f"{info['tracks']} of {info['seeds']} seeds, depth noise {args.depth_noise:g} m")
+                           f"{info['tracks']} of {info['seeds']} seeds, depth noise {args.depth_noise:g} m, "
+                           f"estimated error {info['error_std']:.3g} m per coordinate")
     m = Measurement(points=points, frames=np.arange(frames.n_frames), times=None, particle=None,
                     track=np.arange(1, points.shape[1] + 1), meta=meta, source=str(out))
     write_measured(out, m)
+    noise = (f"noise std {args.noise_std:g} m declared (--noise-std)" if args.noise_std is not None else
+             "the loop's noise: this estimate (no --noise-std)")
     print(f"{info['tracks']} tracks of {info['seeds']} seeds over {frames.n_frames} frames "
-          f"(median flow {info['median_flow_px']:.3g} px) -> {out}", file=sys.stderr)
+          f"(median flow {info['median_flow_px']:.3g} px); tracker error estimate {info['error_std']:.3g} m per "
+          f"coordinate (scatter about an affine motion field); {noise} -> {out}", file=sys.stderr)
     return 0
 
 

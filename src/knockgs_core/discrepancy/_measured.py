@@ -8,12 +8,17 @@ Long-table files (Parquet or CSV), one row per (frame, point)::
 set); ``track`` is an arbitrary point id without that identity. NPZ files hold arrays
 ``positions`` [T, M, 3], ``frames`` [T] or ``times`` [T], and ``particle`` [M] or
 ``track`` [M]. Parquet metadata (key ``knockgs_measurement``, JSON) and NPZ array
-``meta`` (a JSON string) may carry ``object``, ``profile``, ``probe`` and ``noise_std``.
+``meta`` (a JSON string) may carry ``object``, ``profile``, ``probe``, ``noise_std`` (the
+noise std per coordinate the user declares), ``tracker_error_std`` (a tracker's estimate of
+its own error per coordinate, ``knockgs observe tracks``) and ``noise_source`` (where
+``noise_std`` came from). Without a declared ``noise_std``, a ``tracker_error_std`` becomes
+the noise (``noise_std``, with ``noise_source`` saying so), which the discrepancy loop then
+uses instead of its estimate from the residual.
 Every point must be present in every frame; frame 0 (t = 0, the rest state before the
 probe acts) must be present. Frames are integers (7.5 is refused, not truncated); the
-metadata's ``noise_std`` is a finite number >= 0 [m] and ``object``, ``profile`` and
-``probe`` are names. A KnockGS rollout (metadata key ``knockgs``: a simulation with its
-theta) is not a measurement and is refused.
+metadata's ``noise_std`` and ``tracker_error_std`` are finite numbers >= 0 [m] and
+``object``, ``profile``, ``probe`` and ``noise_source`` are names. A KnockGS rollout
+(metadata key ``knockgs``: a simulation with its theta) is not a measurement and is refused.
 """
 
 from __future__ import annotations
@@ -34,7 +39,11 @@ __all__ = ["Measurement", "read_measured", "write_measured", "Correspondence", "
 MEASUREMENT_META_KEY = b"knockgs_measurement"
 #: the metadata fields a measurement file may carry (anything else is refused, so no
 #: label such as a planted effect or a true theta can ride along)
-MEASUREMENT_META_FIELDS = ("object", "profile", "probe", "noise_std", "description", "units")
+MEASUREMENT_META_FIELDS = ("object", "profile", "probe", "noise_std", "tracker_error_std", "noise_source", "description",
+                           "units")
+
+#: ``noise_source`` of a noise taken from the tracker's estimate
+TRACKER_NOISE_SOURCE = "the tracker's error estimate (metadata tracker_error_std: knockgs observe tracks)"
 
 
 @dataclass(frozen=True, eq=False)
@@ -54,7 +63,9 @@ class Measurement:
     track: [M] int64
         Point ids as in the file.
     meta: dict
-        ``object``, ``profile``, ``probe``, ``noise_std`` (per-coordinate std [m]) when known.
+        ``object``, ``profile``, ``probe``, ``noise_std`` (per-coordinate std [m]) when known
+        and ``noise_source``: where it came from (module docs: a tracker's
+        ``tracker_error_std`` is the noise when none is declared).
     source: str
         Where it came from.
     """
@@ -100,6 +111,13 @@ class Measurement:
         if bad:
             raise InputError(self.source, "metadata", f"unknown fields {sorted(bad)}; allowed: {list(MEASUREMENT_META_FIELDS)}")
         _check_meta_values(self.meta, self.source)
+        meta = dict(self.meta)
+        if meta.get("noise_std") is None and meta.get("tracker_error_std") is not None:
+            meta["noise_std"] = float(meta["tracker_error_std"])
+            meta["noise_source"] = TRACKER_NOISE_SOURCE
+        elif meta.get("noise_std") is not None and meta.get("noise_source") is None:
+            meta["noise_source"] = "declared (metadata noise_std)"
+        object.__setattr__(self, "meta", meta)
 
     @property
     def has_identity(self) -> bool:
@@ -132,17 +150,19 @@ class Measurement:
 
 
 def _check_meta_values(meta: dict, source) -> None:
-    """Metadata values that mean something: names are non-empty strings, the noise std a
-    finite number >= 0 (a string, a negative number or NaN is refused, naming the field)."""
-    for key in ("object", "profile", "probe"):
+    """Metadata values that mean something: names are non-empty strings, the noise std and
+    the tracker's error std finite numbers >= 0 (a string, a negative number or NaN is
+    refused, naming the field)."""
+    for key in ("object", "profile", "probe", "noise_source"):
         v = meta.get(key)
         if v is not None and not (isinstance(v, str) and v.strip()):
             raise InputError(source, f"metadata.{key}", f"must be a name (a non-empty string), got {v!r}")
-    v = meta.get("noise_std")
-    if v is not None:
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
-        if not ok:
-            raise InputError(source, "metadata.noise_std", f"must be a finite number >= 0 [m], got {v!r}")
+    for key in ("noise_std", "tracker_error_std"):
+        v = meta.get(key)
+        if v is not None:
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
+            if not ok:
+                raise InputError(source, f"metadata.{key}", f"must be a finite number >= 0 [m], got {v!r}")
 
 
 def _meta_from_bytes(raw, source) -> dict:

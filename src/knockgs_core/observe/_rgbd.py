@@ -23,7 +23,9 @@ class RGBDFrames:
     [T, H, W] the expected camera depth [m] of the covered part (0 where ``alpha`` is 0);
     ``camera`` the :class:`~knockgs_core.render.Camera` (same for every frame); ``frame_dt``
     [s] between frames; ``mask`` [H, W] bool, optional: the object's segmentation in frame 0
-    (pixels it covers at least half; a rendered sequence has it, a capture may bring one).
+    (the pixels that show the object: a rendered sequence has it, where the object makes at
+    least ``MASK_SHARE`` of the pixel's compositing weight, so not where a static support hides
+    it, even partly; a capture may bring one).
     Arrays are float32."""
 
     rgb: np.ndarray
@@ -76,17 +78,32 @@ def render_rgbd(gaussians, static_mask, gaussian_index, positions, F, camera: Ca
     :func:`knockgs_core.render.render_rollout`, which returns the same colour and
     coverage): ``positions`` (T, N, 3), ``F`` (T, n_gs, 3, 3)."""
     outs = render_outputs(gaussians, static_mask, gaussian_index, positions, F, camera, device=device)
-    # the object's frame-0 segmentation: its own Gaussians (the static support left out)
-    dyn = ~np.asarray(static_mask)
-    obj = render(np.asarray(gaussians.means, dtype=np.float64)[dyn], np.asarray(gaussians.covariances(), dtype=np.float64)[dyn],
-                 np.asarray(gaussians.colors(), dtype=np.float64)[dyn], np.asarray(gaussians.opacities, dtype=np.float64)[dyn],
-                 camera, device=device)
     rgb = np.stack([o.rgb for o in outs])
     alpha = np.stack([o.alpha for o in outs])
     wdepth = np.stack([o.depth for o in outs])
     depth = np.where(alpha > 1e-6, wdepth / np.maximum(alpha, 1e-6), 0.0).astype(np.float32)
     return RGBDFrames(rgb=rgb, alpha=alpha, depth=depth, camera=camera, frame_dt=frame_dt, source="render",
-                      mask=obj.alpha >= 0.5)
+                      mask=object_share(gaussians, static_mask, positions[0, : len(gaussian_index)], F[0], camera,
+                                        device=device) >= MASK_SHARE)
+
+
+#: a pixel belongs to the object's frame-0 segmentation where the object makes at least this
+#: share of what the pixel shows (its compositing weight over the pixel's whole coverage)
+MASK_SHARE = 0.95
+
+
+def object_share(gaussians, static_mask, positions0, F0, camera: Camera, *, device: str = "cpu") -> np.ndarray:
+    """[H, W] the object's share of each pixel's compositing weight at frame 0 (``positions0``
+    [n_gs, 3], ``F0`` [n_gs, 3, 3]): 1 where only its Gaussians make the pixel, less where a
+    static support in front of it (or seen through it) takes part, 0 where it is absent."""
+    from ..render import deformed_scene
+
+    mask = np.asarray(static_mask, dtype=bool)
+    colors = np.where(mask[:, None], 0.0, 1.0) * np.ones((1, 3))
+    scene = deformed_scene(np.asarray(gaussians.means, dtype=np.float64), np.asarray(gaussians.covariances(), dtype=np.float64),
+                           colors, np.asarray(gaussians.opacities, dtype=np.float64), positions0, F0, mask)
+    o = render(*scene, camera, background=(0.0, 0.0, 0.0), device=device)
+    return np.where(o.alpha > 1e-6, o.rgb[..., 0] / np.maximum(o.alpha, 1e-6), 0.0)
 
 
 def write_rgbd(path, frames: RGBDFrames) -> None:
