@@ -1,5 +1,6 @@
-"""Gaussian assets: 3DGS PLY files, PhysGaussian preprocessing, interior fill,
-procedural Pillow / Ficus / Vasedeck stand-ins, and contract-driven building.
+"""Gaussian assets: 3DGS PLY files (INRIA and SuperSplat compressed), contract scaffolds,
+PhysGaussian preprocessing, interior fill, procedural Pillow / Ficus / Vasedeck stand-ins,
+and contract-driven building.
 
 Conventions: :class:`GaussianSet` holds *activated* parameters (scales as standard
 deviations, unit wxyz quaternions, opacities in (0, 1)); positions of
@@ -12,8 +13,9 @@ from ._figure import asset_figure
 from ._fill import FillResult, density_grid, fill_interior, interior_cells
 from ._gaussians import SH_C0, GaussianSet, matrix_to_quat, quat_multiply, quat_to_matrix
 from ._particles import ParticleSet, load_particles, save_particles
-from ._ply import read_ply, write_ply
+from ._ply import SplatFile, SplatRepairs, read_ply, read_splat, write_ply
 from ._procedural import CAPTURE_ROTATION, PROCEDURAL_ASSETS, make_procedural
+from ._scaffold import Scaffold, SourceSelection, contract_text, parse_up, scaffold_contract, source_selection
 from ._scene import load_scene, save_scene, scene_path
 from ._transform import Normalization, preprocess, rotation_matrix, transform_gaussians
 
@@ -21,7 +23,16 @@ __all__ = [
     "SH_C0",
     "GaussianSet",
     "read_ply",
+    "read_splat",
+    "SplatFile",
+    "SplatRepairs",
     "write_ply",
+    "Scaffold",
+    "SourceSelection",
+    "scaffold_contract",
+    "contract_text",
+    "parse_up",
+    "source_selection",
     "Normalization",
     "preprocess",
     "rotation_matrix",

@@ -5,6 +5,9 @@
         rollout, the PLY and the scene file are what `knockgs render` needs)
     knockgs asset summary NAME --profile PROFILE [--json]
     knockgs asset figure NAME --profile PROFILE -o OUT.png
+    knockgs asset init SPLAT -o CONTRACT.yaml [--up AXIS] [--opacity-threshold T]
+        (a commented contract scaffold for a splat file, INRIA point_cloud.ply or SuperSplat
+        .compressed.ply; every choice is a field to edit: docs/own_splat.md)
 
 NAME is an object contract name (config/objects/NAME.yaml) or a path to a contract file.
 """
@@ -14,6 +17,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+
+import numpy as np
 
 __all__ = ["register"]
 
@@ -47,6 +52,16 @@ def register(subparsers) -> None:
     common(fg)
     fg.add_argument("-o", "--output", required=True, help="output .png")
     fg.set_defaults(func=_figure)
+
+    it = sub.add_parser("init", help="write a commented contract scaffold for a splat file")
+    it.add_argument("splat", help="3DGS splat: INRIA point_cloud.ply or SuperSplat .compressed.ply")
+    it.add_argument("-o", "--output", required=True, help="contract to write, NAME.yaml (NAME is the object's name)")
+    it.add_argument("--up", default=None,
+                    help="up axis in the splat's frame: x, -y, +z or a,b,c (default: the body's long axis, or the "
+                         "short axis of a flat body; docs/own_splat.md)")
+    it.add_argument("--opacity-threshold", type=float, default=0.05,
+                    help="drop Gaussians of lower opacity (default 0.05)")
+    it.set_defaults(func=_init)
 
 
 def _load(args):
@@ -83,11 +98,17 @@ def _make(args) -> int:
 def _summary(args) -> int:
     from knockgs_core.assets import build_asset
 
+    from knockgs_core.assets import source_selection
+
     contract = _load(args)
-    s = build_asset(contract).summary()
+    built = build_asset(contract)
+    s = built.summary()
     s = {"object": contract.name, "profile": contract.profile, "contract_hash": contract.hash,
          "n_grid": contract.sim.n_grid, "dt": contract.sim.dt,
          "fill_resolution": contract.fill.resolution if contract.fill.enabled else None, **s}
+    if contract.asset.ply is not None:
+        sel = source_selection(contract, built.normalization)
+        s["source"] = {"layout": sel.layout, "counts": sel.counts, "repairs": sel.repairs._asdict()}
     if args.json:
         json.dump(s, sys.stdout, indent=2)
         print()
@@ -99,6 +120,13 @@ def _summary(args) -> int:
           f"filled cells {s['fill_cells']}  total particles {s['particles']}")
     print("  regions " + "  ".join(f"{k} {v}" for k, v in s["regions"].items()))
     print("  probe particles " + "  ".join(f"{k} {v}" for k, v in s["probe_particles"].items()))
+    if "source" in s:
+        src = s["source"]
+        c, r = src["counts"], src["repairs"]
+        print(f"  source {src['layout']}: file {c['file']}  profile sample {c['profile']}  below opacity "
+              f"{c['below_opacity']}  outside crop {c['outside_crop']}  kept {c['kept']}")
+        print(f"  reading rules: opacity saturated {r['opacity_saturated']}  zero quaternions "
+              f"{r['zero_quaternions']}  scales clamped {r['scales_clamped']}")
     return 0
 
 
@@ -111,6 +139,42 @@ def _figure(args) -> int:
 
     contract = _load(args)
     check_outputs({"--output": args.output}, contract_inputs(contract))
-    asset_figure(build_asset(contract), args.output, title=f"{contract.name} ({contract.profile})")
+    built = build_asset(contract)
+    removed = None
+    if contract.asset.ply is not None:
+        from knockgs_core.assets import source_selection
+
+        removed = source_selection(contract, built.normalization).removed_means
+    supports = [bc.box for bc in contract.sim.boundaries if getattr(bc, "box", None) is not None
+                and type(bc).__name__ == "FixedCuboid"]
+    probes = [(k, p.force, p.box) for k, p in contract.probes.items()]
+    asset_figure(built, args.output, title=f"{contract.name} ({contract.profile})", removed_means=removed,
+                 supports=supports, probes=probes, camera_image=_camera_view(contract, built))
     print(f"wrote {args.output}")
+    return 0
+
+
+def _camera_view(contract, built):
+    """The asset at rest through the contract camera, [H, W, 3] in [0, 1] (CPU)."""
+    from knockgs_core.experiments import camera_from_contract
+    from knockgs_core.render import render
+
+    g = built.gaussians
+    cam = camera_from_contract(contract.camera)
+    return np.asarray(render(g.means, g.covariances(), g.colors(), g.opacities, cam).rgb)
+
+
+def _init(args) -> int:
+    from knockgs_core.assets import contract_text, scaffold_contract
+    from knockgs_core.contract import load_contract
+    from knockgs_core.io import check_outputs, atomic_write
+
+    check_outputs({"--output": args.output}, {"SPLAT": args.splat})
+    s = scaffold_contract(args.splat, args.output, up=args.up, opacity_threshold=args.opacity_threshold)
+    with atomic_write(args.output, mode="w") as fh:
+        fh.write(contract_text(s))
+    load_contract(args.output, "ci")  # the loader accepts what was written
+    c = s.counts
+    print(f"wrote {args.output}: {c['kept']} of {c['file']} Gaussians kept ({c['below_opacity']} below opacity "
+          f"{args.opacity_threshold}, {c['floaters_removed']} floaters outside the crop); up {s.up_rule}")
     return 0
