@@ -9,13 +9,14 @@ extent 1 and centre (1, 1, 1); Gaussian-associated particles come first, fill af
 
 from ._build import BuiltAsset, build_asset, load_source_gaussians
 from ._figure import asset_figure
-from ._fill import FillResult, density_grid, fill_interior, interior_cells
+from ._fill import FillGrid, FillResult, body_fraction, density_grid, fill_grid, fill_interior, interior_cells
 from ._gaussians import SH_C0, GaussianSet, matrix_to_quat, quat_multiply, quat_to_matrix
 from ._particles import ParticleSet, load_particles, save_particles
 from ._ply import read_ply, write_ply
 from ._procedural import CAPTURE_ROTATION, PROCEDURAL_ASSETS, make_procedural
 from ._scene import load_scene, save_scene, scene_path
 from ._transform import Normalization, preprocess, rotation_matrix, transform_gaussians
+from ._volumes import VOLUME_RULES, enclosed_volumes, surface_areas, wall_volumes
 
 __all__ = [
     "SH_C0",
@@ -36,6 +37,13 @@ __all__ = [
     "fill_interior",
     "density_grid",
     "interior_cells",
+    "FillGrid",
+    "fill_grid",
+    "body_fraction",
+    "VOLUME_RULES",
+    "enclosed_volumes",
+    "wall_volumes",
+    "surface_areas",
     "PROCEDURAL_ASSETS",
     "CAPTURE_ROTATION",
     "make_procedural",
