@@ -11,7 +11,8 @@ import pytest
 import yaml
 
 from knockgs_core.errors import InputError
-from knockgs_core.experiments import FloorSettings, at_resolution, cells_through, fit_theta, floor_study, probe_period
+from knockgs_core.experiments import (FloorSettings, at_resolution, cells_through, enclosed_empty_cells, fit_theta, floor_study,
+                                      probe_period)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -133,6 +134,16 @@ def test_cells_through_counts_a_slab_and_a_one_cell_shell():
     u = np.random.default_rng(1).standard_normal((4000, 3))
     sphere = 1.0 + 0.6 * u / np.linalg.norm(u, axis=1, keepdims=True)  # a surface: 1-2 cells across
     assert cells_through(sphere, dx) <= 2.0
+
+
+def test_enclosed_empty_cells_counts_a_hollow_boxs_void_and_nothing_in_a_solid_or_open_one():
+    dx = 0.1
+    g = np.stack(np.meshgrid(np.arange(6), np.arange(7), np.arange(8), indexing="ij"), -1).reshape(-1, 3)
+    assert enclosed_empty_cells((g + 0.5) * dx, dx) == 0                      # solid
+    wall = np.any((g == 0) | (g == [5, 6, 7]), axis=1)
+    assert enclosed_empty_cells((g[wall] + 0.5) * dx, dx) == 4 * 5 * 6        # a closed box's inside
+    cup = wall & (g[:, 2] < 7)
+    assert enclosed_empty_cells((g[cup] + 0.5) * dx, dx) == 0                 # open at the top: no ray closes
 
 
 @pytest.mark.slow

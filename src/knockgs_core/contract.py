@@ -99,7 +99,9 @@ class AssetSettings:
 @dataclass(frozen=True)
 class FillSettings:
     """Interior fill (see :func:`knockgs_core.assets.fill_interior`); ``resolution`` comes
-    from the profile."""
+    from the profile. ``volumes``: the particles' rest-volume rule (``cell_share``,
+    ``enclosed`` or ``wall``; docs/assets.md); ``wall_thickness`` [m]: the wall of the
+    ``wall`` rule."""
 
     enabled: bool = False
     box: Box | None = None
@@ -107,6 +109,8 @@ class FillSettings:
     max_particles_per_cell: int = 4
     seed: int = 0
     resolution: int = 128
+    volumes: str = "cell_share"
+    wall_thickness: float | None = None
 
 
 @dataclass(frozen=True)
@@ -117,6 +121,27 @@ class Profile:
     n_grid: int
     fill_resolution: int
     dt: float
+
+
+def check_volume_rule(fill: FillSettings, source) -> None:
+    """Refuse, in one line naming the field, a volume rule its other fill settings do not
+    support: ``enclosed`` measures the body on the fill grid (``enabled: true``); ``wall`` is a
+    thin wall with no interior fill and needs its ``wall_thickness`` > 0 [m], which no other
+    rule reads."""
+    from .assets._volumes import VOLUME_RULES
+
+    if fill.volumes not in VOLUME_RULES:
+        raise InputError(source, "fill.volumes", f"must be one of {', '.join(VOLUME_RULES)}, got {fill.volumes!r}")
+    if fill.volumes == "enclosed" and not fill.enabled:
+        raise InputError(source, "fill.volumes", "enclosed measures the body on the fill grid: needs fill.enabled: true")
+    if fill.volumes == "wall":
+        if fill.enabled:
+            raise InputError(source, "fill.volumes", "wall is a thin wall with no interior fill: needs fill.enabled: false")
+        t = fill.wall_thickness
+        if t is None or not (math.isfinite(t) and t > 0):
+            raise InputError(source, "fill.wall_thickness", f"the wall rule needs a thickness > 0 [m], got {t!r}")
+    elif fill.wall_thickness is not None:
+        raise InputError(source, "fill.wall_thickness", f"is read by volumes: wall only (volumes is {fill.volumes})")
 
 
 # --------------------------------------------------------------------------- CFL
@@ -290,7 +315,7 @@ class ObjectContract:
         a procedural asset adds its generator version."""
         d = {
             "name": self.name, "profile": self.profile, "description": self.description,
-            "asset": _asset_dict(self.asset), "fill": json_safe(self.fill), "sim": _sim_dict(self.sim),
+            "asset": _asset_dict(self.asset), "fill": _fill_dict(self.fill), "sim": _sim_dict(self.sim),
             "materials": json_safe(self.materials),
             "regions": {k: json_safe(v) for k, v in self.regions.items()},
             "probes": json_safe(self.probes), "probe_force_match": dict(self.probe_force_match),
@@ -312,6 +337,15 @@ def _asset_dict(asset: AssetSettings) -> dict:
     d = json_safe(asset)
     if asset.ply is not None:
         d["ply"] = asset.ply.name
+    return d
+
+
+def _fill_dict(fill: FillSettings) -> dict:
+    """``json_safe(fill)`` without the volume rule's keys where they keep their defaults, so a
+    contract that does not use them keeps the hash it had before they existed."""
+    d = json_safe(fill)
+    if d["volumes"] == "cell_share" and d["wall_thickness"] is None:
+        del d["volumes"], d["wall_thickness"]
     return d
 
 
@@ -642,10 +676,12 @@ def _build(data: dict, path: Path, cfg: Path, profile: str) -> ObjectContract:
         raise InputError(path, f"profiles.{profile}.n_gaussians", "a procedural asset needs a count")
 
     f = data.get("fill", {})
-    fill = FillSettings(**_kwargs(f, ("enabled", "density_threshold", "max_particles_per_cell", "seed")),
-                        box=_box(f.get("box")), resolution=prof.fill_resolution)
+    fill = FillSettings(**_kwargs(f, ("enabled", "density_threshold", "max_particles_per_cell", "seed", "volumes")),
+                        box=_box(f.get("box")), resolution=prof.fill_resolution,
+                        wall_thickness=None if f.get("wall_thickness") is None else float(f["wall_thickness"]))
     if fill.enabled and fill.box is None:
         raise InputError(path, "fill.box", "required when fill.enabled is true")
+    check_volume_rule(fill, path)
 
     s = data["sim"]
     sim_kw = _kwargs(s, ("grid_lim", "grid_v_damping_scale", "cfl_limit", "guard_every", "transfer"))

@@ -10,7 +10,7 @@ extent 1 and centre (1, 1, 1); Gaussian-associated particles come first, fill af
 
 from ._build import BuiltAsset, build_asset, load_source_gaussians
 from ._figure import asset_figure
-from ._fill import FillResult, density_grid, fill_interior, interior_cells
+from ._fill import FillGrid, FillResult, body_fraction, density_grid, fill_grid, fill_interior, interior_cells
 from ._gaussians import SH_C0, GaussianSet, matrix_to_quat, quat_multiply, quat_to_matrix
 from ._particles import ParticleSet, load_particles, save_particles
 from ._ply import SplatFile, SplatRepairs, read_ply, read_splat, write_ply
@@ -18,6 +18,7 @@ from ._procedural import CAPTURE_ROTATION, PROCEDURAL_ASSETS, make_procedural
 from ._scaffold import Scaffold, SourceSelection, contract_text, parse_up, scaffold_contract, source_selection
 from ._scene import load_scene, save_scene, scene_path
 from ._transform import Normalization, preprocess, rotation_matrix, transform_gaussians
+from ._volumes import VOLUME_RULES, enclosed_volumes, surface_areas, wall_volumes
 
 __all__ = [
     "SH_C0",
@@ -47,6 +48,13 @@ __all__ = [
     "fill_interior",
     "density_grid",
     "interior_cells",
+    "FillGrid",
+    "fill_grid",
+    "body_fraction",
+    "VOLUME_RULES",
+    "enclosed_volumes",
+    "wall_volumes",
+    "surface_areas",
     "PROCEDURAL_ASSETS",
     "CAPTURE_ROTATION",
     "make_procedural",

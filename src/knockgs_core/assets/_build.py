@@ -9,12 +9,13 @@ import numpy as np
 
 from knockgs_core.errors import InputError
 
-from ._fill import fill_interior
+from ._fill import fill_grid, fill_interior
 from ._gaussians import GaussianSet, _readonly
 from ._particles import ParticleSet
 from ._ply import read_ply
 from ._procedural import make_procedural
 from ._transform import Normalization, preprocess
+from ._volumes import enclosed_volumes, wall_volumes
 
 __all__ = ["BuiltAsset", "build_asset", "load_source_gaussians"]
 
@@ -98,9 +99,11 @@ def build_asset(contract) -> BuiltAsset:
     """Build the asset of ``contract`` (a :class:`~knockgs_core.contract.ObjectContract`).
 
     Steps: source Gaussians -> :func:`preprocess` -> static support mask
-    (``asset.static_boxes``) -> simulated Gaussians -> interior fill (if enabled) ->
-    material regions -> checks (a support holding every particle, a probe box selecting
-    none) -> resolved probes. Deterministic: the same contract gives identical arrays.
+    (``asset.static_boxes``) -> simulated Gaussians -> interior fill (if enabled; up to the
+    surface under ``fill.volumes: enclosed``) -> material regions -> rest volumes (none under
+    ``cell_share``: the simulator's; ``enclosed``, ``wall``: :mod:`._volumes`) -> checks (a
+    support holding every particle, a probe box selecting none) -> resolved probes.
+    Deterministic: the same contract gives identical arrays.
     Results are cached by contract hash (arrays are read-only).
     """
     key = contract.hash
@@ -123,17 +126,26 @@ def build_asset(contract) -> BuiltAsset:
     fill_pos = np.zeros((0, 3), dtype=np.float32)
     cells = 0
     f = contract.fill
+    grid = None
     if f.enabled:
+        grid = fill_grid(sim_gs, fill_box=f.box, resolution=f.resolution, density_threshold=f.density_threshold,
+                         source=src, field_prefix="fill.")
         fill_pos, cells = fill_interior(sim_gs, fill_box=f.box, resolution=f.resolution,
                                         density_threshold=f.density_threshold,
                                         max_particles_per_cell=f.max_particles_per_cell,
-                                        seed=f.seed, source=src, field_prefix="fill.")
+                                        seed=f.seed, source=src, field_prefix="fill.",
+                                        reach_surface=f.volumes == "enclosed", grid=grid)
     positions = np.concatenate([sim_gs.means, fill_pos]).astype(np.float32)
     lim = contract.sim.grid_lim
     if np.any(positions < 0) or np.any(positions > lim):
         raise InputError(src, "asset", f"particles leave the domain [0, {lim}]^3")
     region = contract.assign_regions(positions)
-    particles = ParticleSet(positions=positions, volumes=None, n_gs=len(gi), gaussian_index=gi,
+    volumes = None                                   # cell_share: the simulator's, on its grid
+    if f.volumes == "enclosed":
+        volumes = enclosed_volumes(positions, grid, sim_gs.means, source=src, field="fill.box")
+    elif f.volumes == "wall":
+        volumes = wall_volumes(positions, f.wall_thickness)
+    particles = ParticleSet(positions=positions, volumes=volumes, n_gs=len(gi), gaussian_index=gi,
                             region=region, region_names=contract.region_names, fill_cells=cells)
     _check_supports(contract, positions)
     probes = contract.resolve_probes(particles)

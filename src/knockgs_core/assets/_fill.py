@@ -11,6 +11,13 @@
    hit the shell (six cumulative maxima over the grid; no iteration).
 4. Each interior cell receives ``max_particles_per_cell`` minus the number of Gaussian
    centres already in it, uniformly jittered inside the cell, from ``seed``.
+
+The shell is a band of cells around the surface (the density is symmetric about it), so its
+inner half lies inside the body and holds no Gaussian centre: the interior fill of steps 3-4
+leaves a hollow layer there. :func:`body_fraction` measures each cell's share of the body from
+its depth below the band's outer boundary, the surface's depth being the median depth of the
+Gaussian centres; ``reach_surface=True`` also fills the band's cells at or below the surface
+that hold no Gaussian centre (the fill then reaches the surface).
 """
 
 from __future__ import annotations
@@ -23,7 +30,7 @@ from knockgs_core.errors import InputError
 
 from ._gaussians import GaussianSet
 
-__all__ = ["FillResult", "fill_interior", "density_grid", "interior_cells"]
+__all__ = ["FillResult", "FillGrid", "fill_interior", "fill_grid", "density_grid", "interior_cells", "body_fraction"]
 
 #: widening of every Gaussian, in cells (standard deviation)
 _SMOOTH_CELLS = 0.5
@@ -31,6 +38,8 @@ _SMOOTH_CELLS = 0.5
 _MAX_RADIUS = 3
 #: Gaussians per vectorized batch
 _CHUNK = 1 << 16
+#: width of the shell cells' body-fraction ramp, in cells (1: exact for a plane parallel to the faces)
+_RAMP = 1.0
 
 
 class FillResult(NamedTuple):
@@ -38,6 +47,24 @@ class FillResult(NamedTuple):
 
     positions: np.ndarray
     filled_cells: int
+
+
+class FillGrid(NamedTuple):
+    """The fill grid of a Gaussian surface: ``lo`` (3,) m, the box's lower corner; ``h`` (3,) m,
+    the cell size per axis; ``shell`` and ``interior`` [n, n, n] bool, indexed (ix, iy, iz)."""
+
+    lo: np.ndarray
+    h: np.ndarray
+    shell: np.ndarray
+    interior: np.ndarray
+
+    def cell_of(self, points: np.ndarray) -> np.ndarray:
+        """Integer cell indices [P, 3] of ``points`` [P, 3] m (outside the box: out of range)."""
+        return np.floor((np.asarray(points, np.float64) - self.lo) / self.h).astype(np.int64)
+
+    def centres(self, cells: np.ndarray) -> np.ndarray:
+        """Centres [K, 3] m of integer ``cells`` [K, 3]."""
+        return self.lo + (np.asarray(cells, np.float64) + 0.5) * self.h
 
 
 def _box_bounds(fill_box, source, field):
@@ -93,9 +120,66 @@ def interior_cells(shell: np.ndarray) -> np.ndarray:
     return inside
 
 
+def fill_grid(gs: GaussianSet, *, fill_box, resolution: int, density_threshold: float,
+              source: object = "fill", field_prefix: str = "") -> FillGrid:
+    """Steps 1-3 of the module docstring: the shell and interior cells of ``gs`` on the
+    ``resolution^3`` cells of ``fill_box`` (a :class:`~knockgs_core.sim._config.Box`)."""
+    n = int(resolution)
+    if n < 2 or n > 1024:
+        raise InputError(source, f"{field_prefix}resolution", f"must lie in [2, 1024], got {resolution}")
+    if not np.isfinite(density_threshold) or density_threshold <= 0:
+        raise InputError(source, f"{field_prefix}density_threshold",
+                         f"must be finite and > 0, got {density_threshold}")
+    lo, hi = _box_bounds(fill_box, source, f"{field_prefix}box")
+    shell = density_grid(gs, lo=lo, hi=hi, resolution=n) > density_threshold
+    return FillGrid(lo, (hi - lo) / n, shell, interior_cells(shell))
+
+
+def body_fraction(grid: FillGrid, surface_points: np.ndarray) -> np.ndarray:
+    """Each cell's share of the body enclosed by the surface [n, n, n] float64 in [0, 1].
+
+    Interior cells are 1, cells outside the shell 0. In the shell, the depth of a point is its
+    distance to the nearest outside cell (neither shell nor interior) that borders the shell; the
+    surface's depth ``w`` is the median depth of ``surface_points`` [P, 3] m (the Gaussian
+    centres, which lie on the surface). A shell cell whose centre lies at depth ``d`` gets
+    ``clip(1/2 + (d - w) / h, 0, 1)``, ``h`` the cube root of the cell volume: the share of a
+    cell below a plane parallel to its faces, odd about the surface, so the shares of a band of
+    cells sum to the volume below the surface whatever the band's width (on average over the
+    surface's orientations; curvature enters at second order in ``h``). A shell with no
+    outside cell (the box is all shell) counts whole."""
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    shell, interior = grid.shell, grid.interior
+    frac = interior.astype(np.float64)
+    outside = ~shell & ~interior
+    if not shell.any():
+        return frac
+    if not outside.any():
+        frac[shell] = 1.0
+        return frac
+    border = outside & ndimage.binary_dilation(shell)               # outside cells touching the shell
+    tree = cKDTree(grid.centres(np.argwhere(border)))
+    pts = np.asarray(surface_points, np.float64)
+    cells = grid.cell_of(pts)
+    n = shell.shape[0]
+    ok = np.all((cells >= 0) & (cells < n), axis=1)
+    ok[ok] = shell[tuple(cells[ok].T)]
+    if not ok.any():
+        frac[shell] = 1.0
+        return frac
+    w = float(np.median(tree.query(pts[ok])[0]))
+    sc = np.argwhere(shell)
+    d = tree.query(grid.centres(sc))[0]
+    hm = float(np.prod(grid.h)) ** (1.0 / 3.0)
+    frac[tuple(sc.T)] = np.clip(0.5 + (d - w) / (_RAMP * hm), 0.0, 1.0)
+    return frac
+
+
 def fill_interior(gs: GaussianSet, *, fill_box, resolution: int, density_threshold: float,
                   max_particles_per_cell: int, seed: int, source: object = "fill",
-                  field_prefix: str = "") -> FillResult:
+                  field_prefix: str = "", reach_surface: bool = False,
+                  grid: FillGrid | None = None) -> FillResult:
     """Fill particles for the interior of the surface described by ``gs``.
 
     Parameters
@@ -112,29 +196,33 @@ def fill_interior(gs: GaussianSet, *, fill_box, resolution: int, density_thresho
         Particles per interior cell, less the Gaussian centres already in the cell.
     seed:
         Seed of the jitter (``numpy.random.default_rng``).
+    reach_surface:
+        Also fill the shell cells at or below the surface (:func:`body_fraction` >= 1/2) that
+        hold no Gaussian centre: without it the shell's inner half stays empty.
+    grid:
+        The :func:`fill_grid` of the same arguments, when already computed.
 
     Returns a :class:`FillResult` ``(positions [M, 3] float32, filled_cells)``: cells in C
     order (x slowest), particles jittered uniformly within each cell. Bounded work on any
     input: open or noisy clouds give few or no interior cells, never an endless search.
     """
-    n = int(resolution)
-    if n < 2 or n > 1024:
-        raise InputError(source, f"{field_prefix}resolution", f"must lie in [2, 1024], got {resolution}")
     if int(max_particles_per_cell) < 1:
         raise InputError(source, f"{field_prefix}max_particles_per_cell",
                          f"must be >= 1, got {max_particles_per_cell}")
-    if not np.isfinite(density_threshold) or density_threshold <= 0:
-        raise InputError(source, f"{field_prefix}density_threshold",
-                         f"must be finite and > 0, got {density_threshold}")
-    lo, hi = _box_bounds(fill_box, source, f"{field_prefix}box")
-    h = (hi - lo) / n
-    dens = density_grid(gs, lo=lo, hi=hi, resolution=n)
-    inside = interior_cells(dens > density_threshold)
-    flat_inside = np.flatnonzero(inside.ravel())
+    if grid is None:
+        grid = fill_grid(gs, fill_box=fill_box, resolution=resolution, density_threshold=density_threshold,
+                         source=source, field_prefix=field_prefix)
+    n = grid.shell.shape[0]
+    lo, h = grid.lo, grid.h
     # Gaussian centres already in each interior cell count against the per-cell budget
-    cell = np.floor((gs.means.astype(np.float64) - lo) / h).astype(np.int64)
+    cell = grid.cell_of(gs.means)
     ok = np.all((cell >= 0) & (cell < n), axis=1)
     occupied = np.bincount((cell[ok, 0] * n + cell[ok, 1]) * n + cell[ok, 2], minlength=n ** 3)
+    inside = grid.interior
+    if reach_surface and len(gs):
+        inner = grid.shell & (body_fraction(grid, gs.means) >= 0.5)
+        inside = inside | (inner & (occupied.reshape(n, n, n) == 0))
+    flat_inside = np.flatnonzero(inside.ravel())
     need = np.clip(int(max_particles_per_cell) - occupied[flat_inside], 0, None)
     cells = flat_inside[need > 0]
     need = need[need > 0]

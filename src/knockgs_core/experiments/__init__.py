@@ -78,7 +78,8 @@ from ._passive import (
     plot_passive_active,
     ratio_span_pct,
 )
-from ._floor import FloorSettings, at_resolution, cells_through, fit_theta, floor_note, floor_study, plot_floor, probe_period
+from ._floor import (FloorSettings, at_resolution, body_volume, cells_through, enclosed_empty_cells, fit_theta, floor_note,
+                     floor_study, plot_floor, probe_period)
 from ._convergence import NOT_ASYMPTOTIC, convergence_note, convergence_study, observed_order, plot_convergence
 from ._main import (
     camera_from_contract,
@@ -115,6 +116,8 @@ __all__ = [
     "FloorSettings",
     "at_resolution",
     "cells_through",
+    "enclosed_empty_cells",
+    "body_volume",
     "probe_period",
     "fit_theta",
     "floor_study",

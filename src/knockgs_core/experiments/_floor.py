@@ -31,6 +31,16 @@ For one object contract, its calibration probe (Probe A) and one theta (the base
 ``cells_through`` measures how many grid cells a body has across: for each occupied cell of
 the particle set on the level's grid, the shortest of its three axis-aligned runs of occupied
 cells through it; the median over the cells (1 for a shell one cell thick).
+``enclosed_empty`` counts the level's grid cells that hold no particle and whose six axis rays
+all meet occupied cells (a void inside the body: the fill's hollow layer, a shell's inside).
+
+The body's mass is the particles' (their rest volumes x rho): under the contract's
+``fill.volumes: cell_share`` the occupied cells x dx^3 x rho, under ``enclosed`` or ``wall`` the
+volume the particle set carries, the same at every grid. The reference's voxel body then has
+another volume than the particles' body; it carries the particles' (``fem_scale`` = particles'
+volume / voxel volume multiplies E and rho of the FEM, so its mass and its stiffness per unit
+of the body's volume are the particles' and its wave speeds unchanged). Under ``cell_share`` the
+reference is the voxel body itself (``fem_scale`` 1).
 """
 
 from __future__ import annotations
@@ -46,8 +56,8 @@ import pandas as pd
 
 from ..errors import InputError
 
-__all__ = ["FloorSettings", "at_resolution", "cells_through", "probe_period", "fit_theta", "floor_study", "floor_note",
-           "plot_floor"]
+__all__ = ["FloorSettings", "at_resolution", "cells_through", "enclosed_empty_cells", "body_volume", "probe_period",
+           "fit_theta", "floor_study", "floor_note", "plot_floor"]
 
 _SOURCE = "config floor"
 
@@ -136,6 +146,27 @@ def cells_through(positions: np.ndarray, dx: float) -> float:
     return float(np.median(np.min(np.stack(runs), axis=0)))
 
 
+def enclosed_empty_cells(positions: np.ndarray, dx: float) -> int:
+    """Cells of size ``dx`` [m] that hold none of ``positions`` [N, 3] m and whose six axis rays
+    all meet a cell that holds one (the fill's six-ray test on the occupied cells) [cells]."""
+    from ..assets import interior_cells
+
+    idx = np.floor(np.asarray(positions, dtype=np.float64) / dx).astype(np.int64)
+    lo = idx.min(axis=0)
+    occ = np.zeros(tuple(idx.max(axis=0) - lo + 1), dtype=bool)
+    occ[tuple((idx - lo).T)] = True
+    return int(interior_cells(occ).sum())
+
+
+def body_volume(particles, dx: float) -> float:
+    """The volume [m^3] the simulator gives ``particles`` on a grid of cell ``dx`` [m]: their
+    own rest volumes, or ``dx^3 / (particles in the cell)`` each (occupied cells x dx^3)."""
+    from ..sim import particle_volumes
+
+    vol = particles.volumes if particles.volumes is not None else particle_volumes(particles.positions, dx)
+    return float(np.sum(vol, dtype=np.float64))
+
+
 def probe_period(times: np.ndarray, u: np.ndarray, direction) -> float:
     """First-mode period [s] of the mean displacement along ``direction`` (3,) of ``u``
     [T, P, 3] m sampled at ``times`` [T] s (:func:`~knockgs_core.fem.first_mode_period`)."""
@@ -194,11 +225,13 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
     level of ``settings.n_grid`` (coarsest first), then the reference's check and the reference
     (module docstring). Columns: ``model`` (``mpm``, ``fem (check)``, ``fem (reference)``),
     ``n_grid``, ``dx_m``, ``dt_s``, ``particles`` (MPM particles, or the FEM's DOFs),
-    ``cells_through``, ``mass_kg`` (the body's: occupied cells x dx^3 x rho), ``rmse_pct``
+    ``cells_through``, ``mass_kg`` (the body's: the particles' rest volumes x rho; the FEM's voxel
+    volume x rho x ``fem_scale``), ``rmse_pct``
     (Probe-A record), ``period_s``, ``period_fem_s``, ``period_error_pct``, ``order_rmse`` and
     ``order_period`` (to the previous level), ``s_E_fit``, ``s_rho_fit`` and
     ``fit_residual_pct`` (the theta fit; NaN without one), ``cost_s`` (wall seconds of the
-    level's rollouts and fit, or of the FEM run). ``theta``: the material compared;
+    level's rollouts and fit, or of the FEM run), ``enclosed_empty`` (:func:`enclosed_empty_cells`
+    on the row's grid), ``fem_scale`` (the FEM's factor on E and rho; NaN for the MPM). ``theta``: the material compared;
     ``device``, ``deterministic``: the MPM rollouts'."""
     from ..assets import build_asset
     from ..fem import FemWorld, fem_world_mesh, fem_world_rollout
@@ -224,10 +257,13 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
     for name, n in (("fem (reference)", settings.fem_n_grid), ("fem (check)", settings.fem_check_n_grid)):
         world = FemWorld(degree=settings.fem_degree, steps_per_frame=settings.fem_steps_per_frame, n_grid=int(n))
         t0 = time.perf_counter()
-        Y = fem_world_rollout(ref_contract, ref_particles, theta, probe, points, world=world)
         geo = fem_world_mesh(ref_contract, ref_particles, world=world)
-        fem[name] = {"u": Y - Y[0], "n_grid": int(n), "cost": time.perf_counter() - t0, "geo": geo}
-        say(f"{name}: n_grid {n}, {len(geo['cells'])} cells, {time.perf_counter() - t0:.1f} s")
+        # the voxel body carries the particles' own volume where they have one (module docstring)
+        scale = 1.0 if ref_particles.volumes is None else body_volume(ref_particles, geo["dx"]) / geo["volume"]
+        Y = fem_world_rollout(ref_contract, ref_particles, (theta[0] * scale, theta[1] * scale), probe, points,
+                              world=world)
+        fem[name] = {"u": Y - Y[0], "n_grid": int(n), "cost": time.perf_counter() - t0, "geo": geo, "scale": scale}
+        say(f"{name}: n_grid {n}, {len(geo['cells'])} cells, E and rho x {scale:.4f}, {time.perf_counter() - t0:.1f} s")
     u_ref = fem["fem (reference)"]["u"]
     p_ref = probe_period(times, u_ref, direction)
     rec = slice(0, n_record)
@@ -254,16 +290,16 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
         fit = None
         if settings.fit_steps:
             fit = fit_theta(simulate, u_ref[rec], start=theta, steps=settings.fit_steps, step=settings.fit_step, first=u[rec])
-        cells = np.unique(np.floor(np.asarray(particles.positions, dtype=np.float64) / dx).astype(np.int64), axis=0)
         period = probe_period(times, u, direction)
         rows.append({"model": "mpm", "n_grid": n, "dx_m": dx, "dt_s": c.sim.dt, "particles": len(particles.positions),
-                     "cells_through": cells_through(particles.positions, dx), "mass_kg": len(cells) * dx**3 * rho,
+                     "cells_through": cells_through(particles.positions, dx), "mass_kg": body_volume(particles, dx) * rho,
                      "rmse_pct": _rel(u[rec], u_ref[rec]), "period_s": period, "period_fem_s": p_ref,
                      "period_error_pct": 100.0 * (period - p_ref) / p_ref,
                      "s_E_fit": float(fit["theta"][0]) if fit else float("nan"),
                      "s_rho_fit": float(fit["theta"][1]) if fit else float("nan"),
                      "fit_residual_pct": fit["residual_pct"] if fit else float("nan"),
-                     "cost_s": time.perf_counter() - t0})
+                     "cost_s": time.perf_counter() - t0,
+                     "enclosed_empty": enclosed_empty_cells(particles.positions, dx), "fem_scale": float("nan")})
         r = rows[-1]
         say(f"MPM n_grid {n}: {r['particles']} particles, dt {r['dt_s']:.3g} s, RMSE {r['rmse_pct']:.1f} %, "
             f"period {r['period_s']:.4f} s ({r['period_error_pct']:+.1f} %), theta fit "
@@ -281,13 +317,14 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
         rows.append({"model": name, "n_grid": f["n_grid"], "dx_m": dx,
                      "dt_s": float(pr.export.frame_dt) / settings.fem_steps_per_frame,
                      "particles": ndofs, "cells_through": cells_through(ref_particles.positions, dx),
-                     "mass_kg": len(f["geo"]["cells"]) * dx**3 * rho, "rmse_pct": _rel(f["u"][rec], u_ref[rec]),
+                     "mass_kg": f["geo"]["volume"] * f["scale"] * rho, "rmse_pct": _rel(f["u"][rec], u_ref[rec]),
                      "period_s": period, "period_fem_s": p_ref, "period_error_pct": 100.0 * (period - p_ref) / p_ref,
                      "order_rmse": float("nan"), "order_period": float("nan"), "s_E_fit": float("nan"),
-                     "s_rho_fit": float("nan"), "fit_residual_pct": float("nan"), "cost_s": f["cost"]})
+                     "s_rho_fit": float("nan"), "fit_residual_pct": float("nan"), "cost_s": f["cost"],
+                     "enclosed_empty": enclosed_empty_cells(ref_particles.positions, dx), "fem_scale": f["scale"]})
     columns = ["model", "n_grid", "dx_m", "dt_s", "particles", "cells_through", "mass_kg", "rmse_pct", "period_s",
                "period_fem_s", "period_error_pct", "order_rmse", "order_period", "s_E_fit", "s_rho_fit",
-               "fit_residual_pct", "cost_s"]
+               "fit_residual_pct", "cost_s", "enclosed_empty", "fem_scale"]
     return pd.DataFrame(rows, columns=columns)
 
 
@@ -305,7 +342,10 @@ def floor_note(table: pd.DataFrame, contract, settings: FloorSettings, *, theta=
             f"% of the reference's RMS displacement; periods: mean displacement along the force over "
             f"{settings.record_factor}x the record. s_E_fit, s_rho_fit: {settings.fit_steps} Gauss-Newton steps of the "
             f"MPM at that level against the reference's Probe-A trajectory (least squares, not the library's local ridge). "
-            f"particles: the FEM rows' DOFs. cells_through: median shortest axis run of occupied cells.")
+            f"particles: the FEM rows' DOFs. cells_through: median shortest axis run of occupied cells; "
+            f"enclosed_empty: empty cells enclosed by occupied ones. Volume rule: fill.volumes {contract.fill.volumes}"
+            + ("." if contract.fill.volumes == "cell_share"
+               else " (the FEM's voxel body carries the particles' volume: its E and rho x fem_scale)."))
 
 
 def plot_floor(table: pd.DataFrame, path, *, title: str = "") -> None:

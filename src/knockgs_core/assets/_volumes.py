@@ -1,0 +1,113 @@
+"""Rest volumes of an asset's particles: how much of the body each particle carries (private).
+
+The contract's ``fill.volumes`` chooses the rule:
+
+- ``cell_share`` (PhysGaussian): every particle gets ``dx^3 / (particles in its grid cell)``
+  on the simulation grid, computed by the simulator. The body is the grid cells that hold a
+  particle, so its volume (and mass) changes with the grid: a surface crossing a cell counts
+  the whole cell, a body ``dx`` thick around the surface too many.
+- ``enclosed``: the body is the volume the Gaussian surface encloses, measured on the fill
+  grid (:func:`~knockgs_core.assets._fill.body_fraction`: interior cells whole, the shell's
+  cells by their depth below the surface). Each fill-grid cell's share of the body goes to the
+  particles in it, equally; a share of a cell that holds no particle goes to the particles of
+  the nearest cell that does. The total is the body's volume whatever the simulation grid, and
+  converges as the fill grid is refined.
+- ``wall``: a thin-walled body (a vase): every Gaussian particle carries ``wall_thickness``
+  times its share of the surface area (:func:`surface_areas`), so the total is the wall's
+  volume, thickness x area, whatever the grid.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from knockgs_core.errors import InputError
+
+from ._fill import FillGrid, body_fraction
+
+__all__ = ["VOLUME_RULES", "enclosed_volumes", "surface_areas", "wall_volumes"]
+
+#: the contract's ``fill.volumes`` choices
+VOLUME_RULES = ("cell_share", "enclosed", "wall")
+
+#: neighbours of a surface point that bound its area cell
+_AREA_NEIGHBOURS = 20
+#: directions of the polar integral of an area cell
+_AREA_ANGLES = 96
+
+
+def enclosed_volumes(positions: np.ndarray, grid: FillGrid, surface_points: np.ndarray, *,
+                     source: object = "fill", field: str = "fill.box") -> np.ndarray:
+    """Rest volumes [m^3] (N,) float32 of the particles at ``positions`` [N, 3] m under the
+    ``enclosed`` rule (module docstring), the body measured on ``grid`` with its surface at
+    ``surface_points`` [P, 3] m (the Gaussian centres). Every particle must lie in the fill box
+    (else :class:`~knockgs_core.errors.InputError` naming ``field``); particles in a cell with no
+    share of the body (a Gaussian centre just outside the surface) share the nearest cell's that
+    has one, so every volume is positive and the total is the body's."""
+    from scipy.spatial import cKDTree
+
+    x = np.asarray(positions, np.float64)
+    n = grid.shell.shape[0]
+    cell = grid.cell_of(x)
+    if not np.all((cell >= 0) & (cell < n)):
+        raise InputError(source, field, "the enclosed volume rule needs every particle inside the fill box; "
+                         f"{int(np.sum(~np.all((cell >= 0) & (cell < n), axis=1)))} lie outside it")
+    frac = body_fraction(grid, surface_points)
+    cell_vol = float(np.prod(grid.h))
+    key = (cell[:, 0] * n + cell[:, 1]) * n + cell[:, 2]
+    held, inverse, count = np.unique(key, return_inverse=True, return_counts=True)
+    vol = frac.ravel()[held] * cell_vol                                  # each held cell's own share
+    body = np.flatnonzero(frac.ravel() > 0)
+    empty = body[~np.isin(body, held)]
+    if empty.size:                                                       # to the nearest held cell
+        held_c = grid.centres(np.stack(np.unravel_index(held, (n, n, n)), axis=1))
+        _, j = cKDTree(held_c).query(grid.centres(np.stack(np.unravel_index(empty, (n, n, n)), axis=1)))
+        vol += np.bincount(j, weights=frac.ravel()[empty] * cell_vol, minlength=len(held))
+    bare = vol <= 0
+    if bare.any() and not bare.all():
+        # particles in a cell the rule puts outside the body (a Gaussian centre just beyond the
+        # surface): they share the volume of the nearest cell that has some, so the total stays
+        # the body's and every particle has a mass
+        keep = np.flatnonzero(~bare)
+        cen = grid.centres(np.stack(np.unravel_index(held, (n, n, n)), axis=1))
+        _, j = cKDTree(cen[keep]).query(cen[bare])
+        owner = np.arange(len(held))
+        owner[bare] = keep[j]
+        inverse = owner[inverse]
+        count = np.bincount(inverse, minlength=len(held))
+    elif bare.all():
+        raise InputError(source, field, "the fill grid finds no body around the particles (no shell cell)")
+    out = vol[inverse] / count[inverse]
+    return out.astype(np.float32)
+
+
+def surface_areas(points: np.ndarray) -> np.ndarray:
+    """Each surface point's share of the surface area [m^2] (P,) float64, for ``points``
+    [P, 3] m sampled on a surface: the area of its Voronoi cell among its nearest neighbours
+    in the tangent plane (the plane of least variance of the neighbours), integrated in polar
+    coordinates; bounded by the distance to the farthest neighbour where the cell is open (an
+    edge of the surface, whose points it over-counts). The cells tile the surface, so the shares add up to its area
+    whatever the sampling density or pattern (curvature enters at second order)."""
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, np.float64)
+    if len(p) < _AREA_NEIGHBOURS + 1:
+        raise InputError("surface", "points", f"need at least {_AREA_NEIGHBOURS + 1} surface points, got {len(p)}")
+    dist, j = cKDTree(p).query(p, k=_AREA_NEIGHBOURS + 1)
+    nb = p[j[:, 1:]] - p[:, None, :]                                     # [P, k, 3]
+    _, vec = np.linalg.eigh(np.einsum("pki,pkj->pij", nb, nb))
+    q = np.stack([np.einsum("pki,pi->pk", nb, vec[:, :, 2]), np.einsum("pki,pi->pk", nb, vec[:, :, 1])], axis=-1)
+    ang = np.linspace(0.0, 2.0 * np.pi, _AREA_ANGLES, endpoint=False)
+    u = np.stack([np.cos(ang), np.sin(ang)], axis=1)                     # [A, 2]
+    proj = q @ u.T                                                       # [P, k, A]
+    half = 0.5 * np.sum(q * q, axis=-1)[:, :, None]
+    with np.errstate(divide="ignore"):
+        reach = np.where(proj > 1e-12 * half, half / np.where(proj > 0, proj, 1.0), np.inf).min(axis=1)
+    reach = np.minimum(reach, dist[:, -1:])
+    return np.pi * np.mean(reach ** 2, axis=1)
+
+
+def wall_volumes(points: np.ndarray, thickness: float) -> np.ndarray:
+    """Rest volumes [m^3] (P,) float32 of particles at ``points`` [P, 3] m on a wall
+    ``thickness`` [m] thick: ``thickness`` x :func:`surface_areas`."""
+    return (float(thickness) * surface_areas(points)).astype(np.float32)

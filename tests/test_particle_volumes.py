@@ -1,0 +1,168 @@
+"""Particle rest volumes are the body's, not the grid's (knockgs_core.assets._volumes; the
+contract's ``fill.volumes``; docs/assets.md, docs/floor.md).
+
+Bodies of known volume and area are built through the asset pipeline (a PLY of flat Gaussians on
+the surface, a contract, ``build_asset``) at the grid levels of a refinement study (grid and fill
+refined together, ``experiments.at_resolution``)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import yaml
+
+from knockgs_core.assets import GaussianSet, build_asset, matrix_to_quat, write_ply
+from knockgs_core.cli import main as cli_main
+from knockgs_core.contract import find_config_dir, load_contract
+from knockgs_core.errors import InputError
+from knockgs_core.experiments import at_resolution, body_volume, enclosed_empty_cells
+
+LEVELS = (16, 24, 32, 48)
+SEMI_AXES = np.array([0.5, 0.4, 0.2])       # the ellipsoid's, in the normalized frame (largest extent 1)
+
+
+def ellipsoid_gaussians(n: int, semi_axes, seed: int = 0) -> GaussianSet:
+    """``n`` flat Gaussians tangent to the ellipsoid ``semi_axes`` [m] centred at the origin,
+    about uniform in area (rejection on the surface element), spacing-sized; the six poles
+    included, so the centres' bounding box is the ellipsoid's."""
+    rng = np.random.default_rng(seed)
+    a = np.asarray(semi_axes, np.float64)
+    d = rng.normal(size=(8 * n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    nrm = d / a                                  # surface normal direction at a * d
+    w = np.linalg.norm(nrm, axis=1) * np.prod(a)  # area element of the map d -> a * d
+    d = d[rng.random(len(w)) < w / w.max()][: n - 6]
+    d = np.concatenate([np.vstack([np.eye(3), -np.eye(3)]), d])
+    p = d * a
+    nrm = d / a
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    ref = np.where(np.abs(nrm[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    t1 = np.cross(nrm, ref)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    frames = np.stack([t1, np.cross(nrm, t1), nrm], axis=2)
+    area = 4 * np.pi * ((a[0] * a[1]) ** 1.6 + (a[0] * a[2]) ** 1.6 + (a[1] * a[2]) ** 1.6) ** (1 / 1.6) / 3 ** (1 / 1.6)
+    sp = np.sqrt(area / len(p))
+    return GaussianSet(p, np.tile([0.6 * sp, 0.6 * sp, 0.08 * sp], (len(p), 1)), matrix_to_quat(frames),
+                       np.full(len(p), 0.9), np.zeros((len(p), 3)))
+
+
+def body_contract(tmp_path, gs: GaussianSet, **fill):
+    """A contract for the body ``gs`` (a PLY next to it), the Pillow's otherwise, without its
+    support box and its contact probes; ``fill`` replaces fill keys."""
+    write_ply(gs, tmp_path / "body.ply")
+    data = yaml.safe_load((find_config_dir() / "objects" / "pillow.yaml").read_text())
+    data["name"] = "body"
+    data["asset"] = {"ply": "body.ply", "seed": 0, "opacity_threshold": 0.02, "rotations": [], "crop": None,
+                     "static_boxes": []}
+    data["fill"].update(fill)
+    data["sim"]["boundaries"] = data["sim"]["boundaries"][:1]
+    data["probes"] = {k: v for k, v in data["probes"].items() if k in ("standard_x", "standard_y", "strong_x")}
+    data["roles"]["diagnostic"] = []
+    data["profiles"] = {p: {"n_gaussians": None, "n_grid": 32, "fill_resolution": 32, "dt": 1.0e-3}
+                        for p in ("ci", "default", "paper")}
+    path = tmp_path / "body.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return load_contract(path, "ci")
+
+
+@pytest.fixture(scope="module")
+def ellipsoid():
+    return ellipsoid_gaussians(6000, SEMI_AXES)
+
+
+def _levels(contract):
+    """(n_grid, dx [m], particles) at each of LEVELS."""
+    out = []
+    for n in LEVELS:
+        c = at_resolution(contract, n)
+        out.append((n, c.sim.grid_lim / n, build_asset(c).particles))
+    return out
+
+
+def test_the_enclosed_rule_gives_a_closed_body_its_volume_at_every_grid(tmp_path, ellipsoid):
+    """Under ``enclosed`` the particles carry the volume the surface encloses, 4/3 pi abc, within
+    5 % at every level (measured 2.5, 4.5, 2.4, 0.7 % at n_grid 16-48), while ``cell_share``
+    (dx^3 per particle-holding cell) moves with the grid: it counts every cell the surface
+    crosses (and, with the fill stopping short of the surface, leaves the shell's inner half
+    out): 1.80, 1.20, 1.11, 1.01 times the volume."""
+    exact = 4.0 / 3.0 * np.pi * np.prod(SEMI_AXES)
+    new = [body_volume(p, dx) / exact for _, dx, p in _levels(body_contract(tmp_path, ellipsoid, volumes="enclosed"))]
+    old = [body_volume(p, dx) / exact for _, dx, p in _levels(body_contract(tmp_path, ellipsoid))]
+    assert np.all(np.abs(np.array(new) - 1.0) < 0.05), new
+    assert max(old) - min(old) > 0.3, old            # the grid's volume, not the body's
+
+
+def test_the_enclosed_rule_hands_out_the_whole_measured_body(tmp_path, ellipsoid):
+    """The particles' volumes add up to the body the fill grid measures (the shares of cells
+    with no particle go to their neighbours', none lost), and every particle has a volume."""
+    from knockgs_core.assets import body_fraction, fill_grid
+
+    c = body_contract(tmp_path, ellipsoid, volumes="enclosed")
+    for n in LEVELS:
+        cn = at_resolution(c, n)
+        built = build_asset(cn)
+        sim = built.gaussians.subset(built.particles.gaussian_index)
+        grid = fill_grid(sim, fill_box=cn.fill.box, resolution=cn.fill.resolution,
+                         density_threshold=cn.fill.density_threshold)
+        measured = float(body_fraction(grid, sim.means).sum()) * float(np.prod(grid.h))
+        vol = built.particles.volumes
+        assert np.all(vol > 0) and float(vol.sum(dtype=np.float64)) == pytest.approx(measured, rel=1e-5), n
+
+
+def test_the_enclosed_fill_reaches_the_surface(tmp_path, ellipsoid):
+    """No grid cell inside the closed body is left without a particle under ``enclosed``; the
+    interior fill alone leaves the shell's inner half empty (the hollow layer)."""
+    for n, dx, p in _levels(body_contract(tmp_path, ellipsoid, volumes="enclosed")):
+        assert enclosed_empty_cells(p.positions, dx) == 0, n
+    hollow = [enclosed_empty_cells(p.positions, dx) for _, dx, p in _levels(body_contract(tmp_path, ellipsoid))]
+    assert min(hollow) > 0, hollow
+
+
+def test_the_wall_rule_gives_thickness_times_area_whatever_the_sampling_and_grid(tmp_path):
+    """Under ``wall`` a sphere's Gaussian particles carry thickness x 4 pi r^2 within 2 %, at
+    two sampling densities (4x apart), with the same volumes at every grid; ``cell_share``'s
+    shell, one or two cells thick, halves its volume from n_grid 24 to 48."""
+    t = 0.01
+    for n_gs in (1500, 6000):
+        gs = ellipsoid_gaussians(n_gs, [0.5, 0.5, 0.5], seed=n_gs)
+        levels = _levels(body_contract(tmp_path, gs, enabled=False, volumes="wall", wall_thickness=t))
+        r = np.linalg.norm(levels[0][2].positions - levels[0][2].positions.mean(axis=0), axis=1).mean()
+        for _, dx, p in levels:
+            np.testing.assert_array_equal(p.volumes, levels[0][2].volumes)
+        assert body_volume(levels[0][2], levels[0][1]) == pytest.approx(t * 4 * np.pi * r**2, rel=0.02)
+    old = [body_volume(p, dx) for _, dx, p in _levels(body_contract(tmp_path, gs, enabled=False))]
+    assert old[0] > 1.8 * old[-1], old
+
+
+@pytest.mark.parametrize("fill, field", [
+    ({"volumes": "cells"}, "fill.volumes"),                                      # not a rule
+    ({"enabled": False, "volumes": "enclosed"}, "fill.volumes"),                 # no fill grid to measure on
+    ({"volumes": "wall", "wall_thickness": 0.01}, "fill.volumes"),               # a wall with an interior fill
+    ({"enabled": False, "volumes": "wall"}, "fill.wall_thickness"),              # a wall of no thickness
+    ({"wall_thickness": 0.01}, "fill.wall_thickness"),                           # read by no other rule
+    ({"enabled": False, "volumes": "wall", "wall_thickness": -0.01}, "fill.wall_thickness"),
+])
+def test_a_bad_volume_rule_is_refused_in_one_line(tmp_path, capsys, fill, field):
+    data = yaml.safe_load((find_config_dir() / "objects" / "pillow.yaml").read_text())
+    data["fill"].update(fill)
+    path = tmp_path / "objects" / "pillow.yaml"
+    path.parent.mkdir()
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(InputError) as e:
+        load_contract(path, "ci")
+    assert e.value.field.startswith(field) and str(path) in str(e.value), e.value
+    assert cli_main(["asset", "summary", str(path), "--profile", "ci"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and field in err and "Traceback" not in err
+
+
+def test_the_default_rule_keeps_every_contracts_hash_and_particles():
+    """``cell_share`` is the default: a contract that does not name a rule hashes as before the
+    option existed and its particles carry no volumes of their own (the simulator's)."""
+    c = load_contract("pillow", "ci")
+    assert c.fill.volumes == "cell_share" and "volumes" not in c.to_dict()["fill"]
+    assert build_asset(c).particles.volumes is None
+    named = dataclasses.replace(c, fill=dataclasses.replace(c.fill, volumes="enclosed"))
+    assert named.hash != c.hash and named.to_dict()["fill"]["volumes"] == "enclosed"
