@@ -140,3 +140,21 @@ def test_on_its_own_worlds_the_interval_is_the_fits_and_holds_the_truth(loop_mod
     assert half[0] < abs(ref[0] - est[0]) / 20
     assert not res.theta_interval[0][0] <= u["theta_at"]["refined"][0] <= res.theta_interval[0][1]
     assert u["continuum"] == [None, None] and "statistical half-width" in u["continuum_reason"][0]
+
+
+def test_an_unbounded_interval_is_scored_after_its_round_trip_through_the_results_json(tmp_path):
+    """An interval unbounded above is written to JSON with ``"inf"`` (the project's JSON
+    policy) and, read back, still holds a truth far above its lower bound and misses one below."""
+    import json
+
+    from knockgs_core.discrepancy._scoring import interval_cells
+    from knockgs_core.io import write_json
+
+    u = interval_from_estimates(LOG_TRUTH, SD, refined=LOG_TRUTH + np.array([0.3, 0.2]), factor=1.5)
+    write_json(tmp_path / "result.json", {"theta_interval": u["interval"]})
+    iv = json.loads((tmp_path / "result.json").read_text())["theta_interval"]
+    assert iv[0][1] == "inf"
+    text, holds = interval_cells(iv, (5.0, 9.0))
+    assert holds and text.endswith(", inf]") and text.startswith(f"[{math.exp(LOG_TRUTH[0] - 0.32):.3f}, inf]")
+    assert not interval_cells(iv, (0.5, 1.2))[1]
+    assert interval_cells(None, (0.8, 1.2)) == ("", False)
