@@ -158,3 +158,67 @@ def test_an_unbounded_interval_is_scored_after_its_round_trip_through_the_result
     assert holds and text.endswith(", inf]") and text.startswith(f"[{math.exp(LOG_TRUTH[0] - 0.32):.3f}, inf]")
     assert not interval_cells(iv, (0.5, 1.2))[1]
     assert interval_cells(None, (0.8, 1.2)) == ("", False)
+
+
+class _Export:
+    frame_dt, n_frames = 0.02, 12
+
+
+class _Particles:
+    def __init__(self, X0):
+        self.positions, self.n_gs = X0, len(X0)
+
+
+class _LinearForward:
+    """A linear 'simulator': positions = rest + s_E * A(t) + s_rho * B(t)."""
+
+    def __init__(self, X0, A, B):
+        self.particles, self.X0, self.A, self.B = _Particles(X0), X0, A, B
+
+    def probe_export(self, probe):
+        return _Export
+
+    def rollout(self, spec, probe):
+        return self.X0[None] + spec.theta[0] * self.A + spec.theta[1] * self.B
+
+
+def test_a_refinement_that_acts_as_a_change_of_theta_is_read_back_as_that_change(rng):
+    """The loop reads a refinement's theta as the theta at which the model makes the refined
+    model's response. A refined model (the second refinement) that responds as the model at
+    theta x (e^0.3, e^-0.1) on a linear simulator: its estimate is the model's theta divided
+    by the linearized change, theta x exp(-(e^0.3 - 1, e^-0.1 - 1) h / (e^h - 1)) (h the
+    sensitivities' forward-difference step); it is simulated only where the data show the
+    discretization error."""
+    from types import SimpleNamespace
+
+    from knockgs_core.discrepancy import LoopSettings, Measurement
+    from knockgs_core.discrepancy._fitting import Problem
+    from knockgs_core.discrepancy._forward import ModelSpec
+    from knockgs_core.discrepancy._loop import _theta_interval
+
+    T, M = 12, 40
+    X0 = rng.uniform(0, 1, size=(M, 3))
+    t = np.arange(T)[:, None, None] * 0.02
+    A, B = np.sin(9 * t) * rng.normal(size=(1, M, 3)) * 1e-3, np.sin(4 * t) * rng.normal(size=(1, M, 3)) * 1e-3
+    fw, spec = _LinearForward(X0, A, B), ModelSpec((0.8, 1.2))
+    noise = rng.normal(0.0, 1e-6, size=(T, M, 3))
+    noise[0] = 0.0
+    m = Measurement(points=fw.rollout(spec, "p") + noise, frames=np.arange(T), times=None, particle=np.arange(M),
+                    track=np.arange(M))
+    problem = Problem(m, fw, "p", LoopSettings())
+    change = np.array([0.3, -0.1])
+
+    def difference(model, at, probe, points, *, level=1):
+        assert level == 2 and at is spec and points.shape == (M, 3)
+        return model.rollout(at.with_theta(tuple(np.asarray(at.theta) * np.exp(change))), probe) - model.rollout(at, probe)
+
+    me = SimpleNamespace(theta_shift=np.array([0.2, 0.0]), second=object(), spec=spec, factor=1.5, difference=difference)
+    u = _theta_interval(problem, spec, me, LoopSettings(), shows_error=True)
+    h = LoopSettings().theta_step  # the sensitivities are forward differences: slope (e^h - 1) / h per unit
+    want = np.asarray(spec.theta) * np.exp(-(np.exp(change) - 1.0) * h / (math.exp(h) - 1.0))
+    np.testing.assert_allclose(u["theta_at"]["second_refinement"], want, rtol=1e-6)
+    np.testing.assert_allclose(u["theta_at"]["refined"], np.asarray(spec.theta) * np.exp([-0.2, 0.0]), rtol=1e-12)
+    assert u["basis"] == "refinement" and u["shows_discretization_error"]
+    me.difference = None  # not simulated where the data show no discretization error
+    v = _theta_interval(problem, spec, me, LoopSettings(), shows_error=False)
+    assert "second_refinement" not in v["theta_at"] and v["basis"] == "statistical"
