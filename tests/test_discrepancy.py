@@ -182,6 +182,42 @@ def test_an_effect_is_judged_beyond_the_floor_where_the_residual_is_significant(
     assert round_(True, 7.5).decision_share(row) == 0.27
 
 
+def test_within_the_discretization_floor_no_effect_is_named_and_the_verdict_says_so():
+    """A residual visible above the noise (17x its energy) but not beyond noise and
+    discretization floor (18 against 1 + 15: excess 0.125 < 0.25): a candidate that explains
+    90 % of it is not named, and the verdict opens with the floor's size; the same candidate on
+    a round with no floor (data at the model's own resolution) passes, as it does where its own
+    model's floor leaves the residual significant."""
+    from knockgs_core.discrepancy import AttributionRound, AttributionRow, LoopSettings
+    from knockgs_core.discrepancy._attribution import _passes, within_floor
+    from knockgs_core.discrepancy._loop import _floor_statement, _verdict
+
+    settings = LoopSettings()
+    row = AttributionRow("damping", "velocity damping", refined=True, explained_val=0.9, delta_bic=-30.0)
+
+    def round_(model_floor):
+        floor = 1.0 + model_floor
+        return AttributionRound([1.0, 1.0], [], 9, 3, 10.0, 18.0, [1.0, 1.0], 18.0, 1.0, 18.0 / floor - 1, 17.0, True,
+                                18.0 / floor - 1 > settings.min_excess, [row], model_floor_val=model_floor)
+
+    within, own = round_(15.0), round_(0.0)
+    assert within_floor(within) and not _passes(within, row, settings)
+    assert not within_floor(own) and _passes(own, row, settings)
+    # a row scored with its own term: its own floor decides
+    mine = dataclasses.replace(row, model_floor_val=2.0, significant=True)
+    assert _passes(within, mine, settings)
+    assert not _passes(own, dataclasses.replace(row, model_floor_val=15.0, significant=False), settings)
+    model_error = {"change_share_of_response": 0.21, "floor_share_of_response": 0.083, "floor_rms_per_point": 1e-3,
+                   "term_rms_per_point": 8e-4, "coefficient": 0.69}
+    said = _floor_statement([within], model_error)
+    assert said.startswith("the model at this resolution differs from its refined self by 21.0% of the measured response")
+    assert "8.3%" in said and "effects smaller than that cannot be named" in said
+    residual = {"excess_rms_per_point": 1e-3, "excess_fraction_of_response": 0.1}
+    assert _verdict([], False, residual, model_error, "discretization", said).startswith(said)
+    assert _floor_statement([own], model_error) is None  # no floor: nothing to say
+    assert _floor_statement([within], None) is None  # no refined model: no floor measured
+
+
 class _TermProblem:
     """A problem reduced to what judging a row with its own term reads: a fixed raw residual
     at every spec, the term, its profiled coefficient (fit rows = all rows, clipped to [0, 6])

@@ -270,8 +270,10 @@ def test_a_finer_world_without_effect_names_nothing_and_its_floor_is_the_residua
     the standard cases' (<= 0.01), no catalogue effect is named, the floor measured by the
     grid placements is of the size of the residual that theta and the term leave (this world
     leaves a little more than the placements' mean: the verdict may be "unexplained" with both
-    sizes reported, or "discretization"), and the theta interval holds the truth though the
-    point estimate is off by the discretization bias."""
+    sizes reported, or "discretization", which opens with the floor's size), and the theta
+    interval holds the truth though the point estimate is off by the discretization bias: the
+    refinement moves theta by more than the fit's statistics (a pair not in the asymptotic
+    range), so the interval is unbounded on the refinement's side and no continuum is given."""
     # About 30 s: one rollout of the world on a grid of 64^3, then the loop (about 100 rollouts
     # of the model at 2 substeps per frame, 4 of the refined one) over three catalogue terms.
     from knockgs_core.assets import build_asset
@@ -291,6 +293,15 @@ def test_a_finer_world_without_effect_names_nothing_and_its_floor_is_the_residua
     (lo_e, hi_e), (lo_r, hi_r) = res.theta_interval
     assert lo_e <= truth[0] <= hi_e and lo_r <= truth[1] <= hi_r, res.theta_interval
     assert "discretization floor" in res.verdict
+    u = res.theta_uncertainty
+    assert u["basis"] == "refinement" and u["asymptotic"] == [False, False]
+    for k in range(2):
+        up = u["theta_at"]["refined"][k] > u["theta_at"]["estimate"][k]
+        assert u["unbounded"][k] == [not up, up] and u["continuum"][k] is None and u["continuum_reason"][k]
+    within = res.rounds[-1]["visible"] and not res.rounds[-1]["significant"]
+    assert (res.floor_statement is not None) == within
+    if within:
+        assert res.verdict.startswith("the model at this resolution differs from its refined self by")
 
 
 @pytest.mark.slow

@@ -519,9 +519,21 @@ def _rescore_unpassed(problem: Problem, att: AttributionRound, retarget: Callabl
     _judge(att.table, att.rss_theta_val, att.noise_floor_val, att.model_floor_val, settings)
 
 
+def within_floor(att: AttributionRound, row: AttributionRow | None = None) -> bool:
+    """Whether the theta-only residual of ``att`` lies within the model's discretization floor:
+    a floor applies (the candidate's own where ``row`` was scored with its own term, else the
+    round's) and the residual is not significant beyond noise and floor. There no effect can
+    be named: one smaller than the floor cannot be told from the model's own error."""
+    own = row is not None and not math.isnan(row.model_floor_val)
+    model_floor = row.model_floor_val if own else att.model_floor_val
+    significant = row.significant if own else att.significant
+    return bool(model_floor > 0 and not significant)
+
+
 def _passes(att: AttributionRound, row: AttributionRow, settings: LoopSettings) -> bool:
     """Whether ``row`` passes the attribution's rule for a joint recalibration: refined,
     explaining ``min_explained`` of the residual (:meth:`AttributionRound.decision_share`), a
-    negative BIC difference and a matching time signature."""
+    negative BIC difference, a matching time signature, and a residual beyond the
+    discretization floor (:func:`within_floor`)."""
     return bool(row.refined and att.decision_share(row) >= settings.min_explained and row.delta_bic < 0
-                and row.signature_ok)
+                and row.signature_ok and not within_floor(att, row))

@@ -35,10 +35,11 @@ import numpy as np
 from ..io import json_safe
 from ..errors import InputError, SimulationError
 from ..sim import viscous_stability_limit
-from ._attribution import AttributionRound, _passes, attribute
+from ._attribution import AttributionRound, _passes, attribute, within_floor
 from ._catalogue import Candidate, CatalogueContext, default_catalogue, dev_strain_norm
 from ._fitting import Parametrization, Problem, levenberg_marquardt, lm_fit, theta_sensitivities
 from ._forward import ForwardModel, ModelSpec
+from ._interval import interval_from_estimates
 from ._measured import Measurement
 from ._model_error import ModelError, build_model_error
 from ._settings import LoopSettings
@@ -67,8 +68,13 @@ class DiscrepancyResult:
     residual is consistent with the model's discretization error), ``unexplained`` or
     ``none``. ``model_error``: the discretization term (refined model, coefficient, size;
     None when off); ``approximation``: the closest catalogue term to an unexplained residual
-    whose time signature does not match (None otherwise); ``theta_interval`` [[lo, hi] of s_E, [lo, hi] of s_rho] with its parts
-    in ``theta_uncertainty``. ``identified`` lists the added effects' keys (empty: none);
+    whose time signature does not match (None otherwise); ``floor_statement``: where the
+    residual lies within the model's discretization floor, the sentence that says so (how far
+    the model is from its refined self; effects smaller than that cannot be named), else None;
+    ``theta_interval`` [[lo, hi] of s_E, [lo, hi] of s_rho] (0 or inf where unbounded) with its
+    parts in ``theta_uncertainty`` (:func:`._interval.interval_from_estimates`: the estimates,
+    whether they are asymptotic, the continuum or why it is not given). ``identified`` lists
+    the added effects' keys (empty: none);
     ``effects`` their estimated parameters; ``theta_*`` the estimates at each stage;
     ``unexplained`` says a significant residual remains that no catalogue effect explains
     (``residual`` gives its size); ``rounds`` hold the ranked attribution tables;
@@ -95,6 +101,7 @@ class DiscrepancyResult:
     observation: dict
     rounds: list[dict]
     model_error: dict | None
+    floor_statement: str | None
     approximation: dict | None
     theta_interval: list
     theta_uncertainty: dict
@@ -274,43 +281,56 @@ def _term_moved(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loo
     return problem.with_term(term, me.c_max, floor_shape=problem.floor_shape)
 
 
-def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, settings: LoopSettings, log: list) -> dict:
-    """An interval on theta at the final model ``spec``: the statistical part (2 standard
-    deviations of the linearized least squares in log theta, with the residual's own
-    variance) around theta fitted by the model (``estimate``), widened on both sides by its
-    distance in log theta to theta fitted by the refined model (``refined``, linearized: the
-    model at ``estimate`` moved by the theta change that reproduces the refined model's change,
-    ``ModelError.theta_shift``): the refinement's change gives the discretization uncertainty
-    its size, not its sign, where convergence is not monotone. Their first-order Richardson extrapolation to the continuum
-    (``continuum``: ``refined + (refined - estimate) / (r - 1)`` in log theta) is reported,
-    not included: where the convergence is not yet asymptotic (the Pillow's, docs/assets.md)
-    it extrapolates past any plausible value."""
+def _fit_covariance(A: np.ndarray, r: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """The covariance of the linearized least squares ``A x ~ -r`` (``A`` [rows, k], ``r``
+    [rows], rows ordered (frame, point, axis) over ``n_points`` observed points) and the step
+    [2] (log theta) that the linearization still asks for. The covariance is the sandwich with
+    the residual clustered by observed point (``(A'A)^-1 (sum_p g_p g_p') (A'A)^-1``, g_p the
+    sum of ``A r`` over a point's frames and axes, times ``P / (P - 1)``): a point's residual is
+    correlated over its frames (a track's frame-0 noise enters every frame; a track matched to a
+    neighbouring particle follows that particle's motion), which the white-noise formula
+    ``s^2 (A'A)^-1`` would count as independent and so understate. Infinite where singular."""
+    k = A.shape[1]
+    try:
+        B = np.linalg.inv(A.T @ A)
+        remaining = -(B @ (A.T @ r))[:2]
+    except np.linalg.LinAlgError:
+        return np.full((k, k), np.inf), np.zeros(2)
+    g = (A * r[:, None]).reshape(-1, n_points, 3, k).sum(axis=(0, 2))
+    meat = g.T @ g * (n_points / max(n_points - 1, 1))
+    return B @ meat @ B, remaining
+
+
+def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, settings: LoopSettings, *,
+                    shows_error: bool) -> dict:
+    """The theta interval at the final model ``spec`` (:func:`._interval.interval_from_estimates`):
+    the statistical part from the linearized least squares in log theta (2 standard deviations,
+    :func:`_fit_covariance`, the discretization term among the columns, plus the Gauss-Newton
+    step the fit still asks for); theta fitted by the refined model
+    (``ModelError.theta_shift``: the theta change that moves the model like the refinement)
+    and, where the loop has a second refinement (``model_error_floor = "second_refinement"``)
+    and the data show the model's discretization error, theta fitted by that one too.
+    ``shows_error``: whether the data show that error (the term's coefficient above the ramp's
+    start, or a residual that nothing explains); else the interval is the statistical one."""
     J = theta_sensitivities(problem, spec, settings)
     r = problem.residual(spec)
     A = np.column_stack([J, problem.term]) if problem.term is not None else J
-    dof = max(r.size - A.shape[1], 1)
-    s2 = float(r @ r) / dof
-    try:
-        cov = s2 * np.linalg.inv(A.T @ A)
-    except np.linalg.LinAlgError:
-        cov = np.full((A.shape[1], A.shape[1]), np.inf)
+    cov, remaining = _fit_covariance(A, r, problem.m.n_points)
     sd = np.sqrt(np.clip(np.diag(cov)[:2], 0.0, np.inf))
     logt = np.log(np.asarray(spec.theta, dtype=np.float64))
-    points = {"estimate": logt}
+    refined = second = None
     if me is not None and me.theta_shift is not None:
-        ref = logt - np.asarray(me.theta_shift, dtype=np.float64)
-        points["refined"] = ref
-        points["continuum"] = ref + (ref - logt) / (me.factor - 1.0)
-    # the refinement's change sets the size of the discretization uncertainty, not its sign:
-    # where convergence is not monotone (the Pillow's late response at n_grid 32, 48, 64) the
-    # data may lie on either side of the model's estimate
-    half = np.abs(points["refined"] - logt) if "refined" in points else np.zeros(2)
-    lo, hi = logt - half - 2 * sd, logt + half + 2 * sd
-    return {
-        "interval": [[float(math.exp(lo[k])), float(math.exp(hi[k]))] for k in range(2)],
-        "statistical_sd_log": [float(x) for x in sd],
-        "theta_at": {k: [float(math.exp(x)) for x in v] for k, v in points.items()},
-    }
+        refined = logt - np.asarray(me.theta_shift, dtype=np.float64)
+        if me.second is not None and shows_error:
+            at = me.spec if me.spec is not None else spec
+            points = np.asarray(problem.forward.particles.positions, dtype=np.float64)[problem.corr.index]
+            D2 = me.difference(problem.forward, at, problem.probe, points, level=2)[problem.frames]
+            J2 = theta_sensitivities(problem, at, settings)
+            second = logt - np.linalg.lstsq(J2, D2[1:].reshape(-1), rcond=None)[0]
+    out = interval_from_estimates(logt, sd, remaining=remaining, refined=refined, second=second,
+                                  factor=me.factor if me is not None else 1.5, shows_error=shows_error)
+    out["shows_discretization_error"] = bool(shows_error)
+    return out
 
 
 # --------------------------------------------------------------------------------------
@@ -387,7 +407,8 @@ def _augment(problem: Problem, spec: ModelSpec, candidates: list[Candidate], flo
         accepted, att.tried = _try_candidates(problem, spec, att, floor, settings, log)
         if accepted is None:
             if not att.significant:
-                att.decision = "no catalogue effect explains the residual, which is within the model's discretization floor"
+                att.decision = ("the residual is within the model's discretization floor: no effect is named "
+                                "(one smaller than the floor cannot be told from the model's own error)")
                 return spec, problem, rounds, False, "discretization"
             att.decision = "residual unexplained by the catalogue"
             return spec, problem, rounds, True, "unexplained"
@@ -472,17 +493,21 @@ def _model_error_summary(problem: Problem, final: ModelSpec, me: ModelError, flo
         den = V.size * floor + extra
         return float(r[V] @ r[V]) / den - 1.0 if den > 0 else math.inf
 
+    change_rms = math.sqrt(float(np.mean(np.sum(me.change**2, axis=-1)))) if me.change is not None else math.nan
+    floor_rms = math.sqrt(3.0 * model_floor_V / max(V.size, 1))
     return {
         **me.to_dict(),
         "computed_at_theta": list(me.spec.theta) if me.spec is not None else None,
+        "change_rms_per_point": change_rms,
+        "change_share_of_response": change_rms / max(rms_meas, 1e-30),
+        "floor_share_of_response": floor_rms / max(rms_meas, 1e-30),
         "coefficient": c,
         "coefficient_refit": coefficients.get("refit", 0.0),
         "term_rms_per_point": c * unit,
         "term_rms_per_unit": unit,
         "term_share_of_response": c * unit / max(rms_meas, 1e-30),
-        "continuum_share_of_response": me.richardson * unit / max(rms_meas, 1e-30),
         "floor_weight": weight,
-        "floor_rms_per_point": math.sqrt(3.0 * model_floor_V / max(V.size, 1)),
+        "floor_rms_per_point": floor_rms,
         "excess_without_term": excess(raw),
         "excess_with_term": excess(full, model_floor_V),
         "significant_without_term": bool(excess(raw) > settings.min_excess),
@@ -508,6 +533,22 @@ def _approximation(rounds: list[AttributionRound], unexplained: bool, settings: 
     return None
 
 
+def _floor_statement(rounds: list[AttributionRound], model_error: dict | None) -> str | None:
+    """Where the last round's residual lies within the model's discretization floor (visible
+    above the noise, not significant beyond noise and floor), the plain statement of that floor:
+    how far the model at this resolution is from its refined self, and that effects smaller than
+    that cannot be named. None otherwise."""
+    if model_error is None or not rounds:
+        return None
+    last = rounds[-1]
+    if not (last.visible and within_floor(last)):
+        return None
+    return (f"the model at this resolution differs from its refined self by "
+            f"{100 * model_error['change_share_of_response']:.1f}% of the measured response "
+            f"({100 * model_error['floor_share_of_response']:.1f}% that theta and the discretization term cannot "
+            "represent: the floor); effects smaller than that cannot be named, and the residual is within it")
+
+
 def _verdict_kind(effects: list[dict], unexplained: bool, model_error: dict | None) -> str:
     if unexplained:
         return "unexplained"
@@ -519,9 +560,16 @@ def _verdict_kind(effects: list[dict], unexplained: bool, model_error: dict | No
 
 
 def _verdict(effects: list[dict], unexplained: bool, residual: dict, model_error: dict | None = None,
-             kind: str | None = None) -> str:
+             kind: str | None = None, floor_statement: str | None = None) -> str:
     """One sentence: the effects found, or that none is missing, or the unexplained residual;
-    with the discretization term's size when it carries a significant part."""
+    with the discretization term's size when it carries a significant part; led by the floor's
+    statement (:func:`_floor_statement`) where the residual lies within the floor."""
+    sentence = _verdict_sentence(effects, unexplained, residual, model_error, kind)
+    return f"{floor_statement}; {sentence}" if floor_statement else sentence
+
+
+def _verdict_sentence(effects: list[dict], unexplained: bool, residual: dict, model_error: dict | None,
+                      kind: str | None) -> str:
     identified = [e["key"] for e in effects]
     term = ""
     if model_error is not None:
@@ -632,12 +680,14 @@ def run_discrepancy(
     predictions, metrics, views = _predict_and_score(pb, stages, [probe] + heldout_probes, scored, settings)
     residual = _residual_size(pb, final, floor, stop_reason)
     model_error = _model_error_summary(pb, final, me, floor, settings, coefficients) if me is not None else None
-    theta_interval = _theta_interval(pb, final, me, settings, log)
+    shows_error = model_error is not None and (model_error["floor_weight"] > 0 or unexplained)
+    theta_interval = _theta_interval(pb, final, me, settings, shows_error=shows_error)
     fw = pb.forward
     effects = _effects_found(fw.catalogue, final)
     kind = _verdict_kind(effects, unexplained, model_error)
     approximation = _approximation(rounds, unexplained, settings)
-    verdict = _verdict(effects, unexplained, residual, model_error, kind)
+    floor_statement = _floor_statement(rounds, model_error)
+    verdict = _verdict(effects, unexplained, residual, model_error, kind, floor_statement)
     if approximation is not None:
         verdict += f"; closest catalogue term: {approximation['note']}"
     say(verdict)
@@ -672,6 +722,7 @@ def run_discrepancy(
         },
         rounds=[att.to_dict() for att in rounds],
         model_error=model_error,
+        floor_statement=floor_statement,
         approximation=approximation,
         theta_interval=theta_interval["interval"],
         theta_uncertainty=theta_interval,

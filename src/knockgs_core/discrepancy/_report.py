@@ -138,13 +138,49 @@ def _calibration_lines(result: DiscrepancyResult) -> list[str]:
         f"{result.residual['measured_rms_displacement']:.3g} m)",
         f"- {result.n_simulations} simulations, {result.seconds:.1f} s",
     ]
-    iv = result.theta_interval
-    if iv:
-        at = result.theta_uncertainty.get("theta_at", {})
-        L.append(f"- theta interval (final model): s_E in [{iv[0][0]:.3f}, {iv[0][1]:.3f}], s_rho in [{iv[1][0]:.3f}, "
-                 f"{iv[1][1]:.3f}]: " + ", ".join(f"{k} ({v[0]:.3f}, {v[1]:.3f})" for k, v in at.items())
-                 + " (the interval spans the model's and the refined model's fits, 2 sd each side; the continuum "
-                 "extrapolation is reported, not included)")
+    L += _interval_lines(result)
+    return L
+
+
+_NAMES = ("s_E", "s_rho")
+
+
+def _bounds(lo: float, hi: float) -> str:
+    left = "(0" if lo <= 0.0 else f"[{lo:.3f}"
+    right = "inf)" if hi == float("inf") else f"{hi:.3f}]"
+    return f"{left}, {right}"
+
+
+def _interval_lines(result: DiscrepancyResult) -> list[str]:
+    """The theta interval in words: its bounds, what they rest on (the fit's statistics, or the
+    refinement), which sides are unbounded and why, and the continuum where the estimates allow
+    one."""
+    iv, u = result.theta_interval, result.theta_uncertainty
+    if not iv:
+        return []
+    at = u.get("theta_at", {})
+    fits = ", ".join(f"{k.replace('_', ' ')} ({v[0]:.3f}, {v[1]:.3f})" for k, v in at.items())
+    L = [f"- theta interval (final model): s_E in {_bounds(*iv[0])}, s_rho in {_bounds(*iv[1])}; theta fitted by {fits}"]
+    half = u["statistical_half_width_log"]
+    if u["basis"] == "statistical":
+        L.append(f"  - from the fit alone (2 sd and the step the fit still asks for: {half[0]:.3g} and {half[1]:.3g} in "
+                 "log theta): the data show no discretization error of the model (its term's coefficient is at most "
+                 "the ramp's start and no residual stays unexplained), so the refinement's change does not widen it")
+    else:
+        L.append(f"  - the data show the model's discretization error: the interval spans the refinement's change "
+                 f"(its size on both sides) and the fit's statistics ({half[0]:.3g} and {half[1]:.3g} in log theta)")
+    cont = u.get("continuum") or [None, None]
+    for k in range(2):
+        if any(u["unbounded"][k]):
+            side = "above" if u["unbounded"][k][1] else "below"
+            L.append(f"  - {_NAMES[k]} is unbounded {side} (the refinement's side) and has no continuum value: "
+                     f"{u['continuum_reason'][k]}")
+        elif cont[k] is not None:
+            L.append(f"  - {_NAMES[k]} extrapolated to the continuum: {cont[k]:.3f}"
+                     + (f" (observed order {u['observed_order'][k]:.2f})" if u["observed_order"][k] is not None
+                        else " (first order)"))
+        elif u.get("asymptotic") is not None:
+            L.append(f"  - {_NAMES[k]}: no continuum value: {u['continuum_reason'][k]}")
     return L
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["evaluate_case", "acceptance", "world_acceptance"]
+__all__ = ["evaluate_case", "interval_cells", "acceptance", "world_acceptance"]
 
 
 def evaluate_case(result: dict, predictions: dict, truth_dir) -> dict:
@@ -53,12 +53,21 @@ def evaluate_case(result: dict, predictions: dict, truth_dir) -> dict:
     row["n_simulations"] = result["n_simulations"]
     row["world"] = truth.get("world", "same")
     row["verdict_kind"] = result.get("verdict_kind", "")
-    iv = result.get("theta_interval")
-    row["theta_interval"] = (f"[{iv[0][0]:.3f}, {iv[0][1]:.3f}] x [{iv[1][0]:.3f}, {iv[1][1]:.3f}]" if iv else "")
-    row["theta_in_interval"] = bool(iv and iv[0][0] <= th[0] <= iv[0][1] and iv[1][0] <= th[1] <= iv[1][1])
+    row["theta_interval"], row["theta_in_interval"] = interval_cells(result.get("theta_interval"), th)
     row["model_error_coefficient"] = (result.get("model_error") or {}).get("coefficient", "")
     row["approximation"] = (result.get("approximation") or {}).get("key", "")
     return row
+
+
+def interval_cells(interval, theta_true) -> tuple[str, bool]:
+    """The table's two cells of a run's theta interval (``[[lo, hi] of s_E, [lo, hi] of s_rho]``
+    as the result's JSON holds it: an unbounded side is ``"inf"``): its text and whether it
+    holds ``theta_true`` (s_E, s_rho). Without an interval: ``("", False)``."""
+    if not interval:
+        return "", False
+    iv = [[float(b) for b in pair] for pair in interval]
+    text = f"[{iv[0][0]:.3f}, {iv[0][1]:.3f}] x [{iv[1][0]:.3f}, {iv[1][1]:.3f}]"
+    return text, bool(all(iv[k][0] <= theta_true[k] <= iv[k][1] for k in range(2)))
 
 
 def acceptance(row: dict) -> tuple[bool, str]:
