@@ -330,28 +330,33 @@ def test_a_push_that_starts_late_is_not_named_gravity(loop_model):
     assert res.effects[0]["value"] == pytest.approx(0.03, rel=0.1)
 
 
-@pytest.mark.slow
-def test_a_yield_in_a_finer_world_is_judged_with_its_own_discretization_term(loop_model):
-    """Plasticity in data from the same MPM on a grid twice as fine. A yield resolved on the
-    finer grid sets in elsewhere, so the model with a yield moves under refinement in its own
-    way: scored with the term of the theta-only model the yield explains less of the residual
-    beyond the floor and is not added (a stiffness gradient, ahead of it there, is named in its
-    place); scored with the term of its own fitted model it is named and its theta interval
-    holds the truth."""
-    # Over 30 s (about a minute on an idle 2-core machine): the claim is the difference between
-    # two whole loops on the same data, each at its smallest (two catalogue terms, the loop's
-    # model at 2 substeps per frame), each about 140 rollouts of the model and a few of the
-    # refined one, after one rollout of the world on a grid of 64^3 for the data.
+YIELD_TRUTH = (0.95, 1.35)
+YIELD_CATALOGUE = ("plasticity", "stiffness_gradient_z")
+
+
+@pytest.fixture(scope="module")
+def yield_world(loop_model):
+    """Plasticity in data from the same MPM on a grid twice as fine (one rollout of the world on
+    a grid of 64^3), and the loop on them at its smallest (two catalogue terms, the loop's model
+    at 2 substeps per frame; about 140 rollouts of the model and a few of the refined one):
+    (measurement, result)."""
     from knockgs_core.assets import build_asset
     from knockgs_core.sim import VonMisesPlasticity
 
     contract, particles = loop_model
     world = refined_contract(contract, 2.0)
-    truth = (0.95, 1.35)
-    m, _ = _tracks(world, build_asset(world).particles, truth, "standard_x", (VonMisesPlasticity(yield_stress=80.0),),
-                   np.random.default_rng(11))
-    catalogue = ("plasticity", "stiffness_gradient_z")
-    res = run_discrepancy(m, contract, particles, settings=LoopSettings(catalogue=catalogue))
+    m, _ = _tracks(world, build_asset(world).particles, YIELD_TRUTH, "standard_x",
+                   (VonMisesPlasticity(yield_stress=80.0),), np.random.default_rng(11))
+    return m, run_discrepancy(m, contract, particles, settings=LoopSettings(catalogue=YIELD_CATALOGUE))
+
+
+@pytest.mark.slow
+def test_a_yield_in_a_finer_world_is_named_with_its_own_discretization_term(yield_world):
+    """A yield resolved on the finer grid sets in elsewhere, so the model with a yield moves
+    under refinement in its own way: scored with the term of its own fitted model it is named
+    and its theta interval holds the truth."""
+    # About a minute on an idle 2-core machine (the fixture: one whole loop, see yield_world)
+    _, res = yield_world
     assert res.identified == ["plasticity"], res.verdict
     row = next(r for r in res.rounds[0]["table"] if r["key"] == "plasticity")
     assert row["own_term"] and row["signature_ok"]
@@ -360,9 +365,20 @@ def test_a_yield_in_a_finer_world_is_judged_with_its_own_discretization_term(loo
     # the term reported (and the theta interval's refinement shift) is the final model's
     assert res.model_error["computed_at_theta"] == pytest.approx(list(res.theta_final), rel=1e-12)
     (lo_e, hi_e), (lo_r, hi_r) = res.theta_interval
-    assert lo_e <= truth[0] <= hi_e and lo_r <= truth[1] <= hi_r, res.theta_interval
-    # with the theta-only model's term the yield is not named (another effect may be, wrongly)
-    old = run_discrepancy(m, contract, particles, settings=LoopSettings(catalogue=catalogue, model_error_own_term=False))
+    assert lo_e <= YIELD_TRUTH[0] <= hi_e and lo_r <= YIELD_TRUTH[1] <= hi_r, res.theta_interval
+
+
+@pytest.mark.slow
+def test_a_yield_in_a_finer_world_is_missed_with_the_theta_only_models_term(loop_model, yield_world):
+    """The same data scored with the term of the theta-only model: the yield explains less of
+    the residual beyond the floor and is not added (a stiffness gradient, ahead of it there, may
+    be named in its place): what the own term of the test above changes."""
+    # About a minute on an idle 2-core machine: a second whole loop on the same data
+    contract, particles = loop_model
+    m, res = yield_world
+    row = next(r for r in res.rounds[0]["table"] if r["key"] == "plasticity")
+    old = run_discrepancy(m, contract, particles,
+                          settings=LoopSettings(catalogue=YIELD_CATALOGUE, model_error_own_term=False))
     assert "plasticity" not in old.identified, old.verdict
     old_row = next(r for r in old.rounds[0]["table"] if r["key"] == "plasticity")
     assert "own_term" not in old_row and old_row["explained_excess"] < row["explained_excess"]

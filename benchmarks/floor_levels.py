@@ -1,0 +1,62 @@
+"""The floor study (``knockgs_core.experiments.floor_study``) at levels of one's choosing: the
+MPM on the given device (finer levels on a GPU), the finite-element reference on this
+machine's CPU. Writes the table as CSV and Markdown under ``--out``.
+
+    python3 benchmarks/floor_levels.py --object pillow --profile config --volumes enclosed \
+        --levels 32 48 64 96 128 --fem-n-grid 48 --fem-check-n-grid 32 --device cuda:0 --out floor_out
+
+``--volumes``: the particles' rest-volume rule (``fill.volumes`` of the contract: cell_share,
+enclosed; the contract's own when left out). The reference's settings not named here are the
+profile's ``floor`` block's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+from pathlib import Path
+
+import yaml
+
+from knockgs_core.contract import load_contract
+from knockgs_core.experiments import FloorSettings, floor_note, floor_study
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--object", default="pillow")
+    ap.add_argument("--profile", default="config", help="config file stem: ci, config (default), paper")
+    ap.add_argument("--volumes", default=None, choices=("cell_share", "enclosed"))
+    ap.add_argument("--levels", type=int, nargs="+", required=True)
+    ap.add_argument("--fem-n-grid", type=int, required=True)
+    ap.add_argument("--fem-check-n-grid", type=int, required=True)
+    ap.add_argument("--fit-steps", type=int, default=None)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args()
+
+    profile = {"config": "default"}.get(args.profile, args.profile)
+    block = yaml.safe_load((ROOT / "config" / f"{args.profile}.yaml").read_text())["floor"]
+    settings = FloorSettings.from_config({k: v for k, v in block.items() if k not in ("enabled", "objects")})
+    changes = {"n_grid": tuple(args.levels), "fem_n_grid": args.fem_n_grid, "fem_check_n_grid": args.fem_check_n_grid}
+    if args.fit_steps is not None:
+        changes["fit_steps"] = args.fit_steps
+    settings = dataclasses.replace(settings, **changes)
+    contract = load_contract(args.object, profile)
+    if args.volumes is not None:
+        contract = dataclasses.replace(contract, fill=dataclasses.replace(contract.fill, volumes=args.volumes))
+    t0 = time.perf_counter()
+    table = floor_study(contract, settings, device=args.device, log=lambda m: print(m, flush=True))
+    args.out.mkdir(parents=True, exist_ok=True)
+    stem = f"floor_{args.object}_{contract.fill.volumes}"
+    table.to_csv(args.out / f"{stem}.csv", index=False)
+    (args.out / f"{stem}.md").write_text(floor_note(table, contract, settings))
+    print(f"{stem}: {time.perf_counter() - t0:.0f} s on {args.device}")
+    print(table.to_string())
+
+
+if __name__ == "__main__":
+    main()
