@@ -42,10 +42,13 @@ def config_refusal(message):
 
 def _config_file_of(key):
     """Where the top-level ``key`` is set: the command line's --config (which wins), else the
-    last config file that sets it."""
-    if key in (getattr(workflow.config_settings, "overwrite_config", None) or {}):
+    last --configfile that sets it, else the Snakefile's configfile."""
+    settings = workflow.config_settings
+    if key in (settings.config or {}):
         return "--config"
-    for path in reversed(workflow.configfiles):
+    given = [str(p) for p in settings.configfiles]
+    order = list(reversed(given)) + [p for p in reversed(workflow.configfiles) if str(os.path.abspath(p)) not in given]
+    for path in order:
         try:
             data = read_yaml(path)
         except InputError:
