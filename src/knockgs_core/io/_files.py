@@ -129,9 +129,6 @@ def check_output(path, field: str = "output", *, directory: bool = False) -> Non
                          f"{_name_max(path)} a name may have here")
     if os.path.lexists(path) and not os.path.exists(path):
         raise InputError(path, field, "is a broken symbolic link; refusing to write through it")
-    if not directory and os.path.islink(path):
-        raise InputError(path, field, f"is a symbolic link (to {os.readlink(path)}); writing would replace the link, "
-                         "not its target: refusing (give the target's path, or remove the link)")
     if path.exists():
         if directory:
             if not path.is_dir():
@@ -141,6 +138,9 @@ def check_output(path, field: str = "output", *, directory: bool = False) -> Non
         elif not path.is_file():
             raise InputError(path, field, "the output path is not a regular file (a device, FIFO or socket); "
                                           "refusing to replace it")
+    if not directory and os.path.islink(path):
+        raise InputError(path, field, f"is a symbolic link (to {os.readlink(path)}); writing would replace the link, "
+                         "not its target: refusing (give the target's path, or remove the link)")
     parent = _nearest_existing(path.parent if not (directory and path.is_dir()) else path)
     if not parent.is_dir():
         raise InputError(path, field, f"'{parent}' is not a folder")
