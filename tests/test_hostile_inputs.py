@@ -476,7 +476,7 @@ def test_contract_binary_file(shared, refuse, tmp_path):
 
 def test_contract_is_a_folder(shared, refuse, tmp_path):
     (tmp_path / "pillow.yaml").mkdir()
-    refuse("asset", "summary", tmp_path / "pillow.yaml", "--profile", "ci", names=("pillow.yaml", "'file'", "folder"))
+    refuse("asset", "summary", tmp_path / "pillow.yaml", "--profile", "ci", names=("pillow.yaml", "'NAME'", "folder"))
 
 
 def test_contract_not_yaml(shared, refuse, tmp_path):
@@ -556,7 +556,7 @@ def test_bad_measurement_file(shared, refuse, tmp_path, suffix, content):
 
 def test_measurement_is_a_folder(shared, refuse, tmp_path):
     (tmp_path / "m.parquet").mkdir()
-    refuse(*_run(shared, measured=tmp_path / "m.parquet"), names=("m.parquet", "'file'"))
+    refuse(*_run(shared, measured=tmp_path / "m.parquet"), names=("m.parquet", "'--measured'", "folder"))
 
 
 def test_calibrate_binary_library(shared, refuse, tmp_path):

@@ -181,7 +181,8 @@ def test_read_rollout_rejects_missing_rows(tmp_path):
 def _synthetic(n=500, t=4, seed=3):
     rng = np.random.default_rng(seed)
     X = rng.random((t, n, 3), dtype=np.float32)
-    F = rng.random((t, n // 2, 3, 3), dtype=np.float32)
+    # a plausible deformation (det F > 0, as the readers require): the identity plus random bits
+    F = np.eye(3, dtype=np.float32) + 0.1 * rng.random((t, n // 2, 3, 3), dtype=np.float32)
     from knockgs_core.rollout import Rollout
 
     return Rollout(positions=X, F=F, meta={"theta": [1.0, 1.0], "probe": "standard_y", "n_gs": n // 2, "n_fill": n - n // 2,

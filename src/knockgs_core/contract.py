@@ -37,7 +37,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from .io import json_safe
+from .io import input_problem, json_safe
 from .errors import InputError
 from .sim import (
     Box,
@@ -56,8 +56,11 @@ __all__ = [
     "FillSettings",
     "Profile",
     "PROFILES",
+    "RESOURCE_LIMITS",
     "THETA_STIFFEST",
+    "check_held_out",
     "load_contract",
+    "read_yaml",
     "list_objects",
     "find_config_dir",
     "schema_path",
@@ -448,6 +451,11 @@ def _read_yaml(path: Path) -> Any:
     """
     import yaml
 
+    from .io import input_problem
+
+    problem = input_problem(path, kind="yaml")  # a FIFO would block the read, a device never end it
+    if problem is not None:
+        raise InputError(path, "file", problem)
     try:
         text = path.read_bytes().decode("utf-8")
     except FileNotFoundError:
@@ -476,6 +484,13 @@ def _read_yaml(path: Path) -> Any:
         raise InputError(path, "yaml", f"not valid YAML: {exc}") from None
 
 
+def read_yaml(path: str | os.PathLike) -> Any:
+    """A YAML file read as strictly as a contract (:func:`_read_yaml`: duplicate keys, aliases and
+    deep nesting refused, the path checked first as an input), for the workflow's config files;
+    errors are :class:`InputError` naming the file."""
+    return _read_yaml(Path(path))
+
+
 def _check_finite(data: Any, path: Path, where: str = "") -> None:
     """Every number of a contract is finite (infinity is written ``null`` where allowed)."""
     if isinstance(data, dict):
@@ -486,6 +501,45 @@ def _check_finite(data: Any, path: Path, where: str = "") -> None:
             _check_finite(v, path, f"{where}[{i}]")
     elif isinstance(data, float) and not math.isfinite(data):
         raise InputError(path, where or "(top level)", f"{data} is not a finite number")
+
+
+#: resource-sized fields: field -> (largest value accepted, bytes one unit of the field implies,
+#: what that unit is). A grid of n cells a side has n^3 nodes of at least 16 bytes (mass and
+#: momentum, float32); a fill grid n^3 cells of at least 4; a Gaussian about 240 bytes (59 float32
+#: attributes); an exported frame 12 bytes a particle (positions) and 36 more with F. The bounds
+#: leave the paper profile (n_grid 120, fill 128, 1.3 million Gaussians, 121 frames) far inside.
+RESOURCE_LIMITS = {
+    "n_grid": (1024, 16, "grid node", 3),
+    "fill_resolution": (1024, 4, "fill cell", 3),
+    "n_gaussians": (100_000_000, 240, "Gaussian", 1),
+    "n_frames": (10_000, 48, "frame of one particle", 1),
+}
+
+
+def _implied(field: str, value: int) -> str:
+    limit, per, unit, power = RESOURCE_LIMITS[field]
+    units = value ** power
+    return (f"{value} means {units:.3g} {unit}s, at least {units * per / 1e9:.3g} GB; at most {limit} "
+            f"({limit ** power * per / 1e9:.3g} GB) is accepted")
+
+
+def _check_resources(data: dict, path: Path) -> None:
+    """Refuse resource-sized fields (grid and fill resolution, Gaussian and frame counts) whose
+    implied memory no machine holds, before anything is allocated (the schema's type checks come
+    later: only integers are judged here)."""
+    def judge(field, where, v):
+        if isinstance(v, int) and not isinstance(v, bool) and v > RESOURCE_LIMITS[field][0]:
+            raise InputError(path, where, _implied(field, v))
+
+    for name, prof in (data.get("profiles") or {}).items() if isinstance(data.get("profiles"), dict) else ():
+        if isinstance(prof, dict):
+            for field in ("n_grid", "fill_resolution", "n_gaussians"):
+                judge(field, f"profiles.{name}.{field}", prof.get(field))
+    probes = data.get("probes")
+    for name, probe in (probes.items() if isinstance(probes, dict) else ()):
+        export = probe.get("export") if isinstance(probe, dict) else None
+        if isinstance(export, dict):
+            judge("n_frames", f"probes.{name}.export.n_frames", export.get("n_frames"))
 
 
 def _check_materials(data: dict, path: Path) -> None:
@@ -630,6 +684,7 @@ def load_contract(name_or_path: str | os.PathLike, profile: str = "default", *,
     if isinstance(data, dict):
         _check_materials(data, path)
         _check_finite(data, path)
+        _check_resources(data, path)
     _validate(data, path, schema_path())
     return _build(data, path, _tables_dir(path, config_dir), profile)
 
@@ -662,8 +717,9 @@ def _build(data: dict, path: Path, cfg: Path, profile: str) -> ObjectContract:
     ply = None
     if "ply" in a:
         ply = Path(a["ply"]) if os.path.isabs(a["ply"]) else (path.parent / a["ply"]).resolve()
-        if not ply.is_file():
-            raise InputError(path, "asset.ply", f"file {ply} does not exist")
+        problem = input_problem(ply)
+        if problem is not None:
+            raise InputError(path, "asset.ply", f"file {ply} {problem}")
     asset = AssetSettings(
         procedural=a.get("procedural"), ply=ply,
         **_kwargs(a, ("seed",)),
@@ -780,6 +836,9 @@ def _check_profile_steps(path: Path, profiles: Mapping[str, Profile], probes: Ma
 def _read_table(path: Path, columns: Sequence[str]):
     import pandas as pd
 
+    problem = input_problem(path)
+    if problem is not None:
+        raise InputError(path, "file", problem)
     try:
         df = pd.read_csv(path, comment="#")
     except FileNotFoundError:
@@ -821,4 +880,33 @@ def load_targets(split: str = "main", path: str | os.PathLike | None = None):
     splits = list(dict.fromkeys(df["split"]))
     if split not in splits:
         raise InputError(path, "split", f"unknown split {split!r}; the file has {', '.join(splits)}")
-    return df[df["split"] == split][["case_name", "E_scale", "density_scale"]].reset_index(drop=True)
+    out = df[df["split"] == split][["case_name", "E_scale", "density_scale"]].reset_index(drop=True)
+    dup = out.duplicated(["E_scale", "density_scale"])
+    if dup.any():
+        r = out[dup].iloc[0]
+        raise InputError(path, "E_scale,density_scale", f"split {split!r}: target {r.case_name!r} repeats the "
+                         f"parameter pair ({r.E_scale:g}, {r.density_scale:g}) of an earlier target")
+    return out
+
+
+def check_held_out(candidates_path: str | os.PathLike | None = None,
+                   targets_path: str | os.PathLike | None = None) -> None:
+    """Every target of every split held out from the candidates: no target has a candidate's
+    parameter pair or case name (a target equal to a candidate would be found by looking it up
+    in the library), and no two targets of a split share a pair (:func:`load_targets`). Run when
+    the workflow's config is read, for every split, so that no table is built from a leaked
+    target. Raises :class:`InputError` naming the targets file and the row."""
+    candidates = load_candidates(candidates_path)
+    path = _default_table("targets.csv", targets_path)
+    table = _read_table(path, ("split", "case_name", "E_scale", "density_scale"))
+    pairs = {(float(r.E_scale), float(r.density_scale)): r.case_name for r in candidates.itertuples(index=False)}
+    names = set(candidates.case_name)
+    for split in dict.fromkeys(table["split"]):
+        for r in load_targets(split, path).itertuples(index=False):
+            pair = (float(r.E_scale), float(r.density_scale))
+            if pair in pairs:
+                raise InputError(path, "E_scale,density_scale", f"split {split!r}: target {r.case_name!r} "
+                                 f"({pair[0]:g}, {pair[1]:g}) is the candidate {pairs[pair]!r}: a held-out target "
+                                 "must not be in the library")
+            if r.case_name in names:
+                raise InputError(path, "case_name", f"split {split!r}: target {r.case_name!r} has a candidate's name")

@@ -52,6 +52,7 @@ __all__ = [
     "check_rollout_meta",
     "write_deformation",
     "read_deformation",
+    "F_MAX",
     "BackgroundWriter",
     "RolloutStream",
     "theta_tag",
@@ -568,14 +569,52 @@ def read_rollout_meta(path) -> dict:
     return meta
 
 
+#: the largest |F_ij| a read deformation gradient may have: a hundredfold stretch is far beyond
+#: any elastic response the simulator gives (its guards stop a run long before), while a
+#: rendered Gaussian scaled by it would cover the whole image
+F_MAX = 100.0
+
+
+def _check_domain(path, meta: dict, positions: np.ndarray) -> None:
+    """Positions [T, N, 3] inside the simulation domain [0, grid_lim]^3 of the metadata's
+    solver settings (a rollout without them, not made by the simulator, is not judged)."""
+    sim = meta.get("sim")
+    lim = sim.get("grid_lim") if isinstance(sim, dict) else None
+    if not isinstance(lim, (int, float)) or isinstance(lim, bool) or positions.size == 0:
+        return
+    lo, hi = float(positions.min()), float(positions.max())
+    if lo < 0.0 or hi > float(lim):
+        t, n, c = np.unravel_index(int(np.argmax((positions < 0) | (positions > lim))), positions.shape)
+        raise InputError(path, "xyz"[c], f"particle {n} at frame {t} is at {float(positions[t, n, c]):.6g} m, outside "
+                         f"the simulation domain [0, {float(lim):g}] of its metadata (sim.grid_lim)")
+
+
+def _check_deformation(path, F: np.ndarray) -> None:
+    """F [T, N, 3, 3]: det F > 0 (no inversion or reflection) and every |F_ij| <= F_MAX."""
+    for t in range(F.shape[0]):
+        f = F[t].astype(np.float64)
+        big = np.abs(f).max(axis=(1, 2)) > F_MAX if f.size else np.zeros(0, bool)
+        if big.any():
+            n = int(np.argmax(big))
+            raise InputError(path, "F", f"frame {t}, particle {n}: an entry of F is {float(np.abs(f[n]).max()):.6g}, "
+                             f"beyond the plausible {F_MAX:g} (a stretch no simulated elastic response reaches)")
+        det = np.linalg.det(f) if f.size else np.ones(0)
+        if not (det > 0).all():
+            n = int(np.argmin(det > 0))
+            raise InputError(path, "F", f"frame {t}, particle {n}: det F = {float(det[n]):.6g}, not > 0 "
+                             "(an inverted or reflected material element)")
+
+
 def read_rollout(path) -> Rollout:
     """Read a rollout file: positions (T, N, 3) float32 and its metadata.
 
-    The positions must agree with the metadata: N = n_gs + n_fill particles and T = the
-    number of export times.
+    The positions must agree with the metadata: N = n_gs + n_fill particles, particle ids
+    0..N-1, T = the number of export times, and every position inside the simulation domain
+    the metadata's solver settings give (``sim.grid_lim``).
     """
     meta = read_rollout_meta(path)
-    positions = read_long_values(path, POSITION_COLUMNS)
+    positions = read_long_values(path, POSITION_COLUMNS, dense_ids=True)
+    _check_domain(path, meta, positions)
     n = _meta_field(path, meta, "n_particles") if "n_gs" in meta or "n_fill" in meta else positions.shape[1]
     if positions.shape[1] != n:
         raise InputError(path, "particle", f"{positions.shape[1]} particles, the metadata says {n} (n_gs + n_fill)")
@@ -586,14 +625,16 @@ def read_rollout(path) -> Rollout:
 
 
 def read_deformation(path, *, rollout: Rollout | None = None, rollout_path=None) -> np.ndarray:
-    """Deformation gradients (T, n_gs, 3, 3) float32 from a file of :func:`write_deformation`.
+    """Deformation gradients (T, n_gs, 3, 3) float32 from a file of :func:`write_deformation`:
+    particle ids 0..n_gs-1, det F > 0 and every entry at most :data:`F_MAX` in magnitude.
 
     With ``rollout`` (read from ``rollout_path``), the file must come from the same run:
     its metadata's object, profile, contract hash, theta, probe and n_gs equal the
     rollout's (the fields both files carry), and it holds the rollout's frames.
     """
-    F = read_long_values(path, F_COLUMNS)
+    F = read_long_values(path, F_COLUMNS, dense_ids=True)
     F = F.reshape(F.shape[0], F.shape[1], 3, 3)
+    _check_deformation(path, F)
     if rollout is not None:
         m = rollout.meta
         keys = ("object", "profile", "contract_hash", "theta", "probe", "n_gs")

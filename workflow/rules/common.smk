@@ -13,7 +13,8 @@ from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 from knockgs_core.calibration import METHOD_NAMES, ORACLE_METHOD
-from knockgs_core.contract import load_candidates, load_contract, load_targets
+from knockgs_core.contract import check_held_out, load_candidates, load_contract, load_targets, read_yaml
+from knockgs_core.errors import InputError
 from knockgs_core.rollout import theta_tag
 
 
@@ -31,8 +32,71 @@ def _yaml_booleans(config, schema_file):
             config[key] = value.lower() == "true"
 
 
+def config_refusal(message):
+    """Stop the run at config read with one line on stderr (which file, which key, what is
+    allowed) and no stack: a refused config is bad input, not a failure of the workflow."""
+    import sys
+
+    sys.exit(f"knockgs workflow: config error: {' '.join(str(message).split())}")
+
+
+def _config_file_of(key):
+    """Where the top-level ``key`` is set: the command line's --config (which wins), else the
+    last --configfile that sets it, else the Snakefile's configfile."""
+    settings = workflow.config_settings
+    if key in (settings.config or {}):
+        return "--config"
+    given = [str(p) for p in settings.configfiles]
+    order = list(reversed(given)) + [p for p in reversed(workflow.configfiles) if str(os.path.abspath(p)) not in given]
+    for path in order:
+        try:
+            data = read_yaml(path)
+        except InputError:
+            continue
+        if isinstance(data, dict) and key in data:
+            return path
+    return "--config"
+
+
+def _check_config_files():
+    """Every config file read as strictly as a contract: a key given twice (the last would win
+    silently), an alias or a non-YAML file is refused, naming the file and the line."""
+    for path in workflow.configfiles:
+        try:
+            read_yaml(path)
+        except InputError as exc:
+            config_refusal(exc)
+
+
+def _validate_config(schema_file):
+    """validate() against the schema, its refusal as one line: the file that sets the key, the
+    key's path, what is wrong and what is allowed (not the whole schema)."""
+    import jsonschema
+
+    try:
+        validate(config, schema_file, set_default=True)
+    except WorkflowError as exc:
+        err = exc.__context__  # the schema's ValidationError, which validate() formats with the whole schema
+        if not isinstance(err, jsonschema.exceptions.ValidationError):
+            raise
+        if err.context:  # a oneOf/anyOf: the alternative that came closest
+            err = jsonschema.exceptions.best_match(err.context)
+        keys = [str(k) for k in err.absolute_path]
+        allowed = ""
+        if err.validator == "additionalProperties":
+            props = err.schema.get("properties", {})
+            unexpected = sorted(set(err.instance) - set(props)) if isinstance(err.instance, dict) else []
+            keys += unexpected[:1]
+            allowed = f"; allowed keys here: {', '.join(props)}"
+        elif err.validator == "enum":
+            allowed = f"; allowed: {', '.join(map(str, err.validator_value))}"
+        where = _config_file_of(keys[0]) if keys else "config"
+        config_refusal(f"{where}: key '{'.'.join(keys) or '(top level)'}': {err.message[:300]}{allowed}")
+
+
+_check_config_files()
 _yaml_booleans(config, os.path.join(workflow.current_basedir, "../schemas/config.schema.yaml"))
-validate(config, "../schemas/config.schema.yaml", set_default=True)
+_validate_config("../schemas/config.schema.yaml")
 
 PROFILE = config["profile"]
 P = f"results/{PROFILE}"
@@ -66,7 +130,15 @@ EVAL_F_TEMP = EVAL_F and not RENDER["keep_deformation_gradients"]
 DISCREPANCY = config["discrepancy"]
 SHIFTS = config["probe_shifts"]
 
-CANDIDATES = load_candidates()
+# the tables, every split's targets held out from the candidates (a target equal to a candidate,
+# or two targets with one pair, refused here for every table, not only by the `all` audit), the
+# config's split: refused at config read, as one line
+try:
+    CANDIDATES = load_candidates()
+    check_held_out()
+    load_targets(SPLIT)
+except InputError as exc:
+    config_refusal(exc)
 
 # A library job simulates LIBRARY_CHUNK candidates in one process (simulate.smk; config
 # library_chunk), in candidates.csv order: job {chunk} writes the folder .../lib/chunk{chunk}.
@@ -116,8 +188,11 @@ def contract(obj, profile=PROFILE):
     return load_contract(obj, profile)
 
 
-for _obj in OBJECTS:  # a broken contract fails at parse time, naming its file and field
-    contract(_obj)
+for _obj in OBJECTS:  # a broken or unknown contract fails at parse time, naming its file and field
+    try:
+        contract(_obj)
+    except InputError as exc:
+        config_refusal(exc)
 
 
 def calibration_probe(obj):

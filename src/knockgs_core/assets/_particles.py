@@ -187,4 +187,19 @@ def load_particles(path: str | os.PathLike, *, contract=None) -> ParticleSet:
         raise InputError(path, "meta", f"inconsistent particle file ({exc})") from None
     if contract is not None:
         _check_use(path, meta, ps, contract)
+        _check_domain(path, ps.positions, contract)
     return ps
+
+
+def _check_domain(path, positions, contract) -> None:
+    """The particles inside the contract's simulation domain (3 cells from its walls, where the
+    solver takes them) and not all at one point: refused naming the file, before a probe box
+    that selects none of them is blamed."""
+    x = np.asarray(positions, dtype=np.float64)
+    lo, hi = 3 * contract.sim.dx, contract.sim.grid_lim - 3 * contract.sim.dx
+    if x.size and (x.min() < lo or x.max() > hi):
+        i = int(np.argmax(((x < lo) | (x > hi)).any(axis=1)))
+        raise InputError(path, "positions", f"particle {i} at {x[i].tolist()} lies outside the simulation domain "
+                         f"[{lo:g}, {hi:g}]^3 of {contract.source} (3 cells inside [0, grid_lim])")
+    if len(x) > 1 and np.ptp(x, axis=0).max() == 0.0:
+        raise InputError(path, "positions", f"all {len(x)} particles are at one point {x[0].tolist()}")

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import warnings
+
 from ..io import json_safe
 from ..descriptors import FEATURE_NAMES
-from ..errors import InputError
+from ..errors import InputError, InputWarning
 from ._registry import METHOD_ALIASES, METHOD_OPTIONS, METHODS, canonical_method
-from ._tables import library_arrays, library_hash, query_arrays, read_table
+from ._tables import library_arrays, library_design, library_hash, query_arrays, read_table
 
 __all__ = ["calibrate"]
 
@@ -57,7 +59,11 @@ def calibrate(library, queries, method: str, **params) -> dict:
     ------
     InputError
         Missing columns, non-finite values, non-positive scales, duplicate case names, case
-        names shared by library and queries, unknown method or option, bad option values.
+        names shared by library and queries, unknown method or option, bad option values,
+        ``k`` above the library's candidate count, a library whose candidates all have the same
+        descriptors. A library whose descriptors vary along one direction only is flagged
+        (``library.degenerate`` and an :class:`~knockgs_core.errors.InputWarning`), and so are
+        estimates that fell back to inverse-distance KNN (a warning; their details say why).
     """
     lib_df, lib_src = read_table(library, "library table")
     q_df, q_src = read_table(queries, "query table")
@@ -70,6 +76,12 @@ def calibrate(library, queries, method: str, **params) -> dict:
 
     lib_names, theta, features = library_arrays(lib_df, lib_src)
     q_names, q_features = query_arrays(q_df, q_src, lib_names)
+    k = params.get("k")
+    if isinstance(k, int) and not isinstance(k, bool) and k > len(lib_names):
+        raise InputError(lib_src, "k", f"k = {k} neighbours, but the library has only {len(lib_names)} candidates")
+    degenerate = library_design(features, lib_src)
+    if degenerate is not None:
+        warnings.warn(f"{lib_src}: {degenerate}", InputWarning, stacklevel=2)
 
     try:
         estimator = METHODS[method](**params)
@@ -81,6 +93,11 @@ def calibrate(library, queries, method: str, **params) -> dict:
     except ValueError as exc:
         raise InputError(lib_src, "library", str(exc)) from None
     estimates = estimator.predict(q_features, names=q_names)
+    fallbacks = [e for e in estimates if (e.details or {}).get("fallback")]
+    if fallbacks:
+        reasons = sorted({str(e.details.get("fallback_reason")) for e in fallbacks})
+        warnings.warn(f"{lib_src}: {len(fallbacks)} of {len(estimates)} estimates fell back from {method} to "
+                      f"inverse-distance KNN ({'; '.join(reasons)})", InputWarning, stacklevel=2)
     return json_safe(
         {
             "method": method,
@@ -88,6 +105,7 @@ def calibrate(library, queries, method: str, **params) -> dict:
             "library": {
                 "n_candidates": len(lib_names),
                 "sha256": library_hash(lib_names, theta, features),
+                **({"degenerate": degenerate} if degenerate is not None else {}),
             },
             "features": list(FEATURE_NAMES),
             "predictions": [e.to_dict() for e in estimates],

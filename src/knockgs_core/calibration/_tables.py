@@ -14,9 +14,10 @@ import numpy as np
 
 from ..descriptors import FEATURE_NAMES
 from ..errors import InputError
+from ..io import input_problem
 from ._estimate import THETA_NAMES
 
-__all__ = ["read_table", "library_arrays", "query_arrays", "library_hash"]
+__all__ = ["read_table", "library_arrays", "library_design", "query_arrays", "library_hash"]
 
 
 def read_table(table, default_source: str):
@@ -28,6 +29,9 @@ def read_table(table, default_source: str):
         return table, default_source
     if isinstance(table, (str, os.PathLike)):
         source = os.fspath(table)
+        problem = input_problem(source)  # a FIFO would block pandas, a device never end the read
+        if problem is not None:
+            raise InputError(source, "file", problem)
         try:
             return pd.read_csv(source, dtype={"case_name": str}, keep_default_na=False,
                                na_values=[""]), source
@@ -97,6 +101,35 @@ def library_arrays(df, source) -> tuple[list[str], np.ndarray, np.ndarray]:
     if len(lib_names) == 0:
         raise InputError(source, "case_name", "empty library")
     return lib_names, theta, features
+
+
+#: a direction of the centred library descriptors counts when its singular value is above this
+#: share of the largest one
+DESIGN_RTOL = 1e-6
+
+
+def library_design(features, source) -> str | None:
+    """Judge a library's design: the rank of its centred descriptors [n, 5].
+
+    Every candidate with the same descriptors (rank 0) tells no theta from another: refused
+    (:class:`InputError` naming ``source``). Descriptors that vary along one direction only
+    (rank 1: e.g. two candidates, or every descriptor a multiple of one) cannot separate the two
+    scales: returned as a sentence for the estimate and stderr to flag. None for a sound design.
+    """
+    x = np.asarray(features, dtype=float)
+    centred = x - x.mean(axis=0)
+    scale = np.abs(x).max() if x.size else 0.0
+    sv = np.linalg.svd(centred, compute_uv=False) if x.shape[0] > 1 else np.zeros(1)
+    # rank at the precision a descriptor table is written with (10 digits) and a little more:
+    # a direction a millionth of the main one is the tables' rounding, not information
+    rank = 0 if sv[0] <= 1e-12 * max(scale, 1e-300) * len(x) else int(np.sum(sv > DESIGN_RTOL * sv[0]))
+    if rank == 0:
+        raise InputError(source, "features", f"degenerate library: all {x.shape[0]} candidates have the same "
+                         "descriptors, so no estimate can tell one theta from another")
+    if rank < 2:
+        return (f"degenerate library design: the {x.shape[0]} candidates' descriptors vary along {rank} direction "
+                "only, fewer than the two scales (s_E, s_rho) to be told apart; the estimates are not identified")
+    return None
 
 
 def query_arrays(df, source, lib_names) -> tuple[list[str], np.ndarray]:

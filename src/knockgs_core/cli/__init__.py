@@ -10,9 +10,12 @@ stopped simulation) and, mapped here at the boundary, the errors of reading and 
 files (``OSError`` with its file name, including a full disk or a missing permission;
 ``ValueError``, ``UnicodeDecodeError``, ``EOFError``, ``zipfile.BadZipFile``, pyarrow's
 ``ArrowInvalid``; ``MemoryError``) give exit code 2; Ctrl-C (``KeyboardInterrupt``)
-prints ``interrupted`` and gives exit code 130. Set ``KNOCKGS_TRACEBACK=1`` to see the
-traceback of a mapped error. Commands check their output paths before any work
-(:func:`knockgs_core.io.check_outputs`).
+prints ``interrupted`` and gives exit code 130. Any other exception (a ``TypeError`` or
+``RuntimeError`` from NumPy or Warp: a programming error, or an input no reader foresaw) is
+one line too, never hidden: ``internal error``, the exception, the command's input files
+and the hint to rerun with ``KNOCKGS_TRACEBACK=1``, which shows the traceback of any error;
+exit code 1. Commands check their input and output paths before any work
+(:func:`knockgs_core.io.check_inputs`, :func:`knockgs_core.io.check_outputs`).
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ import zipfile
 
 from ..errors import InputWarning, KnockGSError
 
-__all__ = ["main", "build_parser"]
+__all__ = ["TRACEBACK_ENV", "main", "build_parser", "describe_error", "describe_internal_error"]
 
 #: subcommand modules, in the order they appear in ``knockgs --help``
 _COMMANDS = ("simulate", "asset", "calibrate", "render", "observe", "discrepancy")
@@ -58,8 +61,25 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def describe_error(exc: BaseException) -> str:
-    """One line for a mapped error: the file (when known) and the cause."""
+#: the environment variable that shows the traceback of an error instead of its one line
+TRACEBACK_ENV = "KNOCKGS_TRACEBACK"
+
+
+def _inputs_of(args) -> str:
+    """The command's input files, as recorded by its input check (``--opt=path, ...``)."""
+    inputs = getattr(args, "inputs_", None) or {}
+    items = []
+    for field, value in inputs.items():
+        for v in (value if isinstance(value, (list, tuple)) else [value]):
+            items.append(f"{field}={os.fspath(v)}")
+    if len(items) > 4:
+        items = items[:4] + [f"... ({len(items) - 4} more)"]
+    return ", ".join(items)
+
+
+def describe_error(exc: BaseException, args=None) -> str:
+    """One line for a mapped error: the file (when known) and the cause; where the error names
+    no file (a ``ValueError`` from deep inside NumPy), the command's inputs (``args``)."""
     if isinstance(exc, KnockGSError):
         return _one_line(exc)
     if isinstance(exc, OSError):
@@ -69,10 +89,20 @@ def describe_error(exc: BaseException) -> str:
             why += " (nothing was replaced: the previous file, if any, is unchanged)"
         where = ": ".join(os.fsdecode(n) for n in names)
         return _one_line(f"{where}: {why}" if where else f"{type(exc).__name__}: {why}")
+    where = _inputs_of(args) if args is not None else ""
     if isinstance(exc, MemoryError):
-        return _one_line(f"out of memory ({exc or 'an array too large for this machine'}); "
-                         "check sizes given on the command line (e.g. --width, --height)")
-    return _one_line(f"{type(exc).__name__}: {exc}")
+        return _one_line(f"out of memory ({exc or 'an array too large for this machine'})"
+                         + (f" while processing {where}" if where else "")
+                         + "; check the sizes the inputs and options ask for")
+    return _one_line(f"{type(exc).__name__}: {exc}" + (f" (while processing {where})" if where else ""))
+
+
+def describe_internal_error(exc: BaseException, args) -> str:
+    """One line for an unforeseen exception: never hidden, never a traceback unless asked for."""
+    where = _inputs_of(args)
+    return _one_line(f"internal error ({type(exc).__name__}: {exc})"
+                     + (f" while processing {where}" if where else "")
+                     + f"; rerun with {TRACEBACK_ENV}=1 for the traceback, and please report it")
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
@@ -99,10 +129,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"knockgs {args.command}: interrupted", file=sys.stderr)
         return 130
     except _MAPPED as exc:
-        if os.environ.get("KNOCKGS_TRACEBACK"):
+        if os.environ.get(TRACEBACK_ENV):
             raise
-        print(f"knockgs {args.command}: error: {describe_error(exc)}", file=sys.stderr)
+        print(f"knockgs {args.command}: error: {describe_error(exc, args)}", file=sys.stderr)
         return 2
+    except Exception as exc:  # a programming error, or input no reader foresaw: one line, exit 1
+        if os.environ.get(TRACEBACK_ENV):
+            raise
+        print(f"knockgs {args.command}: {describe_internal_error(exc, args)}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -5,13 +5,25 @@ from __future__ import annotations
 import argparse
 import math
 
-__all__ = ["contract_inputs", "image_side", "nonnegative_float", "nonnegative_int", "positive_float", "positive_int"]
+__all__ = ["check_command_inputs", "contract_inputs", "image_side", "nonnegative_float", "nonnegative_int",
+           "positive_float", "positive_int"]
 
 
 def contract_inputs(contract) -> dict:
     """The files a loaded contract reads (outputs may not be any of them)."""
     return {"--object": contract.source, "asset.ply": contract.asset.ply,
             "candidates": contract.candidates_path, "targets": contract.targets_path}
+
+
+def check_command_inputs(args, inputs: dict, *, folders: tuple[str, ...] = ()) -> None:
+    """Check a command's input paths before any work (:func:`knockgs_core.io.check_inputs`:
+    each exists, is a regular file or the folder its option expects, is readable and within
+    the size bound of its kind) and record them on ``args``, for the one line that names what
+    was being processed should a programming error stop the command (:func:`knockgs_core.cli.main`)."""
+    from ..io import check_inputs
+
+    args.inputs_ = {k: v for k, v in inputs.items() if v is not None and v != []}
+    check_inputs(inputs, folders=folders)
 
 
 def _number(kind, text: str, ok, rule: str, limit: float | None = None):

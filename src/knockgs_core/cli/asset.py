@@ -67,6 +67,11 @@ def register(subparsers) -> None:
 def _load(args):
     from knockgs_core.contract import load_contract
 
+    from ._common import check_command_inputs
+    from .simulate import _contract_file
+
+    check_command_inputs(args, {"NAME": _contract_file(args.name), "--config-dir": args.config_dir},
+                         folders=("--config-dir",))
     return load_contract(args.name, args.profile, config_dir=args.config_dir)
 
 
@@ -169,6 +174,9 @@ def _init(args) -> int:
     from knockgs_core.contract import load_contract
     from knockgs_core.io import check_outputs, atomic_write
 
+    from ._common import check_command_inputs
+
+    check_command_inputs(args, {"SPLAT": args.splat})
     check_outputs({"--output": args.output}, {"SPLAT": args.splat})
     s = scaffold_contract(args.splat, args.output, up=args.up, opacity_threshold=args.opacity_threshold)
     with atomic_write(args.output, mode="w") as fh:

@@ -74,7 +74,9 @@ def run(args: argparse.Namespace) -> int:
     """Run ``knockgs calibrate``; bad input raises :class:`~knockgs_core.errors.InputError`."""
     from ..io import check_outputs, write_json
     from ..calibration import calibrate
+    from ._common import check_command_inputs
 
+    check_command_inputs(args, {"--library": args.library, "--queries": args.queries})
     output = Path(args.output)
     check_outputs({"--output": output}, {"--library": args.library, "--queries": args.queries})
     params = {}

@@ -106,6 +106,18 @@ def register(subparsers) -> argparse.ArgumentParser:
     return parser
 
 
+def _common_inputs(args, **inputs) -> None:
+    """The command's input paths, checked before any work (the contract file when --object is
+    a path, --particles, --config-dir, and ``inputs``)."""
+    from ._common import check_command_inputs
+    from .simulate import _contract_file
+
+    folders = tuple(k for k in inputs if k.endswith("-dir")) + ("--config-dir",)
+    check_command_inputs(args, {"--object": _contract_file(args.object) if hasattr(args, "object") else None,
+                                "--particles": getattr(args, "particles", None),
+                                "--config-dir": getattr(args, "config_dir", None), **inputs}, folders=folders)
+
+
 def _load(args, contract):
     if args.particles:
         from ..assets import load_particles
@@ -127,6 +139,8 @@ def _run(args) -> int:
         if name in held:
             raise InputError("command line", "--heldout-measured", f"probe '{name}' is given twice")
         held[name] = path
+    _common_inputs(args, **{"--measured": args.measured, "--heldout-measured": list(held.values()),
+                            "--library-rollout": list(args.library_rollout)})
     settings = LoopSettings(max_effects=args.max_effects, catalogue=tuple(args.catalogue.split(",")) if args.catalogue else None)
     say = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     result = run_files(args.object, args.profile, args.measured, args.output, particles=args.particles, probe=args.probe,
@@ -141,6 +155,7 @@ def _make_case(args) -> int:
     from ..contract import load_contract
     from ..discrepancy import CaseSpec, default_cases, make_case
 
+    _common_inputs(args)
     contract = load_contract(args.object, args.profile, config_dir=args.config_dir)
     check_outputs({"--measured-dir": args.measured_dir, "--truth-dir": args.truth_dir},
                   {**contract_inputs(contract), "--particles": args.particles},
@@ -163,6 +178,7 @@ def _make_case(args) -> int:
 def _evaluate(args) -> int:
     from ..discrepancy import evaluate_files
 
+    _common_inputs(args, **{"--run-dir": args.run_dir, "--truth-dir": args.truth_dir})
     evaluate_files(args.run_dir, args.truth_dir, args.output, markdown=args.markdown)
     return 0
 
@@ -172,6 +188,9 @@ def _table(args) -> int:
 
     from ..io import check_outputs
 
+    from ._common import check_command_inputs
+
+    check_command_inputs(args, {"ROW.json": list(args.rows)})
     check_outputs({"--csv": args.csv, "--md": args.md, "--figure": args.figure}, {"ROW.json": list(args.rows)})
     rows = []
     for p in args.rows:

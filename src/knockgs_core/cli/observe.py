@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import image_side
+from ._common import image_side, nonnegative_float, nonnegative_int, positive_float, positive_int
 
 __all__ = ["register", "run_rgbd", "run_tracks", "run_describe", "TRACKS_SETTINGS"]
 
@@ -54,13 +54,14 @@ def register(sub) -> None:
     tr.add_argument("--method", choices=("lk", "ilk", "tvl1"), default=TRACKS_SETTINGS["method"],
                     help="lk (default): sparse pyramidal Lucas-Kanade against frame 0, sub-pixel; ilk, tvl1: dense flow "
                          "between consecutive frames (scikit-image)")
-    tr.add_argument("--max-seeds", type=int, default=400, help="frame-0 corners tracked at most (default 400)")
-    tr.add_argument("--radius", type=int, default=TRACKS_SETTINGS["radius"],
-                    help=f"Lucas-Kanade window radius in pixels (default {TRACKS_SETTINGS['radius']})")
-    tr.add_argument("--fb-max", type=float, help="lk: forward-backward tolerance in pixels; a track beyond it is dropped "
-                    "(default: TrackSettings.fb_max, 0.3)")
-    tr.add_argument("--depth-noise", type=float, default=0.0, help="Gaussian depth noise std added [m] (default 0)")
-    tr.add_argument("--seed", type=int, default=0, help="seed of the depth noise")
+    tr.add_argument("--max-seeds", type=positive_int, default=400, help="frame-0 corners tracked at most (default 400)")
+    tr.add_argument("--radius", type=positive_int, default=TRACKS_SETTINGS["radius"],
+                    help=f"Lucas-Kanade window radius in pixels, > 0 (default {TRACKS_SETTINGS['radius']})")
+    tr.add_argument("--fb-max", type=positive_float,
+                    help="lk: forward-backward tolerance in pixels; a track beyond it is dropped "
+                         "(default: TrackSettings.fb_max, 0.3)")
+    tr.add_argument("--depth-noise", type=nonnegative_float, default=0.0, help="Gaussian depth noise std added [m] (default 0)")
+    tr.add_argument("--seed", type=nonnegative_int, default=0, help="seed of the depth noise, >= 0")
     tr.add_argument("--noise-std", type=float, help="declare the tracks' noise std per coordinate [m] (metadata noise_std; "
                     "default: none, the loop then uses the tracker's error estimate)")
     tr.add_argument("-o", "--output", required=True, help="output tracked points (.parquet, .csv or .npz)")
@@ -79,12 +80,13 @@ def run_rgbd(args) -> int:
     from ..experiments import camera_from_contract
     from ..observe import render_rgbd, write_rgbd
     from ._common import contract_inputs
-    from .render import _load, _paths
+    from .render import _check_inputs, _load, _paths
 
     if not str(args.output).endswith(".npz"):
         raise InputError(str(args.output), "--output", "an RGB-D sequence is written as .npz")
-    contract = load_contract(args.object, args.profile, config_dir=args.config_dir)
     paths = _paths(args)
+    _check_inputs(args, paths)
+    contract = load_contract(args.object, args.profile, config_dir=args.config_dir)
     check_outputs({"--output": args.output}, {**paths, **contract_inputs(contract)})
     warp_device(args.device)
     gaussians, gaussian_index, static_mask, ro, F = _load(args, paths, contract)
@@ -103,10 +105,15 @@ def run_tracks(args) -> int:
     from ..io import check_outputs
     from ..discrepancy import Measurement, write_measured
     from ..observe import TrackSettings, read_rgbd, track_points
+    from ._common import check_command_inputs
 
     out = Path(args.output)
     if out.suffix.lower() not in (".parquet", ".csv", ".npz"):
         raise InputError(str(out), "--output", "tracked points are written as .parquet, .csv or .npz")
+    check_command_inputs(args, {"frames": args.frames})
+    if args.probe and not args.object:
+        raise InputError("command line", "--probe", "needs --object (and --profile): the probe is checked against "
+                         "the object's contract before it is written to the metadata")
     check_outputs({"--output": out}, {"frames": args.frames})
     frames = read_rgbd(args.frames)
     if args.noise_std is not None and not (math.isfinite(args.noise_std) and args.noise_std >= 0):
@@ -158,6 +165,9 @@ def run_describe(args) -> int:
         named.append((name, path))
     if len({n for n, _ in named}) != len(named):
         raise InputError("tracks", "case_name", "case names must be unique (use NAME=FILE)")
+    from ._common import check_command_inputs
+
+    check_command_inputs(args, {f"tracks {n}": p for n, p in named})
     check_outputs({"--output": args.output}, {f"tracks {n}": p for n, p in named})
     rows, frames = [], set()
     for name, path in named:

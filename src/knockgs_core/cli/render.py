@@ -68,16 +68,29 @@ def _paths(args) -> dict:
             else rollout.with_name(rollout.name.replace(".parquet", ".F.parquet"))}
 
 
+def _check_inputs(args, paths: dict) -> None:
+    """The input paths (``paths``, and ``--object``, ``--config-dir`` where given), checked
+    before any work; a missing scene or F file says which command writes it."""
+    from ..io import input_problem
+    from ._common import check_command_inputs
+    from .simulate import _contract_file
+
+    hints = {"--scene": " (written next to the PLY by `knockgs asset make --normalized`)",
+             "--deformation": " (written by `knockgs simulate ... --export-F`)"}
+    for field, path in paths.items():
+        problem = input_problem(path)
+        if problem is not None:
+            raise InputError(str(path), field, problem + (hints.get(field, "") if "does not exist" in problem else ""))
+    obj = getattr(args, "object", None)
+    check_command_inputs(args, {**paths, "--object": _contract_file(obj) if obj else None,
+                                "--config-dir": getattr(args, "config_dir", None)}, folders=("--config-dir",))
+
+
 def _load(args, paths: dict, contract=None):
     """The asset, scene, rollout and F, each checked against the others (and the contract)."""
     from ..assets import load_scene, read_ply
     from ..rollout import check_rollout_meta, read_deformation, read_rollout
 
-    hints = {"--scene": " (written next to the PLY by `knockgs asset make --normalized`)",
-             "--deformation": " (written by `knockgs simulate ... --export-F`)"}
-    for field, path in paths.items():
-        if not path.is_file():
-            raise InputError(str(path), field, "no such file" + hints.get(field, ""))
     gaussians = read_ply(paths["--asset"])
     static_mask, gaussian_index = load_scene(paths["--scene"], n_gaussians=len(gaussians))
     ro = read_rollout(paths["--rollout"])
@@ -99,16 +112,27 @@ def _check(args, paths: dict, pattern: str, contract=None) -> None:
     check_outputs({"--output": args.output}, inputs, directories={"--output": (pattern,)})
 
 
+def _check_files(args, paths: dict, files: list[Path], contract=None) -> None:
+    """Every file the command writes in its output folder, checked before the first is written
+    (none of them a FIFO, a folder, a link or an input)."""
+    from ..io import check_outputs
+
+    inputs = {**paths, **(contract_inputs(contract) if contract is not None else {})}
+    check_outputs({"--output": files}, inputs)
+
+
 def run_ply(args) -> int:
     from ..assets import write_ply
     from ..render import deformed_gaussians
 
     paths = _paths(args)
+    _check_inputs(args, paths)
     _check(args, paths, "frame_*.ply")
     gaussians, gaussian_index, _, ro, F = _load(args, paths)
     out = Path(args.output)
-    out.mkdir(parents=True, exist_ok=True)
     frames = _frames(args.frames, ro.positions.shape[0])
+    _check_files(args, paths, [out / f"frame_{t:04d}.ply" for t in frames])
+    out.mkdir(parents=True, exist_ok=True)
     for t in frames:
         write_ply(deformed_gaussians(gaussians, gaussian_index, ro.positions[t], F[t]), out / f"frame_{t:04d}.ply")
     print(f"{len(frames)} PLY frame(s) of {len(gaussians)} Gaussians -> {out}", file=sys.stderr)
@@ -125,13 +149,15 @@ def run_frames(args) -> int:
     from ..io import atomic_write
     from .._warp import warp_device
 
-    contract = load_contract(args.object, args.profile, config_dir=args.config_dir)
     paths = _paths(args)
+    _check_inputs(args, paths)
+    contract = load_contract(args.object, args.profile, config_dir=args.config_dir)
     _check(args, paths, "frame_*.png", contract)
     warp_device(args.device)
     gaussians, gaussian_index, static_mask, ro, F = _load(args, paths, contract)
     camera = camera_from_contract(contract.camera, width=args.width, height=args.height)
     frames = _frames(args.frames, ro.positions.shape[0])
+    _check_files(args, paths, [Path(args.output) / f"frame_{t:04d}.png" for t in frames], contract)
     rgb, _ = render_rollout(gaussians, static_mask, gaussian_index, ro.positions[frames], F[frames], camera, device=args.device)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)

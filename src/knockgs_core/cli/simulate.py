@@ -8,7 +8,18 @@ import sys
 
 from ..errors import InputError
 
-__all__ = ["register", "run"]
+__all__ = ["THETA_RANGE", "register", "run"]
+
+#: the material scales a command accepts: factors on the contract's E and rho (the candidates
+#: span 0.5 .. 1.75); outside it a scaled material is not a plausible version of the object, and
+#: a scale such as 1e-320 would reach the solver as a zero density
+THETA_RANGE = (1e-3, 1e3)
+
+
+def _contract_file(name_or_path):
+    """The contract file an --object value names when it is a path (a name is looked up)."""
+    s = str(name_or_path)
+    return s if s.endswith((".yaml", ".yml")) or "/" in s else None
 
 
 def _theta(text: str) -> tuple[float, float]:
@@ -44,10 +55,14 @@ def run(args) -> int:
     from ..io import check_outputs
     from ..contract import load_contract
     from ..rollout import RolloutStream, run_rollout
-    from ._common import contract_inputs
+    from ._common import check_command_inputs, contract_inputs
 
-    if not all(math.isfinite(v) and v > 0 for v in args.theta):
-        raise InputError("command line", "--theta", f"scales must be finite and > 0, got {args.theta}")
+    check_command_inputs(args, {"--object": _contract_file(args.object), "--particles": args.particles,
+                                "--config-dir": args.config_dir}, folders=("--config-dir",))
+    lo, hi = THETA_RANGE
+    if not all(math.isfinite(v) and lo <= v <= hi for v in args.theta):
+        raise InputError("command line", "--theta", f"scales must be finite numbers in [{lo:g}, {hi:g}] (factors on "
+                         f"the contract's E and rho), got {args.theta}")
     contract = load_contract(args.object, args.profile, config_dir=args.config_dir)
     check_outputs({"--output": args.output, "--export-F": args.export_F},
                   {**contract_inputs(contract), "--particles": args.particles})

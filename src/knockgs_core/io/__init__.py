@@ -3,8 +3,9 @@
 Every file KnockGS writes goes through :func:`atomic_write` (or a ``write_*`` built on it): the
 bytes land in a temporary file beside the target, which replaces it only once complete, so a
 failed write leaves the old file and no temporary one. Commands check all their outputs before
-any work (:func:`check_outputs`); a job's output folders are built under hidden names and moved
-into place once complete (:func:`staged_folders`).
+any work (:func:`check_outputs`), and all their input paths too (:func:`check_inputs`: a FIFO, a
+device or a folder where a file is read is refused before it is opened); a job's output folders
+are built under hidden names and moved into place once complete (:func:`staged_folders`).
 
 Rollouts and deformation gradients are *long-format* Parquet files: one row per (frame,
 particle), integer keys ``frame`` and ``particle`` and float32 value columns (``x, y, z``;
@@ -29,6 +30,7 @@ from ._files import (
     write_parquet,
     write_text,
 )
+from ._inputs import INPUT_LIMITS, check_input, check_inputs, input_problem
 from ._long_format import (
     POSITION_COLUMNS,
     check_rollout_meta,
@@ -42,15 +44,19 @@ from ._threads import ordered_map
 
 __all__ = [
     "GROUP_ROWS",
+    "INPUT_LIMITS",
     "LONG_COMPRESSION",
     "POSITION_COLUMNS",
     "LongFormatStream",
     "StagedFolders",
     "atomic_write",
     "check_files_in",
+    "check_input",
+    "check_inputs",
     "check_output",
     "check_outputs",
     "check_rollout_meta",
+    "input_problem",
     "json_safe",
     "long_encoding",
     "long_table",

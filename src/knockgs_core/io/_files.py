@@ -78,6 +78,30 @@ def json_safe(obj: Any) -> Any:
     return obj
 
 
+def _name_max(path: Path) -> int:
+    """The longest file name [bytes] the folder of ``path`` (its nearest existing one) takes."""
+    try:
+        return os.pathconf(_nearest_existing(path.parent), "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        return 255
+
+
+def _temp_path(path: Path, suffix: str) -> Path:
+    """The temporary file :func:`atomic_write` writes beside ``path``: ``.NAME.tmpPID`` + suffix,
+    with NAME shortened (and marked by a hash of the whole name) where the whole would exceed the
+    name-length limit that NAME itself fits in."""
+    import hashlib
+
+    tail = f".tmp{os.getpid()}{suffix}"
+    name = f".{path.name}{tail}"
+    limit = _name_max(path)
+    if len(os.fsencode(name)) <= limit:
+        return path.with_name(name)
+    digest = hashlib.sha256(os.fsencode(path.name)).hexdigest()[:12]
+    keep = os.fsencode(path.name)[: max(0, limit - len(os.fsencode(tail)) - len(digest) - 2)]
+    return path.with_name(f".{keep.decode('utf-8', 'ignore')}~{digest}{tail}")
+
+
 def _nearest_existing(path: Path) -> Path:
     p = path
     while not os.path.lexists(p) and p != p.parent:
@@ -89,11 +113,20 @@ def check_output(path, field: str = "output", *, directory: bool = False) -> Non
     """Refuse an output path that cannot be written without destroying something else.
 
     ``path`` may not exist yet. If it exists it must be a regular file (``directory=True``:
-    a folder); an existing directory, device node, FIFO or socket is never replaced. The
-    nearest existing ancestor must be a writable folder (missing folders are created by the
-    writer). Raises :class:`~knockgs_core.errors.InputError` naming the path and ``field``.
+    a folder); an existing directory, device node, FIFO or socket is never replaced, and neither
+    is a symbolic link to a file (the link would be replaced, not the file it points to). A path
+    written with a trailing slash names a folder: refused where a file is written. The file name
+    must fit the folder's name-length limit. The nearest existing ancestor must be a writable
+    folder (missing folders are created by the writer). Raises
+    :class:`~knockgs_core.errors.InputError` naming the path and ``field``.
     """
+    raw = os.fspath(path)
+    if not directory and raw.endswith((os.sep, "/")):
+        raise InputError(raw, field, "ends with '/', which names a folder, but a file is written here")
     path = Path(path)
+    if len(os.fsencode(path.name)) > _name_max(path):
+        raise InputError(path, field, f"the file name is {len(os.fsencode(path.name))} bytes, more than the "
+                         f"{_name_max(path)} a name may have here")
     if os.path.lexists(path) and not os.path.exists(path):
         raise InputError(path, field, "is a broken symbolic link; refusing to write through it")
     if path.exists():
@@ -105,6 +138,9 @@ def check_output(path, field: str = "output", *, directory: bool = False) -> Non
         elif not path.is_file():
             raise InputError(path, field, "the output path is not a regular file (a device, FIFO or socket); "
                                           "refusing to replace it")
+    if not directory and os.path.islink(path):
+        raise InputError(path, field, f"is a symbolic link (to {os.readlink(path)}); writing would replace the link, "
+                         "not its target: refusing (give the target's path, or remove the link)")
     parent = _nearest_existing(path.parent if not (directory and path.is_dir()) else path)
     if not parent.is_dir():
         raise InputError(path, field, f"'{parent}' is not a folder")
@@ -155,6 +191,11 @@ def check_outputs(
                 if v is not None:
                     yield field, Path(v)
 
+    for field, value in outputs.items():  # a trailing slash (dropped by Path) names a folder
+        if field not in directories:
+            for v in (value if isinstance(value, (list, tuple)) else [value]):
+                if v is not None and os.fspath(v).endswith((os.sep, "/")):
+                    check_output(v, field)
     outs = list(flat(outputs))
     ins = list(flat(inputs))
     for i, (field, path) in enumerate(outs):
@@ -193,7 +234,7 @@ def atomic_write(path, *, mode: str = "wb", suffix: str | None = None) -> Iterat
     path = Path(path)
     check_output(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}{path.suffix if suffix is None else suffix}")
+    tmp = _temp_path(path, path.suffix if suffix is None else suffix)
     try:
         with open(tmp, mode, **({"encoding": "utf-8", "newline": ""} if mode == "w" else {})) as fh:
             yield fh

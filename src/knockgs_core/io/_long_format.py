@@ -18,6 +18,7 @@ from typing import Union
 import numpy as np
 
 from ..errors import InputError
+from ._inputs import input_problem
 
 __all__ = ["POSITION_COLUMNS", "read_long_values", "read_positions", "read_metadata", "check_rollout_meta", "theta_tag"]
 
@@ -32,8 +33,9 @@ def read_metadata(path: PathLike, key: bytes) -> dict | None:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    if os.path.isdir(path):
-        raise InputError(os.fspath(path), "file", "is a folder, not a Parquet file")
+    problem = input_problem(path)  # a folder, a FIFO (which would block the read), a device
+    if problem is not None:
+        raise InputError(os.fspath(path), "file", problem)
     try:
         md = pq.read_schema(os.fspath(path)).metadata or {}
     except (OSError, pa.ArrowInvalid) as exc:
@@ -108,7 +110,7 @@ def check_rollout_meta(path, meta: dict, *, partial: bool = False, **expected) -
 
 
 def read_long_values(
-    path: PathLike, columns: Sequence[str], *, particles: Iterable[int] | None = None
+    path: PathLike, columns: Sequence[str], *, particles: Iterable[int] | None = None, dense_ids: bool = False
 ) -> np.ndarray:
     """Read value ``columns`` of a long-format Parquet file into an array [T, N, C] (float32).
 
@@ -123,6 +125,9 @@ def read_long_values(
         The value columns, in the order of the last axis (C = len(columns)).
     particles:
         Optional particle ids to keep (in ascending id order in the result).
+    dense_ids:
+        The particle ids must be exactly 0..N-1 (a rollout's: a particle's id is its index in the
+        particle set), not any set of distinct integers (a measurement's tracks).
 
     Raises
     ------
@@ -133,8 +138,9 @@ def read_long_values(
     import pyarrow.parquet as pq
 
     source = os.fspath(path)
-    if os.path.isdir(source):
-        raise InputError(source, "file", "is a folder, not a Parquet file")
+    problem = input_problem(source)
+    if problem is not None:
+        raise InputError(source, "file", problem)
     try:
         schema = pq.read_schema(source)
     except Exception as exc:
@@ -216,6 +222,9 @@ def read_long_values(
     if differ.any():
         t = int(np.argmax(differ))
         raise InputError(source, "particle", f"frame {t} holds a different particle set than frame 0")
+    if dense_ids and not np.array_equal(ids[0], np.arange(n_p)):
+        raise InputError(source, "particle", f"ids must be 0..{n_p - 1} (a particle's index in the particle set), "
+                         f"got {int(ids[0, 0])}..{int(ids[0, -1])}")
     return _subset(source, values.reshape(n_t, n_p, len(columns)), ids[0], particles)
 
 

@@ -121,25 +121,68 @@ def write_rgbd(path, frames: RGBDFrames) -> None:
 def read_rgbd(path) -> RGBDFrames:
     """Read a sequence written by :func:`write_rgbd` (or any ``.npz`` with the same fields:
     ``rgb`` [T, H, W, 3], ``alpha`` and ``depth`` [T, H, W], ``intrinsics`` [width, height, fx,
-    fy, cx, cy], ``world_to_camera`` [4, 4], ``frame_dt``); errors name the file and field."""
+    fy, cx, cy], ``world_to_camera`` [4, 4], ``frame_dt``); errors name the file and field.
+
+    Plausibility, not only syntax: the intrinsics finite, the image 1 .. 8192 pixels a side and
+    the focal lengths > 0; ``world_to_camera`` a rigid transform (its rotation orthonormal with
+    determinant +1); ``frame_dt`` one finite number of seconds > 0.
+    """
+    import zipfile
+
+    from ..io import input_problem
+
     src = str(path)
+    problem = input_problem(src)  # a FIFO would block np.load, a device never end it
+    if problem is not None:
+        raise InputError(src, "file", problem)
     try:
         data = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise InputError(src, "file", "not found") from None
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise InputError(src, "file", f"not a readable .npz ({exc})") from None
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise InputError(src, "file", "a single .npy array, not an .npz archive of named arrays")
     with data:
-        for name in ("rgb", "alpha", "depth", "intrinsics", "world_to_camera", "frame_dt"):
-            if name not in data.files:
-                raise InputError(src, name, "missing")
-        k = np.asarray(data["intrinsics"], dtype=np.float64)
-        if k.shape != (6,):
-            raise InputError(src, "intrinsics", f"expected [width, height, fx, fy, cx, cy], got shape {list(k.shape)}")
-        cam = Camera(width=int(k[0]), height=int(k[1]), fx=k[2], fy=k[3], cx=k[4], cy=k[5],
-                     world_to_camera=np.asarray(data["world_to_camera"], dtype=np.float64))
-        return RGBDFrames(rgb=data["rgb"], alpha=data["alpha"], depth=data["depth"], camera=cam,
-                          frame_dt=float(data["frame_dt"]), source=src, mask=data["mask"] if "mask" in data.files else None)
+        try:
+            return _frames_of(src, data)
+        except InputError:
+            raise
+        except (OSError, ValueError, TypeError, EOFError, zipfile.BadZipFile) as exc:  # a damaged member
+            raise InputError(src, "file", f"not a readable .npz ({type(exc).__name__}: {exc})") from None
+
+
+def _frames_of(src: str, data) -> RGBDFrames:
+    for name in ("rgb", "alpha", "depth", "intrinsics", "world_to_camera", "frame_dt"):
+        if name not in data.files:
+            raise InputError(src, name, "missing")
+    k = np.asarray(data["intrinsics"])
+    if k.shape != (6,) or not np.issubdtype(k.dtype, np.number):
+        raise InputError(src, "intrinsics", f"expected 6 numbers [width, height, fx, fy, cx, cy], got "
+                         f"{k.dtype} of shape {list(k.shape)}")
+    k = k.astype(np.float64)
+    if not np.all(np.isfinite(k)):
+        raise InputError(src, "intrinsics", f"non-finite values {k.tolist()}")
+    if not all(float(v).is_integer() and 1 <= v <= 8192 for v in k[:2]):
+        raise InputError(src, "intrinsics", f"width and height must be integers 1 .. 8192 pixels, got {k[:2].tolist()}")
+    if not (k[2] > 0 and k[3] > 0):
+        raise InputError(src, "intrinsics", f"focal lengths fx, fy must be > 0 pixels, got {k[2:4].tolist()}")
+    m = np.asarray(data["world_to_camera"])
+    if m.shape != (4, 4) or not np.issubdtype(m.dtype, np.number) or not np.all(np.isfinite(m)):
+        raise InputError(src, "world_to_camera", f"expected a finite [4, 4] transform, got {m.dtype} of shape "
+                         f"{list(m.shape)}")
+    m = m.astype(np.float64)
+    r = m[:3, :3]
+    if not (np.allclose(r @ r.T, np.eye(3), atol=1e-5) and np.linalg.det(r) > 0):
+        raise InputError(src, "world_to_camera", "its rotation part is not a rotation (orthonormal, determinant +1)")
+    dt = np.asarray(data["frame_dt"])
+    if dt.shape != () or not np.issubdtype(dt.dtype, np.number) or not (np.isfinite(dt) and dt > 0):
+        raise InputError(src, "frame_dt", f"expected one finite number of seconds > 0, got {dt.tolist()!r}")
+    try:
+        cam = Camera(width=int(k[0]), height=int(k[1]), fx=k[2], fy=k[3], cx=k[4], cy=k[5], world_to_camera=m)
+    except InputError as exc:  # named by the file, not by the Camera class
+        raise InputError(src, "world_to_camera" if exc.field == "world_to_camera" else "intrinsics",
+                         f"{exc.field}: {exc.message}") from None
+    return RGBDFrames(rgb=data["rgb"], alpha=data["alpha"], depth=data["depth"], camera=cam,
+                      frame_dt=float(dt), source=src, mask=data["mask"] if "mask" in data.files else None)
 
 
 def project(camera: Camera, points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
