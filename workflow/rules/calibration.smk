@@ -7,7 +7,7 @@
 #                                                tracker, described (+ the tracked RMS-displacement curve)
 #   C/library.csv                                the library: labels + the observed descriptors
 #   C/measurement.csv, C/measurement.json        the measurement's descriptor (the query; no label) and its
-#                                                observation (tracks, curve, the camera the library is seen by)
+#                                                observation (tracks, curve, camera)
 #   C/estimate.json                              the local ridge's frozen estimate (checkpoint): theta, the
 #                                                jackknife standard errors, condition number, neighbours
 #   C/predictions/{prediction}/{probe}.parquet (+ .F.parquet)   before (base material, theta (1, 1)) and
@@ -34,11 +34,13 @@ if CAL_CONTRACT is not None:
     CAL_CANDIDATES = list(CANDIDATES.case_name)[:: CAL["candidate_stride"]]
     CAL_CHUNKS = [CAL_CANDIDATES[i : i + LIBRARY_CHUNK] for i in range(0, len(CAL_CANDIDATES), LIBRARY_CHUNK)]
     CAL_CHUNK_OF = {case: k for k, chunk in enumerate(CAL_CHUNKS) for case in chunk}
+    # the camera the library is seen by (the measurement's: an RGB-D file's own, else the contract's)
+    CAL_CAMERA = calibration_camera(CAL, CAL_CONTRACT)
     CALIBRATION_OUTPUTS = [f"{C}/{name}" for name in ("report.md", "report.png", "calibration.csv", "calibration.md",
                                                        "library.csv", "measurement.csv", "estimate.json")] + [
         f"{C}/frames/{which}" for which in CAL_PREDICTIONS]
 else:
-    CAL_PROBE, CAL_PROBES, CAL_CANDIDATES, CAL_CHUNKS, CAL_CHUNK_OF = None, [], [], [], {}
+    CAL_PROBE, CAL_PROBES, CAL_CANDIDATES, CAL_CHUNKS, CAL_CHUNK_OF, CAL_CAMERA = None, [], [], [], {}, None
     CALIBRATION_OUTPUTS = [calibration_not_configured]
 register_study("calibration", CALIBRATION_OUTPUTS, [])
 # how the measurement and the library are observed (experiments.ObservationSettings)
@@ -115,19 +117,20 @@ rule calibration_measurement:
         contract=CAL_SOURCE,
         profile=PROFILE,
         observation=CAL_OBSERVATION,
+        camera=CAL_CAMERA,
     script:
         "../scripts/calibration_measurement.py"
 
 
 rule calibration_observe_library:
     """One chunk of library rollouts, each rendered as RGB-D by the measurement's camera,
-    tracked with its tracker and described."""
+    tracked with its tracker and described (a new measurement by the same camera and tracker
+    leaves it as it is)."""
     conda:
         "../envs/knockgs.yaml"
     input:
         ply=f"{C}/asset.ply",
         scene=f"{C}/asset.scene.npz",
-        measurement=f"{C}/measurement.json",
         rollouts=f"{C}/library/chunk{{chunk}}",
     output:
         table=f"{C}/library/observed/chunk{{chunk}}.csv",
@@ -138,6 +141,7 @@ rule calibration_observe_library:
     params:
         runs=cal_library_runs,
         observation=CAL_OBSERVATION,
+        camera=CAL_CAMERA,
         device=DEVICE,
     resources:
         gpu=1 if ON_GPU else 0,
@@ -240,7 +244,6 @@ rule calibration_observe_predictions:
     input:
         ply=f"{C}/asset.ply",
         scene=f"{C}/asset.scene.npz",
-        measurement=f"{C}/measurement.json",
         estimate=f"{C}/estimate.json",
         rollouts=[f"{C}/predictions/{which}" for which in CAL_PREDICTIONS],
     output:
@@ -250,6 +253,7 @@ rule calibration_observe_predictions:
     params:
         runs=cal_observed_prediction_runs,
         observation=CAL_OBSERVATION,
+        camera=CAL_CAMERA,
         device=DEVICE,
     resources:
         gpu=1 if ON_GPU else 0,

@@ -7,7 +7,7 @@ import pandas as pd
 
 from knockgs_core.contract import load_contract
 from knockgs_core.descriptors import FEATURE_NAMES
-from knockgs_core.experiments import ObservationSettings, camera_from_contract, camera_to_dict, measured_observation
+from knockgs_core.experiments import ObservationSettings, camera_from_dict, camera_to_dict, measured_observation
 from knockgs_core.io import write_json, write_text
 
 sys.stderr = open(snakemake.log[0], "w")
@@ -16,8 +16,8 @@ contract = load_contract(p.contract, p.profile)
 settings = ObservationSettings(**p.observation)
 probe = contract.probes[contract.roles["calibration"]]
 phi, curve, info, camera = measured_observation(snakemake.input.measurement, settings, probe)
-if camera is None:  # tracked points bring no camera: the library is seen by the contract's
-    camera = camera_from_contract(contract.camera, width=settings.width, height=settings.height)
+# tracked points bring no camera: the library is seen by the contract's (params.camera, as is an RGB-D file's)
+camera = camera_from_dict(p.camera) if camera is None else camera
 write_json(snakemake.output.info, {"measurement": snakemake.input.measurement, "probe": probe.name, **info,
                                    "curve": curve.tolist(), "tracker": asdict(settings.tracker()),
                                    "camera": camera_to_dict(camera)}, indent=1)

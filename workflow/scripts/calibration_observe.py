@@ -1,6 +1,5 @@
 """Rollouts observed as the measurement: each rendered as RGB-D by the measurement's camera,
 tracked with its tracker and described; one row per rollout (descriptor, tracked curve r_t)."""
-import json
 import sys
 
 import pandas as pd
@@ -15,8 +14,7 @@ log = open(snakemake.log[0], "w")
 sys.stderr = log
 p = snakemake.params
 settings = ObservationSettings(**p.observation)
-with open(snakemake.input.measurement) as fh:
-    camera = camera_from_dict(json.load(fh)["camera"])
+camera = camera_from_dict(p.camera)
 gaussians = read_ply(snakemake.input.ply)
 static_mask, gaussian_index = load_scene(snakemake.input.scene, n_gaussians=len(gaussians))
 rows = []

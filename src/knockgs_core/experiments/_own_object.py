@@ -177,9 +177,10 @@ def estimate_summary(estimate: Mapping) -> dict:
         out["se"] = [float(se["E_scale"]), float(se["density_scale"])]
         out["interval"] = [[float(raw[n]) - 2 * s, float(raw[n]) + 2 * s]
                            for n, s in zip(("E_scale", "density_scale"), out["se"])]
-        out["clipped"] = dict(d.get("clipped", {}))
     else:
-        out["se"], out["interval"], out["clipped"] = None, None, {}
+        out["se"], out["interval"] = None, None
+    out["clipped"] = dict(d.get("clipped") or {})
+    out["unclipped"] = [float(raw["E_scale"]), float(raw["density_scale"])] if raw else None
     return out
 
 
@@ -233,7 +234,9 @@ def calibration_report(obj: str, summary: Mapping, rows: pd.DataFrame, info: Map
     lines += [f"| condition number | {cn:.4g} |" if cn is not None else "| condition number | - (fallback) |",
               f"| neighbours (k), alpha | {len(summary['neighbours'])}, {summary['alpha']} |",
               f"| fallback | {summary['fallback_reason'] or 'no'} |",
-              f"| clipped to the candidates' bounds | {', '.join(k for k, v in summary['clipped'].items() if v) or 'no'} |",
+              "| clipped to the candidates' bounds | " + (", ".join(
+                  f"{k} (unclipped {summary['unclipped'][i]:.4f})" for i, (k, v) in enumerate(summary["clipped"].items())
+                  if v) or "no") + " |",
               "", "Interval: the unclipped local-ridge estimate +- 2 leave-one-neighbour-out jackknife standard errors "
               "(how much it leans on single neighbours; not a calibrated confidence interval). Condition number: of the "
               "centred neighbourhood design augmented with sqrt(alpha) I.", "",
@@ -268,13 +271,17 @@ def plot_calibration(path, *, library: pd.DataFrame, summary: Mapping, measured_
     a.scatter(nb["E_scale"], nb["density_scale"], s=40, facecolors="none", edgecolors="k", label="neighbours")
     a.plot(*BASE_THETA, "s", color=colors["before"], label="before (base)")
     iv = summary["interval"]
-    if iv:
-        a.errorbar(summary["s_E"], summary["s_rho"], xerr=[[summary["s_E"] - iv[0][0]], [iv[0][1] - summary["s_E"]]],
-                   yerr=[[summary["s_rho"] - iv[1][0]], [iv[1][1] - summary["s_rho"]]], fmt="none", ecolor=colors["after"])
+    if iv:  # about the unclipped estimate: it need not hold a clipped one
+        from matplotlib.patches import Rectangle
+
+        a.add_patch(Rectangle((iv[0][0], iv[1][0]), iv[0][1] - iv[0][0], iv[1][1] - iv[1][0], fill=False,
+                              ec=colors["after"], label="interval"))
+    if any(summary["clipped"].values()):
+        a.plot(*summary["unclipped"], "x", color=colors["after"], label="unclipped")
     a.plot(summary["s_E"], summary["s_rho"], "*", ms=12, color=colors["after"], label="estimate (after)")
     a.set_xlabel("s_E")
     a.set_ylabel("s_rho")
-    a.set_title("(a) library and estimate (+- 2 jackknife SE)", fontsize=9)
+    a.set_title("(a) library, estimate, interval (+- 2 jackknife SE)", fontsize=9)
     a.legend(fontsize=7)
     b = ax[0, 1]
     t = np.arange(len(measured_curve)) * frame_dt

@@ -36,6 +36,27 @@ def calibration_config(cal):
     return source, c
 
 
+def calibration_camera(cal, c):
+    """The camera the library is seen by, as JSON (experiments.camera_to_dict): an RGB-D
+    measurement's own, else the contract camera at calibration.width x height. Known when the
+    workflow starts, so a new measurement by the same camera leaves the library's observation
+    as it is."""
+    from knockgs_core.experiments import camera_from_contract, camera_from_dict, camera_to_dict
+
+    if cal["kind"] != "rgbd":
+        return camera_to_dict(camera_from_contract(c.camera, width=cal["width"], height=cal["height"]))
+    import numpy as np
+
+    try:
+        with np.load(cal["measurement"], allow_pickle=False) as f:
+            k, pose = np.asarray(f["intrinsics"], dtype=np.float64), np.asarray(f["world_to_camera"], dtype=np.float64)
+        d = dict(zip(("width", "height", "fx", "fy", "cx", "cy"), k.tolist()), world_to_camera=pose.tolist())
+        return camera_to_dict(camera_from_dict(d))
+    except Exception as exc:  # not an .npz, a field missing, a camera that is none
+        raise WorkflowError(f"config calibration.measurement: {cal['measurement']}: no RGB-D camera (intrinsics, "
+                            f"world_to_camera) in it ({type(exc).__name__}: {exc})") from None
+
+
 def calibration_not_configured(wc):
     """The target `calibration` without a configured object: stop, naming the config key."""
     raise WorkflowError("config calibration.object: not set; the target `calibration` needs calibration.object, "
