@@ -282,7 +282,6 @@ rule calibration_report:
         f"logs/{PROFILE}/calibration/{CAL_OBJECT}/report.log",
     params:
         object=CAL_OBJECT,
-        folder=C,
         probe=CAL_PROBE,
         probes=CAL_PROBES,
         predictions=CAL_PREDICTIONS,

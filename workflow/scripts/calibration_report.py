@@ -15,7 +15,9 @@ from knockgs_core.rollout import read_rollout
 
 sys.stderr = open(snakemake.log[0], "w")
 p = snakemake.params
-C = p.folder
+# the prediction and frame folders, in p.predictions order
+predicted = dict(zip(p.predictions, snakemake.input.predictions, strict=True))
+rendered = dict(zip(p.predictions, snakemake.input.frames, strict=True))
 with open(snakemake.input.estimate) as fh:
     summary = estimate_summary(json.load(fh))
 with open(snakemake.input.measurement) as fh:
@@ -27,7 +29,7 @@ thetas = {which: (float(observed.loc[which, "E_scale"]), float(observed.loc[whic
 positions, frame_dt = {}, None
 for which in p.predictions:
     for probe in p.probes:
-        ro = read_rollout(f"{C}/predictions/{which}/{probe}.parquet")
+        ro = read_rollout(f"{predicted[which]}/{probe}.parquet")
         positions[(which, probe)] = ro.positions[:, : int(ro.meta["n_gs"])]
         frame_dt = float(ro.meta["probe"]["export"]["frame_dt"])
 rows = calibration_rows(thetas, positions, tracked, measured["curve"], calibration_probe=p.probe)
@@ -37,7 +39,7 @@ curves = {(which, probe): rms_displacement_curve(positions[(which, probe)]) for 
 peak = int(np.argmax(curves[("after", heldout[0])])) if heldout else 0
 frames, alphas = {}, {}
 for which in p.predictions:
-    with np.load(f"{C}/frames/{which}/{heldout[0] if heldout else p.probe}.npz") as f:
+    with np.load(f"{rendered[which]}/{heldout[0] if heldout else p.probe}.npz") as f:
         frames[which] = np.asarray(f["rgb"][peak], dtype=np.float32)
         alphas[which] = np.asarray(f["alpha"][peak], dtype=np.float32)
 rows_in, cols_in = np.nonzero(np.maximum(*alphas.values()) > 0.01)  # the object's box in both frames, 6 px padding
