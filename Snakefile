@@ -57,11 +57,14 @@
 #   P/boundaries/...                                      boundary conditions' assets, rollouts, estimates and
 #                                                         metrics, leave-one-object-out (grammar at the top of
 #                                                         workflow/rules/boundaries.smk)
+#   P/calibration/{object}/...                            one's own object calibrated from a measured Probe-A
+#                                                         observation (config calibration; grammar at the top of
+#                                                         workflow/rules/calibration.smk)
 #   P/benchmarks/...                                      time and memory of the expensive jobs (.tsv)
 #
 # Wildcards: object, probe, split, case (names), theta (above), method (knockgs_core.calibration
 # METHOD_NAMES), chunk (library job index), res (a profile: the discrepancy cases' resolution),
-# condition, library (boundaries.smk), rung (ladder.smk), seed (cmaes.smk).
+# condition, library (boundaries.smk), rung (ladder.smk), seed (cmaes.smk), prediction (calibration.smk).
 
 from snakemake.utils import min_version
 
@@ -88,6 +91,7 @@ include: "workflow/rules/convergence.smk"
 include: "workflow/rules/boundaries.smk"
 include: "workflow/rules/verification.smk"
 include: "workflow/rules/floor.smk"
+include: "workflow/rules/calibration.smk"
 include: "workflow/rules/audit.smk"
 
 

@@ -311,7 +311,8 @@ def test_every_registered_study_has_a_named_target_and_reaches_all_through_the_r
     registered = [(f, name, outputs) for f, text in texts.items()
                   for name, outputs in re.findall(r'register_study\(\s*"(\w+)",\s*(\w+),', text)]
     assert {name for _, name, _ in registered} >= {"diagnostics", "probe_shifts", "passive_active", "ladder", "cmaes",
-                                                   "convergence", "boundaries", "verification", "discrepancy"}
+                                                   "convergence", "boundaries", "verification", "discrepancy",
+                                                   "calibration"}
     for f, name, outputs in registered:
         block = re.search(rf"^rule {name}:\n((?:[ \t]+.*\n|\n)*)", texts[f], flags=re.M)
         assert block is not None, f"{f} registers the study {name} but has no rule {name}"
@@ -405,7 +406,7 @@ def test_every_simulating_rule_takes_the_reproducible_setting():
     # rule that simulates: its params carry DETERMINISTIC and its script passes it, as a keyword
     # beside the device, to every call that simulates (no process-wide setting); rules with a
     # device that only render are listed
-    render_only = {"render.py", "ladder_observe.py"}
+    render_only = {"render.py", "ladder_observe.py", "calibration_observe.py"}
     renders_stored = {"rollout_video"}  # calls with the device in simulating scripts that only render
     seen = set()
     for f in sorted((ROOT / "workflow/rules").glob("*.smk")):
@@ -451,8 +452,9 @@ def test_every_folder_output_is_built_in_a_staging_folder():
             assert "staged_folders(" in code, f"{f.name}: rule {name}'s script {script} writes its folder in place"
     assert set(seen.values()) == {"rollout.py", "render.py", "boundaries_rollout.py"}, seen
     # the library, evaluation, diagnostics' set, passive (library, targets), boundary (library,
-    # evaluation), discrepancy-library rollouts and the render
-    assert len(seen) == 9, seen
+    # evaluation), discrepancy-library rollouts and the render; the calibration's library,
+    # predictions and their render
+    assert len(seen) == 12, seen
 
 
 def _planned(work: Path, *args) -> dict:

@@ -18,18 +18,48 @@ from knockgs_core.errors import InputError
 from knockgs_core.rollout import theta_tag
 
 
-def _yaml_booleans(config, schema_file):
+def _yaml_scalars(config, schema_file):
     """``--config deterministic=true``: Snakemake reads a command-line value as a number,
-    ``True`` or ``False``, else a string. Where the schema asks for a boolean, YAML's ``true``
-    and ``false`` (as a config file writes them) are read as booleans too; other strings stay,
-    for the schema to refuse."""
+    ``True`` or ``False``, else a string, and the values inside a mapping given on the command
+    line (``--config 'calibration={candidate_stride: 6}'``) as strings. Where the schema asks
+    for a boolean, YAML's ``true`` and ``false`` (as a config file writes them) are read as
+    booleans; inside a mapping, where it asks for an integer or a number (or allows null), a
+    string that reads as one is read as one (a config file's quoted "6" too). Other strings
+    stay, for the schema to refuse."""
     import yaml
+
+    def types(prop):
+        t = prop.get("type", [])
+        return set([t] if isinstance(t, str) else t)
+
+    def convert(value, prop, nested):
+        t = types(prop)
+        if isinstance(value, dict) and "properties" in prop:
+            for key, v in value.items():
+                if key in prop["properties"]:
+                    value[key] = convert(v, prop["properties"][key], True)
+            return value
+        if not isinstance(value, str):
+            return value
+        if "boolean" in t and value.lower() in ("true", "false"):
+            return value.lower() == "true"
+        if not nested:
+            return value
+        if "null" in t and value in ("null", "~"):
+            return None
+        for kind, cast in (("integer", int), ("number", float)):
+            if kind in t:
+                try:
+                    return cast(value)
+                except ValueError:
+                    pass
+        return value
 
     with open(schema_file) as f:
         props = yaml.safe_load(f)["properties"]
     for key, value in config.items():
-        if props.get(key, {}).get("type") == "boolean" and isinstance(value, str) and value.lower() in ("true", "false"):
-            config[key] = value.lower() == "true"
+        if key in props:
+            config[key] = convert(value, props[key], False)
 
 
 def config_refusal(message):
@@ -95,7 +125,7 @@ def _validate_config(schema_file):
 
 
 _check_config_files()
-_yaml_booleans(config, os.path.join(workflow.current_basedir, "../schemas/config.schema.yaml"))
+_yaml_scalars(config, os.path.join(workflow.current_basedir, "../schemas/config.schema.yaml"))
 _validate_config("../schemas/config.schema.yaml")
 
 PROFILE = config["profile"]

@@ -7,7 +7,8 @@ from knockgs_core.assets import asset_figure, build_asset, save_particles, save_
 from knockgs_core.contract import load_contract
 
 sys.stderr = open(snakemake.log[0], "w")
-contract = load_contract(snakemake.wildcards.object, snakemake.params.profile)
+# a contract by name (the object wildcard), or by its file where the rule gives one (params.contract)
+contract = load_contract(getattr(snakemake.params, "contract", None) or snakemake.wildcards.object, snakemake.params.profile)
 built = build_asset(contract)
 write_ply(built.gaussians, snakemake.output.ply)
 save_particles(built.particles, snakemake.output.particles, contract=contract)

@@ -10,7 +10,9 @@ gate), :mod:`._sensitivity` (library size, k x alpha) and :mod:`._identifiabilit
 (descriptor ambiguity, condition numbers); :mod:`._probe_shifts` (the frozen estimates under
 another probe duration and contact) and :mod:`._passive` (passive versus active observation);
 :mod:`._ladder` (the observation ladder, from simulator particles to ID-free video tracks) and
-:mod:`._cmaes` (CMA-ES direct video optimization, the alternative inverse route).
+:mod:`._cmaes` (CMA-ES direct video optimization, the alternative inverse route);
+:mod:`._own_object` (one's own object calibrated from a measured Probe-A observation, the
+library observed the same way).
 """
 
 from ._boundaries import (
@@ -65,6 +67,21 @@ from ._cmaes import (
     video_depth_scale,
     video_loss,
     video_simulator,
+)
+from ._own_object import (
+    BASE_THETA,
+    OBSERVE_TRACKS_DEFAULTS,
+    ObservationSettings,
+    as_stored,
+    calibration_report,
+    camera_from_dict,
+    camera_to_dict,
+    calibration_rows,
+    estimate_summary,
+    measured_observation,
+    observe_frames,
+    observe_rollout,
+    plot_calibration,
 )
 from ._ladder import LadderSettings, ladder_note, ladder_rungs, ladder_table, plot_ladder, rung_descriptors
 from ._passive import (
@@ -177,6 +194,19 @@ __all__ = [
     "ladder_table",
     "ladder_note",
     "plot_ladder",
+    "BASE_THETA",
+    "OBSERVE_TRACKS_DEFAULTS",
+    "ObservationSettings",
+    "as_stored",
+    "camera_to_dict",
+    "camera_from_dict",
+    "observe_frames",
+    "observe_rollout",
+    "measured_observation",
+    "estimate_summary",
+    "calibration_rows",
+    "calibration_report",
+    "plot_calibration",
     "CMAES_METHOD",
     "DEPTH_WEIGHT",
     "VideoScene",
