@@ -63,6 +63,41 @@ def test_the_fem_worlds_box_probe_delivers_the_contracts_impulse_on_its_cells_on
     assert far.sum() > 0.5 * len(far) and np.all(load[far] == 0.0)
 
 
+def test_a_block_on_a_support_whose_top_lies_between_grid_planes_vibrates_as_one_clamped_at_its_foot():
+    """The FEM world holds the grid nodes inside a still support box, as the MPM does, and no
+    more: a block standing on the Pillow's support (its top z = 0.99 lies 0.115 m above the grid
+    plane z = 0.875 under the block, below the next one) has the first period of the same block
+    clamped at its bottom face (an independent tensor mesh, P2 eigenproblem). Holding every P2
+    node inside the box also held the mid-edge nodes of the first element layer (z 0.9375):
+    a period 20 % short at this grid (docs/floor.md, 2026-12-06)."""
+    from knockgs_core.assets import ParticleSet
+    from knockgs_core.contract import load_contract
+    from knockgs_core.experiments._floor import _with_record
+    from knockgs_core.fem import (FemWorld, Region, assemble_elasticity, box_mesh, fem_world_rollout, natural_frequencies,
+                                  support_dofs)
+
+    n, dx = 16, 2.0 / 16
+    lo, hi = np.array([0.75, 0.75, 0.875]), np.array([1.25, 1.25, 1.375])      # 4 x 4 x 4 cells, on the grid
+    contract = _with_record(load_contract("pillow", "ci"), "standard_x", 151)       # 3 s, ~1.4 periods
+    (support,) = [bc.box for bc in contract.sim.boundaries if type(bc).__name__ == "FixedCuboid"]
+    top = support.center[2] + support.half_size[2]
+    assert lo[2] < top < lo[2] + dx / 2 + dx                                        # between grid planes, above a mid-edge node
+    o = np.array([0.25, 0.75])
+    cells = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(np.round(lo / dx), np.round(hi / dx))], indexing="ij"), -1)
+    x = ((cells.reshape(-1, 1, 3) + np.stack(np.meshgrid(o, o, o, indexing="ij"), -1).reshape(1, -1, 3)) * dx).reshape(-1, 3)
+    particles = ParticleSet(positions=x.astype(np.float32), volumes=None, n_gs=len(x), gaussian_index=np.arange(len(x)),
+                            region=np.zeros(len(x), np.int32))
+    Y = fem_world_rollout(contract, particles, (1.0, 1.0), "standard_x", x, world=FemWorld(n_grid=n))
+    times = np.arange(len(Y)) * contract.probes["standard_x"].export.frame_dt
+    period = probe_period(times, Y - Y[0], (1.0, 0.0, 0.0))
+
+    m = contract.materials["base"]
+    block = assemble_elasticity(box_mesh(tuple(lo), tuple(hi), (4, 4, 4)), E=m.E, nu=m.nu, rho=m.rho, degree=2)
+    foot = support_dofs(block, Region(tuple(lo - 1.0), (hi[0] + 1.0, hi[1] + 1.0, lo[2])))
+    clamped = 1.0 / natural_frequencies(block, foot, n_modes=1)[0]                  # the bending mode (x and y alike)
+    assert period == pytest.approx(clamped, rel=0.01), (period, clamped)
+
+
 def test_the_reference_mesh_does_not_change_with_the_mpm_resolution():
     from knockgs_core.assets import build_asset
     from knockgs_core.contract import load_contract

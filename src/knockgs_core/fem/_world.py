@@ -4,7 +4,8 @@ MPM model cannot match exactly (private).
 The body is the object's particle set voxelized on the contract's grid: every grid cell that
 holds a particle becomes a hexahedron (six tetrahedra), so the meshed volume is the MPM's
 (which gives each occupied cell the volume dx^3) and so is the mass. The still sticky
-supports (the contract's ``fixed_cuboid`` boxes) hold the mesh nodes inside them. The probe
+supports (the contract's ``fixed_cuboid`` boxes) hold the mesh vertices inside them, the grid
+nodes the MPM holds, and what those vertices span (:func:`held_dofs`). The probe
 acts as the MPM's does: the same force on every selected particle, so the force density of a
 cell is proportional to the particles it holds; the total impulse is the contract's. A probe
 shorter than the FEM step is applied as the velocity jump ``M^-1 J`` at t = 0. Quadratic
@@ -23,11 +24,11 @@ import scipy.sparse.linalg as spla
 import skfem
 
 from ..errors import InputError
-from ._elasticity import ElasticSystem, assemble_elasticity, interpolate, support_dofs
+from ._elasticity import ElasticSystem, assemble_elasticity, interpolate
 from ._mesh import Region
 from ._newmark import RayleighDamping, newmark
 
-__all__ = ["FemWorld", "fem_world_mesh", "fem_world_rollout"]
+__all__ = ["FemWorld", "fem_world_mesh", "fem_world_rollout", "held_dofs"]
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,21 @@ def fem_world_mesh(contract, particles, *, world: FemWorld = FemWorld()) -> dict
     used, inv = np.unique(t, return_inverse=True)
     mesh = skfem.MeshTet(np.ascontiguousarray(full.p[:, used]), np.ascontiguousarray(inv.reshape(t.shape)))
     return {"mesh": mesh, "dx": dx, "cells": cells, "counts": counts, "volume": float(len(cells) * dx**3)}
+
+
+def held_dofs(system: ElasticSystem, region: Region) -> np.ndarray:
+    """The DOFs a still sticky support box ``region`` holds on a voxel mesh: those of the mesh
+    vertices inside it (the grid nodes the MPM's ``FixedCuboid`` holds) and, on P2, those of the
+    edge nodes of edges whose two ends are held, so that the held part is what the held vertices
+    span. An edge node inside the box on an edge that leaves it (a box top between two grid
+    planes) stays free: holding it would clamp part of the element layer above the held plane.
+    Sorted indices into the system's DOFs."""
+    inside = region.contains(system.mesh.p.T)
+    dofs = [system.basis.nodal_dofs[:, inside].ravel()]
+    if system.basis.edge_dofs.size:
+        a, b = system.mesh.edges
+        dofs.append(system.basis.edge_dofs[:, inside[a] & inside[b]].ravel())
+    return np.unique(np.concatenate(dofs)).astype(np.int64)
 
 
 def _probe_load(system: ElasticSystem, cells: np.ndarray, counts: np.ndarray, dx: float, force: np.ndarray) -> np.ndarray:
@@ -163,7 +179,7 @@ def fem_world_rollout(contract, particles, theta, probe: str, points, *, world: 
     for bc in contract.sim.boundaries:
         box = getattr(bc, "box", None)
         if box is not None and type(bc).__name__ == "FixedCuboid" and not any(getattr(bc, "velocity", (0, 0, 0))):
-            fixed.append(support_dofs(system, Region.from_center(box.center, box.half_size)))
+            fixed.append(held_dofs(system, Region.from_center(box.center, box.half_size)))
     fixed = np.unique(np.concatenate(fixed)) if fixed else np.zeros(0, dtype=np.int64)
     sel = contract.probe_selection(pr, particles.positions)
     cells, counts = _cells(np.asarray(particles.positions)[sel], geo["dx"])
