@@ -39,6 +39,8 @@ assigned whole; a package's submodules are in its layer.
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from functools import lru_cache
 from pathlib import Path
 
@@ -242,7 +244,7 @@ def test_parser_resolves_the_import_forms():
     # ``from . import __version__`` in a top-level module is the package's __init__
     assert "knockgs_core" in graph["knockgs_core.rollout"]
     # a package's __init__ re-exports its submodules
-    assert "knockgs_core.sim._solver" in graph["knockgs_core.sim"]
+    assert "knockgs_core.sim._config" in graph["knockgs_core.sim"]
     # importing a submodule from outside runs the package's __init__ first
     assert {"knockgs_core.io._long_format", "knockgs_core.io"} <= set(graph["knockgs_core.rollout"])
     # a function-local import counts
@@ -294,3 +296,24 @@ def test_lower_layers_never_import_the_studies_or_the_command_line(upper):
 if __name__ == "__main__":  # print the graph: python tests/test_import_graph.py
     for module, targets in sorted(import_graph().items()):
         print(module, "->", ", ".join(sorted(targets)) or "(nothing)")
+
+
+def test_reading_contracts_tables_and_frames_does_not_start_warp():
+    # the workflow's light jobs (estimates, evaluations, tables) and every Snakemake start read
+    # contracts and studies: the simulator's and renderer's Warp modules are imported where they
+    # run (knockgs_core.sim and knockgs_core.render import them on first use)
+    code = ("import sys\n"
+            "import knockgs_core.contract, knockgs_core.experiments, knockgs_core.rollout, knockgs_core.observe\n"
+            "from knockgs_core.contract import load_contract\n"
+            "load_contract('pillow', 'ci')\n"
+            "print(sorted(m for m in sys.modules if m == 'warp' or m.startswith('knockgs_core.sim._kernels')))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT.parents[1])
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "[]", out.stdout
+    # and the lazy names resolve to the modules that define them
+    from knockgs_core import render, sim
+
+    assert sim.simulate is sim._simulate.simulate and sim.MPMSolver is sim._solver.MPMSolver
+    assert render.render is render._pipeline.render
+    with pytest.raises(AttributeError):
+        sim.no_such_name  # noqa: B018

@@ -310,7 +310,7 @@ def test_rollouts_simulated_together_count_their_cells_once(pillow_ci, monkeypat
 
     volumes = counted("volumes", _model.particle_volumes)
     monkeypatch.setattr(_model, "particle_volumes", volumes)  # build_model's
-    monkeypatch.setattr("knockgs_core.rollout.particle_volumes", volumes)
+    monkeypatch.setattr("knockgs_core.sim.particle_volumes", volumes)  # run_rollouts' (imported where it runs)
     monkeypatch.setattr(_solver, "cell_crowding", counted("crowding", _model.cell_crowding))  # MPMSolver's
     runs = [((0.95, 1.35), "standard_x"), ((1.6, 0.8), "standard_x"), ((0.7, 1.1), "standard_y")]
     run_rollouts(contract, runs, particles=dataclasses.replace(built.particles, volumes=None))

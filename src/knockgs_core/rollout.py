@@ -38,7 +38,7 @@ from .errors import InputError
 from .io import (GROUP_ROWS, LONG_COMPRESSION, POSITION_COLUMNS, LongFormatStream, check_rollout_meta, json_safe,
                  long_encoding, long_table, read_long_values, read_metadata, remove_outputs, theta_tag, write_parquet)
 from .io._long_format import _has_field, _meta_field
-from .sim import Probe, SimResult, build_model, make_state, particle_volumes, simulate_many
+from .sim import Probe
 
 __all__ = [
     "Rollout",
@@ -226,6 +226,8 @@ def _simulate_rollouts(contract, runs, *, particles, device, export_F, probe, pr
         raise InputError(f"object {contract.name}", "probes",
                          f"rollouts run together must share one export schedule, got {sorted(exports)}")
     (frame_dt, n_frames), = exports
+    from .sim import build_model, make_state, particle_volumes, simulate_many  # Warp: imported where it runs
+
     t0 = time.perf_counter()
     models = []
     # one rest-position array for the batch's models, and its per-cell volumes counted once (each
@@ -242,7 +244,7 @@ def _simulate_rollouts(contract, runs, *, particles, device, export_F, probe, pr
     if perm is not None:  # exported back in the particle set's order, gathered on the device
         inv = np.empty_like(perm)
         inv[perm] = np.arange(len(perm), dtype=perm.dtype)
-    results: list[SimResult] = simulate_many(models, frame_dt=frame_dt, n_frames=n_frames,
+    results = simulate_many(models, frame_dt=frame_dt, n_frames=n_frames,
                                              export_F=particles.n_gs if export_F else 0, progress=progress,
                                              concurrent=concurrent, export_index=inv, on_frame=on_frame,
                                              deterministic=deterministic)

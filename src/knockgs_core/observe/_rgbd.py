@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
-from ..render import Camera, render, render_outputs
+from ..render import Camera, render_outputs
 
 __all__ = ["RGBDFrames", "render_rgbd", "write_rgbd", "read_rgbd", "project", "unproject"]
 
@@ -96,7 +96,7 @@ def object_share(gaussians, static_mask, positions0, F0, camera: Camera, *, devi
     """[H, W] the object's share of each pixel's compositing weight at frame 0 (``positions0``
     [n_gs, 3], ``F0`` [n_gs, 3, 3]): 1 where only its Gaussians make the pixel, less where a
     static support in front of it (or seen through it) takes part, 0 where it is absent."""
-    from ..render import deformed_scene
+    from ..render import deformed_scene, render  # Warp: imported where it runs
 
     mask = np.asarray(static_mask, dtype=bool)
     colors = np.where(mask[:, None], 0.0, 1.0) * np.ones((1, 3))

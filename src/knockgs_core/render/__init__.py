@@ -17,8 +17,23 @@ from ._camera import Camera, Projection, RenderOutput, TileBins
 from ._constants import TILE_SIZE
 from ._deform import (Scene, covariance_to_scale_rotation, deform_covariances, deformed_gaussians, deformed_scene, render_frames,
                       render_outputs, render_rollout)
-from ._pipeline import bin_tiles, project, rasterize, render
 from ._reference import render_reference
+
+
+def __getattr__(name):
+    # the Warp pipeline is imported on first use: reading frames, cameras or the reference does
+    # not pay Warp's start-up
+    if name in ("bin_tiles", "project", "rasterize", "render"):
+        from . import _pipeline
+
+        value = getattr(_pipeline, name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | {"bin_tiles", "project", "rasterize", "render"})
 
 __all__ = [
     "Camera",

@@ -26,26 +26,37 @@ from ._config import (
     GPU_SOLVER_OPTIONS,
     is_still_sticky,
 )
-from ._effects import (
-    BodyForcePulse,
-    Gravity,
-    HiddenMass,
-    PoissonShift,
-    StiffnessGradient,
-    MaterialViscosity,
-    SupportFriction,
-    SupportSlip,
-    VelocityDamping,
-    VonMisesPlasticity,
-    effect_examples,
-    viscous_stability_limit,
-    with_effects,
-)
 from ._protocol import Effect
-from ._model import (GPU_STORAGE, Model, State, build_model, cell_crowding, default_device, device_storage, make_state,
-                     particle_volumes)
-from ._simulate import SimResult, simulate, simulate_many
-from ._solver import MPMSolver
+
+# The data (boundary conditions, probes, materials, solver settings) import without Warp; the
+# parts that define or launch Warp kernels (effects, model, solver, rollouts) are imported on
+# first use, so that reading a contract or a table does not pay Warp's start-up.
+_LAZY = {
+    "._effects": ("BodyForcePulse", "Gravity", "HiddenMass", "PoissonShift", "StiffnessGradient", "MaterialViscosity",
+                  "SupportFriction", "SupportSlip", "VelocityDamping", "VonMisesPlasticity", "effect_examples",
+                  "viscous_stability_limit", "with_effects"),
+    "._model": ("GPU_STORAGE", "Model", "State", "build_model", "cell_crowding", "default_device", "device_storage",
+                "make_state", "particle_volumes"),
+    "._simulate": ("SimResult", "simulate", "simulate_many"),
+    "._solver": ("MPMSolver",),
+}
+_MODULE_OF = {name: module for module, names in _LAZY.items() for name in names}
+
+
+def __getattr__(name):
+    module = _MODULE_OF.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module, __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_MODULE_OF))
+
 
 __all__ = [
     "BoundaryCondition",
