@@ -197,3 +197,14 @@ def test_the_pillows_gap_to_the_fem_reference_falls_under_refinement():
     assert mpm.rmse_pct[1] < 0.75 * mpm.rmse_pct[0]
     assert table.rmse_pct.iloc[-1] == 0.0 and np.all(mpm.fit_residual_pct < mpm.rmse_pct)
     assert mpm.mass_kg[1] < mpm.mass_kg[0]                          # the voxel body thins towards the solid
+
+
+def test_a_floor_object_the_reference_cannot_hold_is_one_line_at_config_read(tmp_path):
+    # the Ficus has two material regions; the FEM reference holds one
+    from _workflow import scratch_copy, snakemake
+
+    work = scratch_copy(tmp_path)
+    out = snakemake(work, "-n", "--configfile=config/ci.yaml", "--config", "floor={objects: [ficus]}", "--", "floor")
+    text = (out.stdout + out.stderr).strip()
+    assert out.returncode != 0 and "Traceback" not in text
+    assert text.splitlines()[-1].startswith("knockgs workflow: config error: config floor.objects: 'ficus'"), text[-500:]

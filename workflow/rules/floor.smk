@@ -8,10 +8,14 @@
 # floor.enabled is true.
 
 FLOOR = config["floor"]
-for _obj in FLOOR["objects"]:  # the FEM reference has one material region: refused at parse time
-    if contract(_obj).region_names != ("base",):
-        raise ValueError(f"config floor.objects: '{_obj}' has material regions {list(contract(_obj).region_names)}; "
-                         "the floor study's FEM reference supports one (base)")
+for _obj in FLOOR["objects"]:  # an unknown object, or one the FEM reference cannot hold: refused at config read
+    try:
+        _regions = contract(_obj).region_names
+    except InputError as exc:
+        config_refusal(f"config floor.objects: {exc}")
+    if _regions != ("base",):
+        config_refusal(f"config floor.objects: '{_obj}' has material regions {list(_regions)}; "
+                       "the floor study's FEM reference supports one (base)")
 FLOOR_OUTPUTS = [f"{P}/{kind}/floor_{o}.{ext}" for o in FLOOR["objects"]
                  for kind, ext in (("tables", "csv"), ("tables", "md"), ("figures", "png"))]
 FLOOR_IN_ALL = register_study("floor", FLOOR_OUTPUTS, FLOOR_OUTPUTS if FLOOR["enabled"] else [])
