@@ -23,8 +23,9 @@ import yaml
 from _workflow import ROOT, scratch_copy, snakemake, snakemake_env
 from knockgs_core.errors import InputError
 
-#: the tutorial test's library: every 6th candidate (nine), config calibration.candidate_stride
-TEST_STRIDE = 6
+#: the tutorial test's library: every 6th candidate (nine), config calibration.candidate_stride,
+#: and the local ridge's k cut to the nine
+TEST_CONFIG = ["calibration={candidate_stride: 6}", "method_params={local_ridge: {k: 9, alpha: 0.001}}"]
 
 
 def tutorial_blocks(text: str) -> list[tuple[str, str]]:
@@ -154,6 +155,10 @@ def test_a_calibration_config_problem_is_one_line_naming_the_key(tmp_path):
                     "calibration={object: ficus, contract: config/objects/pillow.yaml, measurement: m.parquet}")
     assert out.returncode != 0 and "config calibration.object: 'ficus', but the contract pillow.yaml is of 'pillow'" in \
         out.stdout + out.stderr
+    out = snakemake(work, "-n", "--configfile=config/ci.yaml", "calibration", "--config",
+                    "calibration={object: pillow, measurement: m.parquet, candidate_stride: 6}")
+    assert out.returncode != 0 and ("config calibration.candidate_stride: 6 keeps 9 candidates, fewer than "
+                                    "method_params.local_ridge.k = 10") in out.stdout + out.stderr
 
 
 @pytest.fixture(scope="module")
@@ -167,7 +172,7 @@ def splats() -> Path:
 @pytest.mark.slow
 def test_the_tutorial_calibrates_the_guitar_from_its_filmed_response(tmp_path, splats):
     """The tutorial's blocks as written (the library cut to every 6th candidate, nine: config
-    calibration.candidate_stride) make the calibration folder; the measurement's descriptor is
+    calibration.candidate_stride, and k to nine) make the calibration folder; the measurement's descriptor is
     the hidden rollout observed as the library is; the frozen estimate is nearer the hidden
     theta than the base material, and its Probe-B prediction nearer the hidden truth's."""
     from knockgs_core.assets import load_scene, read_ply
@@ -184,7 +189,7 @@ def test_the_tutorial_calibrates_the_guitar_from_its_filmed_response(tmp_path, s
     for lang, code in tutorial_blocks((ROOT / "docs" / "own_splat.md").read_text()):
         runs = ([[sys.executable, "-c", code]] if lang == "python" else
                 [[sys.executable, "-m", {"knockgs": "knockgs_core", "snakemake": "snakemake"}[a[0]], *a[1:]]
-                 + (["calibration={candidate_stride: %d}" % TEST_STRIDE] if a[0] == "snakemake" else [])
+                 + (TEST_CONFIG if a[0] == "snakemake" else [])
                  for a in tutorial_commands(code)])
         for args in runs:
             proc = subprocess.run(args, cwd=work, env=env, capture_output=True, text=True, timeout=1500)

@@ -387,6 +387,12 @@ def test_boolean_config_values_are_read_as_yaml_writes_them(tmp_path):
         assert out.returncode == 0, (value, out.stderr[-2000:])
     bad = snakemake(work, "-n", "--configfile=config/ci.yaml", "--config", "deterministic=maybe", "--", table)
     assert bad.returncode != 0 and "deterministic" in bad.stdout + bad.stderr and "'maybe'" in bad.stdout + bad.stderr
+    # a number where the schema allows a number or a word (alpha: a number or cv) is read as one
+    nested = "method_params={local_ridge: {k: 9, alpha: 0.001}}"
+    out = snakemake(work, "-n", "--configfile=config/ci.yaml", "--config", nested, "--", table)
+    assert out.returncode == 0, out.stderr[-2000:]
+    bad = snakemake(work, "-n", "--configfile=config/ci.yaml", "--config", nested.replace("0.001", "much"), "--", table)
+    assert bad.returncode != 0 and "method_params.local_ridge.alpha" in bad.stdout + bad.stderr
 
 
 def _calls_with(code: str, keyword: str) -> list[tuple[str, list[str]]]:

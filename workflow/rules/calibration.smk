@@ -32,6 +32,11 @@ if CAL_CONTRACT is not None:
     CAL_PROBES = [CAL_PROBE] + list(CAL_CONTRACT.roles["heldout"])
     # the library: every candidate_stride-th candidate, LIBRARY_CHUNK a job
     CAL_CANDIDATES = list(CANDIDATES.case_name)[:: CAL["candidate_stride"]]
+    CAL_K = config["method_params"].get("local_ridge", {}).get("k")
+    if isinstance(CAL_K, int) and CAL_K > len(CAL_CANDIDATES):
+        config_refusal(f"config calibration.candidate_stride: {CAL['candidate_stride']} keeps "
+                       f"{len(CAL_CANDIDATES)} candidates, fewer than method_params.local_ridge.k = {CAL_K} "
+                       "neighbours (a smaller stride, or a smaller k)")
     CAL_CHUNKS = [CAL_CANDIDATES[i : i + LIBRARY_CHUNK] for i in range(0, len(CAL_CANDIDATES), LIBRARY_CHUNK)]
     CAL_CHUNK_OF = {case: k for k, chunk in enumerate(CAL_CHUNKS) for case in chunk}
     # the camera the library is seen by (the measurement's: an RGB-D file's own, else the contract's)

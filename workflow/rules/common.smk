@@ -23,14 +23,16 @@ def _yaml_scalars(config, schema_file):
     ``True`` or ``False``, else a string, and the values inside a mapping given on the command
     line (``--config 'calibration={candidate_stride: 6}'``) as strings. Where the schema asks
     for a boolean, YAML's ``true`` and ``false`` (as a config file writes them) are read as
-    booleans; inside a mapping, where it asks for an integer or a number (or allows null), a
-    string that reads as one is read as one (a config file's quoted "6" too). Other strings
-    stay, for the schema to refuse."""
+    booleans; inside a mapping, where it asks for an integer or a number (or allows null), also
+    as one alternative of several (``method_params={local_ridge: {alpha: 0.001}}``) and in a
+    list, a string that reads as one is read as one (a config file's quoted "6" too). Other
+    strings stay, for the schema to refuse."""
     import yaml
 
     def types(prop):
         t = prop.get("type", [])
-        return set([t] if isinstance(t, str) else t)
+        alternatives = prop.get("oneOf", []) + prop.get("anyOf", [])  # alpha: a number or "cv"
+        return set([t] if isinstance(t, str) else t).union(*(types(alt) for alt in alternatives))
 
     def convert(value, prop, nested):
         t = types(prop)
@@ -39,6 +41,8 @@ def _yaml_scalars(config, schema_file):
                 if key in prop["properties"]:
                     value[key] = convert(v, prop["properties"][key], True)
             return value
+        if isinstance(value, list) and isinstance(prop.get("items"), dict):
+            return [convert(v, prop["items"], nested) for v in value]
         if not isinstance(value, str):
             return value
         if "boolean" in t and value.lower() in ("true", "false"):
