@@ -47,8 +47,10 @@ class TrackSettings:
     Gaussian depth noise of std ``depth_noise`` [m] (seeded by ``seed``); at least
     ``min_tracks`` must survive every frame; seeds stay ``edge_margin`` px from the silhouette
     and off depth edges (a depth range above ``depth_edge`` [m] in their window). The
-    defaults are the workflow schema's (``ilk``); ``knockgs observe tracks`` uses ``lk`` with
-    ``radius`` 7 (docs/discrepancy.md, "Video observations: the tracker's error")."""
+    defaults are the first tracker's (``ilk``, radius 5); ``knockgs observe tracks``, the
+    calibration route and the observation ladder use ``lk`` with ``radius`` 7, which follows the
+    rendered truth more closely and in less time (docs/discrepancy.md, "Video observations: the
+    tracker's error")."""
 
     max_seeds: int = 400
     min_distance: int = 2
