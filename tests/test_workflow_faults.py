@@ -1,31 +1,37 @@
 """Workflow faults on the ci profile (issue 17): an interrupted run (Ctrl-C, SIGTERM or SIGKILL of
 the whole process group) resumes to byte-identical tables, and the audits catch a cached
 rollout that was swapped for another or truncated behind Snakemake's back, with a verdict
-naming the file (not a crash). One object (Pillow), the descriptor table of a candidate library
-of 12 (the first rows of config/candidates.csv): the asset job and two library jobs of six,
-enough to stop one job while the other writes, at a fifth of the full library's cost.
+naming the file (not a crash); a file removed from a finished job's folder stops the job that
+reads it with one line naming the file and the command that remakes the folder (issue 59). One
+object (Pillow), the descriptor table of a candidate library of 12 (the first rows of
+config/candidates.csv): the asset job and two library jobs of six, enough to stop one job while
+the other writes, at a fifth of the full library's cost.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from _workflow import (CI_RUN_CONFIG, LIBRARY_TABLE, N_LIBRARY, library_run, scratch_copy, small_library, snakemake,
-                       snakemake_env)
+from _workflow import (CI_RUN_CONFIG, LIBRARY_TABLE, N_LIBRARY, copy_run, library_run, scratch_copy, small_library,
+                       snakemake, snakemake_env)
 
 from knockgs_core.audits import audit_missing_frames, audit_nonfinite, audit_rollout_metadata, rollout_expectations
+from knockgs_core.errors import InputError
+from knockgs_core.io import check_folder_outputs, check_job_inputs
 
 P = "results/ci"
 TABLE = LIBRARY_TABLE
@@ -201,3 +207,102 @@ def test_an_unreadable_table_is_a_finding_not_a_crash(tmp_path):
     bad.write_bytes(b"\xff\xfe\x00\x81" * 10)
     verdict = audit_nonfinite([], [bad])
     assert not verdict["passed"] and str(bad) in verdict["problems"][0]
+
+
+# --------------------------------------------------------------------------- a file removed from a finished job's folder
+
+CHUNK1 = f"{P}/rollouts/pillow/lib/chunk1"
+REMAKE = re.compile(r": snakemake (--cores 1 --force \S+(?: \S+)*)$")  # the command at the end of the refusal
+
+
+def _removed(reference: Path, dest: Path, *paths: str) -> tuple[Path, dict]:
+    """A copy of the reference run's cache (hard links) in a scratch copy of this workflow, with
+    ``paths`` removed behind Snakemake's back; and the state (inode, size, time stamp) of every
+    file left under its results."""
+    work = small_library(copy_run(reference, dest, "assets", "rollouts", "descriptors"), N_CANDIDATES)
+    for path in paths:
+        (work / path).unlink()
+    return work, _state(work)
+
+
+def _state(work: Path) -> dict:
+    """(inode, size, time stamp) of every file under the results of ``work``."""
+    stats = {str(f.relative_to(work)): f.lstat() for f in sorted((work / P).rglob("*")) if not f.is_dir()}
+    return {name: (st.st_ino, st.st_size, st.st_mtime_ns) for name, st in stats.items()}
+
+
+def _refusal(out: subprocess.CompletedProcess, log: Path) -> str:
+    """The one refusal line of a failed run, on its console (no traceback) and in the job's log."""
+    console = out.stdout + out.stderr
+    assert out.returncode != 0, console[-3000:]
+    assert "Traceback" not in console, console[-3000:]
+    lines = [line for line in console.splitlines() if line.startswith("knockgs workflow: error: ")]
+    assert len(lines) == 1, console[-3000:]
+    assert lines[0] in log.read_text().splitlines()
+    return lines[0]
+
+
+@pytest.mark.slow
+def test_a_rollout_removed_from_a_finished_library_folder_is_named_with_the_command_that_remakes_it(reference, tmp_path):
+    victim = f"{CHUNK1}/sE0.550000_sR1.200000.parquet"
+    work, before = _removed(reference, tmp_path, victim, TABLE)
+    out = snakemake(work, *ARGS, TABLE)
+    line = _refusal(out, work / "logs/ci/descriptors/pillow/library.log")
+    assert line.startswith(f"knockgs workflow: error: {victim}: field 'rollouts': missing from its folder"), line
+    assert f"1 of the {N_CANDIDATES} files" in line, line
+    assert not (work / TABLE).exists()
+    assert _state(work) == before  # nothing written, no cached file replaced
+    # the command named plans the folder's job again, and with it the table (chunk0 stays as it is)
+    remake = REMAKE.search(line).group(1).split()
+    assert remake[-1] == CHUNK1, line
+    dry = snakemake(work, "-n", *remake, TABLE, *CI_RUN_CONFIG)
+    assert dry.returncode == 0, dry.stderr[-2000:]
+    assert set(re.findall(r"^\s+output: (.+)$", dry.stdout + dry.stderr, re.M)) == {CHUNK1, TABLE}, dry.stdout[-3000:]
+
+
+@pytest.mark.slow
+def test_a_deformation_gradient_file_removed_from_a_library_folder_stops_the_job_that_renders_it(reference, tmp_path):
+    victim = f"{CHUNK1}/sE0.650000_sR1.000000.F.parquet"
+    observations = f"{P}/ladder/observations/pillow/lib/chunk1.csv"  # rendered, tracked, observed: reads F
+    work, before = _removed(reference, tmp_path, victim)
+    out = snakemake(work, *ARGS, observations)
+    line = _refusal(out, work / "logs/ci/ladder/observations/pillow/lib/chunk1.log")
+    assert line.startswith(f"knockgs workflow: error: {victim}: field 'runs': missing from its folder"), line
+    assert f"1 of the {N_CANDIDATES} files" in line and REMAKE.search(line).group(1).endswith(f"--force {CHUNK1}"), line
+    assert not (work / observations).exists()
+    assert _state(work) == before
+
+
+def test_the_check_names_the_first_file_missing_from_an_existing_folder_and_counts_them(tmp_path, capfd):
+    done = tmp_path / "chunk0"
+    done.mkdir()
+    files = [done / f"{i}.parquet" for i in range(3)]
+    for f in files:
+        f.write_bytes(b"x")
+    check_folder_outputs(files)
+    check_folder_outputs([tmp_path / "chunk1" / "0.parquet"])  # its folder is missing too: Snakemake makes it
+    files[2].unlink()
+    files[1].unlink()
+    with pytest.raises(InputError) as refused:
+        check_folder_outputs({"F": [None], "rollouts": files})
+    assert (refused.value.source, refused.value.field) == (str(files[1]), "rollouts")
+    assert "2 of the 3 files read from such folders are missing" in refused.value.message
+    assert refused.value.message.endswith(f"snakemake --cores 1 --force {done}")
+    # a workflow job checks the files its parameters name in its input folders, and only those
+    # (the asset file is an input file, the camera no path): one line in its log and on the console, exit 2
+    asset = tmp_path / "asset.ply"
+    asset.write_bytes(b"ply")
+    job = SimpleNamespace(input=[str(done), str(asset)],
+                          params={"camera": {"fov": 30.0}, "runs": [{"rollout": str(f), "F": None} for f in files],
+                                  "elsewhere": [str(tmp_path / "other" / "0.parquet")]})
+    log = tmp_path / "job.log"
+    with open(log, "w") as fh, pytest.raises(SystemExit) as stop:
+        check_job_inputs(job, log=fh)
+    assert stop.value.code == 2
+    line = f"knockgs workflow: error: {InputError(files[1], 'runs', refused.value.message)}"
+    assert capfd.readouterr().err.splitlines() == [line]
+    assert log.read_text().splitlines() == [line]
+    files[1].write_bytes(b"x")
+    files[2].write_bytes(b"x")
+    check_job_inputs(job)  # whole again: nothing to say
+    assert capfd.readouterr().err == ""

@@ -4,10 +4,11 @@ import sys
 from pathlib import Path
 
 from knockgs_core import audits
-from knockgs_core.io import write_text
+from knockgs_core.io import check_job_inputs, write_text
 from knockgs_core.contract import load_candidates, load_targets
 
 sys.stderr = open(snakemake.log[0], "w")
+check_job_inputs(snakemake)  # before any work: no file removed from an input folder since its job ended
 name = snakemake.rule.removeprefix("audit_")
 p = snakemake.params
 if name == "leakage":

@@ -7,11 +7,12 @@ import pandas as pd
 from knockgs_core.assets import load_scene, read_ply
 from knockgs_core.descriptors import FEATURE_NAMES
 from knockgs_core.experiments import ObservationSettings, camera_from_dict, observe_rollout
-from knockgs_core.io import write_text
+from knockgs_core.io import check_job_inputs, write_text
 from knockgs_core.rollout import read_deformation, read_rollout
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
+check_job_inputs(snakemake)  # before any work: no file removed from an input folder since its job ended
 p = snakemake.params
 settings = ObservationSettings(**p.observation)
 camera = camera_from_dict(p.camera)

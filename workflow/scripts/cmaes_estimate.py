@@ -7,10 +7,11 @@ from pathlib import Path
 from knockgs_core.contract import load_candidates, load_contract
 from knockgs_core.experiments import (VideoScene, candidate_bounds, cmaes_calibrate, cmaes_estimate, rollout_video,
                                       video_simulator)
-from knockgs_core.io import write_json
+from knockgs_core.io import check_job_inputs, write_json
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
+check_job_inputs(snakemake)  # before any work: no file removed from an input folder since its job ended
 p = snakemake.params
 contract = load_contract(p.object, p.profile)
 scene = VideoScene.from_files(contract, Path(snakemake.input.ply).parent, width=p.width, height=p.height)

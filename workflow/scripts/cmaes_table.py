@@ -3,6 +3,7 @@ every evaluation probe, mean +- sd over seeds, per target and over targets."""
 import json
 import sys
 
+from knockgs_core.io import check_job_inputs
 from knockgs_core.contract import load_targets
 from knockgs_core.errors import InputError
 from knockgs_core.experiments import cmaes_note, cmaes_rows, cmaes_table
@@ -11,6 +12,7 @@ from knockgs_core.rollout import theta_tag
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
+check_job_inputs(snakemake)  # before any work: no file removed from an input folder since its job ended
 p = snakemake.params
 estimates = {}
 for seed, path in zip(p.seeds, snakemake.input.estimates):

@@ -2,10 +2,12 @@
 import sys
 from pathlib import Path
 
+from knockgs_core.io import check_job_inputs
 from knockgs_core.discrepancy import run_files
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
+check_job_inputs(snakemake)  # before any work: no file removed from an input folder since its job ended
 p = snakemake.params
 inp = snakemake.input
 run_files(p.object, p.profile, inp.measured, Path(snakemake.output.report).parent, particles=inp.particles, probe=p.probe,

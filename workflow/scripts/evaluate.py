@@ -3,12 +3,13 @@ benchmark and the boundaries study); ``params.labels`` become the first columns.
 import json
 import sys
 
-from knockgs_core.io import write_text
+from knockgs_core.io import check_job_inputs, write_text
 from knockgs_core.contract import load_targets
 from knockgs_core.experiments import evaluate_method
 from knockgs_core.rollout import theta_tag
 
 sys.stderr = open(snakemake.log[0], "w")
+check_job_inputs(snakemake)  # before any work: no file removed from an input folder since its job ended
 p = snakemake.params
 with open(snakemake.input.estimate) as fh:
     est = json.load(fh)

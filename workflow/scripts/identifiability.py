@@ -3,10 +3,12 @@ import sys
 
 import pandas as pd
 
+from knockgs_core.io import check_job_inputs
 from knockgs_core.experiments import condition_table, identifiability_summary, pair_table, plot_identifiability
 from knockgs_core.reporting import write_table
 
 sys.stderr = open(snakemake.log[0], "w")
+check_job_inputs(snakemake)  # before any work: no file removed from an input folder since its job ended
 p = snakemake.params
 inp, out = snakemake.input, snakemake.output
 obj = snakemake.wildcards.object

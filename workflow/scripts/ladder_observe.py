@@ -4,7 +4,7 @@ import sys
 
 import pandas as pd
 
-from knockgs_core.io import write_text
+from knockgs_core.io import check_job_inputs, write_text
 from knockgs_core.assets import load_scene, read_ply
 from knockgs_core.descriptors import FEATURE_NAMES
 from knockgs_core.experiments import LadderSettings, camera_from_contract, rung_descriptors
@@ -13,6 +13,7 @@ from knockgs_core.rollout import read_deformation, read_rollout
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
+check_job_inputs(snakemake)  # before any work: no file removed from an input folder since its job ended
 p = snakemake.params
 s = p.settings
 settings = LadderSettings(depth_noise=tuple(s["depth_noise"]), depth_tol=s["depth_tol"], track=dict(s["track"]), seed=s["seed"])

@@ -6,6 +6,7 @@ import sys
 import numpy as np
 import pandas as pd
 
+from knockgs_core.io import check_job_inputs
 from knockgs_core.contract import load_targets
 from knockgs_core.experiments import ladder_note, ladder_table, plot_ladder
 from knockgs_core.metrics import joint_error_pct, trajectory_rmse
@@ -13,6 +14,7 @@ from knockgs_core.reporting import write_table
 from knockgs_core.rollout import read_rollout, theta_tag
 
 sys.stderr = open(snakemake.log[0], "w")
+check_job_inputs(snakemake)  # before any work: no file removed from an input folder since its job ended
 p = snakemake.params
 targets = load_targets(p.split, snakemake.input.targets)
 truth = {r.case_name: (float(r.E_scale), float(r.density_scale)) for r in targets.itertuples(index=False)}

@@ -3,9 +3,11 @@ import sys
 
 import numpy as np
 
+from knockgs_core.io import check_job_inputs
 from knockgs_core.reporting import comparison_gif, qualitative_figure
 
 sys.stderr = open(snakemake.log[0], "w")
+check_job_inputs(snakemake)  # before any work: no file removed from an input folder since its job ended
 p = snakemake.params
 frames = [np.load(f) for f in p.frames]
 names = ["target"] + list(p.methods)

@@ -7,13 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
-from knockgs_core.io import check_files_in, staged_folders, write_npz
+from knockgs_core.io import check_files_in, check_job_inputs, staged_folders, write_npz
 from knockgs_core.assets import load_scene, read_ply
 from knockgs_core.experiments import camera_from_contract, render_rollout
 from knockgs_core.rollout import read_deformation, read_rollout
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
+check_job_inputs(snakemake)  # before any work: no file removed from an input folder since its job ended
 p = snakemake.params
 gaussians = read_ply(snakemake.input.ply)
 static_mask, gaussian_index = load_scene(snakemake.input.scene, n_gaussians=len(gaussians))

@@ -3,7 +3,7 @@ re-simulated under the shift probes, against the targets' rollouts under the sam
 import json
 import sys
 
-from knockgs_core.io import ordered_map
+from knockgs_core.io import check_job_inputs, ordered_map
 from knockgs_core.contract import load_targets
 from knockgs_core.experiments import contact_table, duration_table, evaluate_shift, protocol_distance, shift_note
 from knockgs_core.reporting import write_table
@@ -11,6 +11,7 @@ from knockgs_core.rollout import read_rollout, theta_tag
 
 log = open(snakemake.log[0], "w")
 sys.stderr = log
+check_job_inputs(snakemake)  # before any work: no file removed from an input folder since its job ended
 p = snakemake.params
 estimates = {}
 for m, path in zip(p.methods, snakemake.input.estimates):

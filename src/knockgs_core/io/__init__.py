@@ -5,7 +5,9 @@ bytes land in a temporary file beside the target, which replaces it only once co
 failed write leaves the old file and no temporary one. Commands check all their outputs before
 any work (:func:`check_outputs`), and all their input paths too (:func:`check_inputs`: a FIFO, a
 device or a folder where a file is read is refused before it is opened); a job's output folders
-are built under hidden names and moved into place once complete (:func:`staged_folders`).
+are built under hidden names and moved into place once complete (:func:`staged_folders`), and
+the job that reads one checks that no file it reads was removed from it since
+(:func:`check_folder_outputs`, :func:`check_job_inputs`).
 
 Rollouts and deformation gradients are *long-format* Parquet files: one row per (frame,
 particle), integer keys ``frame`` and ``particle`` and float32 value columns (``x, y, z``;
@@ -18,6 +20,8 @@ from ._files import (
     StagedFolders,
     atomic_write,
     check_files_in,
+    check_folder_outputs,
+    check_job_inputs,
     check_output,
     check_outputs,
     json_safe,
@@ -51,8 +55,10 @@ __all__ = [
     "StagedFolders",
     "atomic_write",
     "check_files_in",
+    "check_folder_outputs",
     "check_input",
     "check_inputs",
+    "check_job_inputs",
     "check_output",
     "check_outputs",
     "check_rollout_meta",

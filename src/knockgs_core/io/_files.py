@@ -21,7 +21,8 @@ import dataclasses
 import json
 import math
 import os
-from collections.abc import Iterator, Mapping, Sequence
+import sys
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -33,6 +34,8 @@ __all__ = [
     "StagedFolders",
     "atomic_write",
     "check_files_in",
+    "check_folder_outputs",
+    "check_job_inputs",
     "check_output",
     "check_outputs",
     "json_safe",
@@ -302,6 +305,84 @@ def check_files_in(files, folders, *, source: str) -> None:
         if f is not None and Path(f).parent not in folders:
             raise InputError(source, "output", f"{f} lies outside the job's output folders "
                              f"({', '.join(str(d) for d in dict.fromkeys(folders))})")
+
+
+def check_folder_outputs(files, *, field: str = "file") -> None:
+    """Refuse a read of files that were removed from a finished job's output folder.
+
+    A job's output folder is whole when the job ends (:func:`staged_folders`); a file removed
+    from it afterwards is not noticed by Snakemake, which tracks the folder, not its files.
+    The job that reads the folder checks, before any work, that every file it will read from
+    it is there.
+
+    Parameters
+    ----------
+    files:
+        The paths the reader will read (None entries are skipped), or a mapping field (the
+        reader's parameter that names them) -> such paths.
+    field:
+        The field of ``files`` when it is not a mapping.
+
+    Raises an :class:`~knockgs_core.errors.InputError` naming the first missing file whose
+    folder exists, how many are missing, and the command that remakes the folders:
+    ``snakemake --cores 1 --force FOLDER ...`` (Snakemake then also reruns what reads them, as
+    they are newer). A missing file whose folder is missing too is not refused: the folder is
+    the workflow's missing output, which Snakemake makes.
+    """
+    named = files.items() if isinstance(files, Mapping) else [(field, files)]
+    read, missing = 0, []
+    for name, paths in named:
+        for f in paths:
+            if f is None:
+                continue
+            read += 1
+            if not os.path.lexists(f) and os.path.isdir(os.path.dirname(f) or "."):
+                missing.append((name, os.fspath(f)))
+    if missing:
+        name, first = missing[0]
+        folders = " ".join(dict.fromkeys(os.path.dirname(f) or "." for _, f in missing))
+        raise InputError(first, name, f"missing from its folder, a finished job's output (removed after the job "
+                                      f"ended; {len(missing)} of the {read} files read from such folders "
+                                      f"{'is' if len(missing) == 1 else 'are'} missing); remake the folder, with the "
+                                      f"run's --configfile/--config options: snakemake --cores 1 --force {folders}")
+
+
+def _strings(value) -> Iterable[str]:
+    """Every string in ``value`` (a string, or mappings and sequences of them, nested)."""
+    if isinstance(value, (str, os.PathLike)):
+        yield os.fspath(value)
+    elif isinstance(value, Mapping):
+        for v in value.values():
+            yield from _strings(v)
+    elif isinstance(value, (list, tuple)):
+        for v in value:
+            yield from _strings(v)
+
+
+def check_job_inputs(job, *, log: IO | None = None) -> None:
+    """The input check of a workflow job, before any work: every file that its parameters
+    name directly in one of its input folders (the finished output folder of another job) is
+    there (:func:`check_folder_outputs`, each file's field the parameter naming it).
+
+    ``job``: the ``snakemake`` object of a workflow script (its ``input`` and named
+    ``params``). A refusal is one line ``knockgs workflow: error: ...`` in ``log`` (default:
+    ``sys.stderr``, the job's log) and on the run's console (``sys.__stderr__``), and the job
+    exits with status 2, without a traceback.
+    """
+    folders = {os.path.normpath(f) for f in _strings(list(job.input)) if os.path.isdir(f)}
+    files: dict[str, list[str]] = {}
+    for name, value in job.params.items():
+        for path in _strings(value):
+            if os.path.dirname(path) and os.path.normpath(os.path.dirname(path)) in folders:
+                files.setdefault(name, []).append(path)
+    try:
+        check_folder_outputs(files)
+    except InputError as exc:
+        line = f"knockgs workflow: error: {' '.join(str(exc).split())}"
+        for out in dict.fromkeys((log or sys.stderr, sys.__stderr__)):
+            if out is not None:
+                print(line, file=out, flush=True)
+        raise SystemExit(2) from None
 
 
 @contextlib.contextmanager
