@@ -23,11 +23,15 @@ CI = "results/ci"  # every output of a ci-profile run lies under it
 #: ``tests/test_diagnostics.py``, and the alternative splits' jobs in the ci profile's plan,
 #: ``tests/test_workflow.py``) and one flow-noise rung of the observation ladder (the ci profile
 #: has three: each adds a descriptor table, five estimates and their Probe-B rollouts, and no code
-#: path), and the library in two jobs of 27 candidates (the ci profile's six a job keep more cores
-#: busy; on the two cores of a test run each of the other seven jobs, and the ladder's and passive
-#: route's job of each chunk, pays a process and Warp start-up of about 2.5 s and nothing else).
-CI_TESTS_OVERRIDES = {"diagnostics": {"splits": []}, "ladder": {"depth_noise": [0.01]}, "library_chunk": 27}
-CI_RUN_CONFIG = ("--configfile=config/ci_tests.yaml", "--config", "objects=[pillow]")
+#: path).
+CI_TESTS_OVERRIDES = {"diagnostics": {"splits": []}, "ladder": {"depth_noise": [0.01]}}
+#: The small library's runs (:func:`library_run`, the fault and Slurm tests): six candidates a job.
+LIBRARY_RUN_CONFIG = ("--configfile=config/ci_tests.yaml", "--config", "objects=[pillow]")
+#: The shared run's: the same, the library in two jobs of 27 candidates (the ci profile's six a
+#: job keep more cores busy; on the two cores of a test run each of the other seven jobs, and the
+#: ladder's and the passive route's job of each chunk, pays a process and Warp start-up of about
+#: 2.5 s and nothing else).
+CI_RUN_CONFIG = (*LIBRARY_RUN_CONFIG, "library_chunk=27")
 
 #: What the shared run makes: the Pillow's main, render, diagnostics, probe-shift, passive,
 #: ladder and convergence tables and figures, and the audits that read them.
@@ -49,10 +53,7 @@ def scratch_copy(dest: Path) -> Path:
     shutil.copytree(ROOT / "config", dest / "config")
     ci = yaml.safe_load((dest / "config" / "ci.yaml").read_text())
     for key, value in CI_TESTS_OVERRIDES.items():
-        if isinstance(value, dict):
-            ci[key].update(value)
-        else:
-            ci[key] = value
+        ci[key].update(value)
     (dest / "config" / "ci_tests.yaml").write_text(yaml.safe_dump(ci, sort_keys=False))
     return dest
 
@@ -149,9 +150,9 @@ LIBRARY_TABLE = f"{CI}/descriptors/pillow/library.csv"
 
 def library_run(tmp_path_factory) -> Path:
     """The shared run of a small library: the Pillow's descriptor table of the first
-    :data:`N_LIBRARY` candidates (:func:`small_library`) under :data:`CI_RUN_CONFIG`, the asset
-    job, two library jobs of six and the descriptor job (the fault and Slurm tests' reference)."""
-    return shared_run(tmp_path_factory, "library", LIBRARY_TABLE, "--cores", "2", *CI_RUN_CONFIG,
+    :data:`N_LIBRARY` candidates (:func:`small_library`) under :data:`LIBRARY_RUN_CONFIG`, the
+    asset job, two library jobs of six and the descriptor job (the fault and Slurm tests' reference)."""
+    return shared_run(tmp_path_factory, "library", LIBRARY_TABLE, "--cores", "2", *LIBRARY_RUN_CONFIG,
                       prepare=lambda work: small_library(work, N_LIBRARY))
 
 

@@ -29,12 +29,12 @@ import pyarrow.parquet as pq
 import pytest
 import yaml
 
-from _workflow import CI_RUN_CONFIG, LIBRARY_TABLE, N_LIBRARY, ROOT, library_run, scratch_copy, small_library, snakemake
+from _workflow import LIBRARY_RUN_CONFIG, LIBRARY_TABLE, N_LIBRARY, ROOT, library_run, scratch_copy, small_library, snakemake
 
 SCRIPT = ROOT / "scripts" / "slurm-single-node.sh"
 P = "results/ci"
 TABLE = LIBRARY_TABLE
-ARGS = (*CI_RUN_CONFIG, "--")  # the shared small library's settings (tests/_workflow.py)
+ARGS = (*LIBRARY_RUN_CONFIG, "--")  # the shared small library's settings (tests/_workflow.py)
 N_CANDIDATES = N_LIBRARY
 
 

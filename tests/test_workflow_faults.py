@@ -26,7 +26,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from _workflow import (CI_RUN_CONFIG, LIBRARY_TABLE, N_LIBRARY, copy_run, library_run, scratch_copy, small_library,
+from _workflow import (LIBRARY_RUN_CONFIG, LIBRARY_TABLE, N_LIBRARY, copy_run, library_run, scratch_copy, small_library,
                        snakemake, snakemake_env)
 
 from knockgs_core.audits import audit_missing_frames, audit_nonfinite, audit_rollout_metadata, rollout_expectations
@@ -35,7 +35,7 @@ from knockgs_core.io import check_folder_outputs, check_job_inputs
 
 P = "results/ci"
 TABLE = LIBRARY_TABLE
-ARGS = ("--cores", "2", *CI_RUN_CONFIG, "--")  # the shared small library's settings (tests/_workflow.py)
+ARGS = ("--cores", "2", *LIBRARY_RUN_CONFIG, "--")  # the shared small library's settings (tests/_workflow.py)
 N_CANDIDATES = N_LIBRARY
 
 
@@ -255,7 +255,7 @@ def test_a_rollout_removed_from_a_finished_library_folder_is_named_with_the_comm
     # the command named plans the folder's job again, and with it the table (chunk0 stays as it is)
     remake = REMAKE.search(line).group(1).split()
     assert remake[-1] == CHUNK1, line
-    dry = snakemake(work, "-n", *remake, TABLE, *CI_RUN_CONFIG)
+    dry = snakemake(work, "-n", *remake, TABLE, *LIBRARY_RUN_CONFIG)
     assert dry.returncode == 0, dry.stderr[-2000:]
     assert set(re.findall(r"^\s+output: (.+)$", dry.stdout + dry.stderr, re.M)) == {CHUNK1, TABLE}, dry.stdout[-3000:]
 
