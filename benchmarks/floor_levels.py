@@ -3,10 +3,14 @@ MPM on the given device (finer levels on a GPU), the finite-element reference on
 machine's CPU. Writes the table as CSV and Markdown under ``--out``.
 
     python3 benchmarks/floor_levels.py --object pillow --profile config --volumes enclosed \
-        --levels 32 48 64 96 128 --fem-n-grid 48 --fem-check-n-grid 32 --device cuda:0 --out floor_out
+        --levels 32 48 64 96 128 --fem-n-grid 48 --fem-check-n-grid 32 --device cuda:0 --out floor_out \
+        --reference-cache floor_fem
 
 ``--volumes``: the particles' rest-volume rule (``fill.volumes`` of the contract: cell_share,
-enclosed; the contract's own when left out). The reference's settings not named here are the
+enclosed, wall; the contract's own when left out). ``--reference-cache``: a folder where the
+finite-element runs are kept and read back by a later call with the same inputs (the
+reference at n_grid 48 costs minutes of one CPU core: compute it once, e.g. on this machine,
+then spend a GPU call on the MPM levels). The reference's settings not named here are the
 profile's ``floor`` block's.
 """
 
@@ -29,13 +33,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--object", default="pillow")
     ap.add_argument("--profile", default="config", help="config file stem: ci, config (default), paper")
-    ap.add_argument("--volumes", default=None, choices=("cell_share", "enclosed"))
+    ap.add_argument("--volumes", default=None, choices=("cell_share", "enclosed", "wall"))
     ap.add_argument("--levels", type=int, nargs="+", required=True)
     ap.add_argument("--fem-n-grid", type=int, required=True)
     ap.add_argument("--fem-check-n-grid", type=int, required=True)
     ap.add_argument("--fit-steps", type=int, default=None)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--reference-cache", type=Path, default=None)
     args = ap.parse_args()
 
     profile = {"config": "default"}.get(args.profile, args.profile)
@@ -49,7 +54,8 @@ def main() -> None:
     if args.volumes is not None:
         contract = dataclasses.replace(contract, fill=dataclasses.replace(contract.fill, volumes=args.volumes))
     t0 = time.perf_counter()
-    table = floor_study(contract, settings, device=args.device, log=lambda m: print(m, flush=True))
+    table = floor_study(contract, settings, device=args.device, log=lambda m: print(m, flush=True),
+                        reference_cache=args.reference_cache)
     args.out.mkdir(parents=True, exist_ok=True)
     stem = f"floor_{args.object}_{contract.fill.volumes}"
     table.to_csv(args.out / f"{stem}.csv", index=False)

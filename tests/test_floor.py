@@ -182,7 +182,7 @@ def test_enclosed_empty_cells_counts_a_hollow_boxs_void_and_nothing_in_a_solid_o
 
 
 @pytest.mark.slow
-def test_the_pillows_gap_to_the_fem_reference_falls_under_refinement():
+def test_the_pillows_gap_to_the_fem_reference_falls_under_refinement(tmp_path):
     """The ci Pillow at n_grid 16 and 24 against a reference at 24 (its check at 16): the
     trajectory RMSE falls from the coarser level to the finer, the body's mass with it, and one
     Gauss-Newton step of the theta fit lowers the residual. ~25 s on two shared cores (two FEM
@@ -191,12 +191,47 @@ def test_the_pillows_gap_to_the_fem_reference_falls_under_refinement():
 
     contract = load_contract("pillow", "ci")
     table = floor_study(contract, FloorSettings(n_grid=(16, 24), fem_n_grid=24, fem_check_n_grid=16, fit_steps=1,
-                                                record_factor=1))
+                                                record_factor=1), reference_cache=tmp_path)
+    assert sorted(p.name.split("_")[1] for p in tmp_path.glob("fem_*.npz")) == ["n16", "n24"]  # both FEM runs kept
     mpm = table[table.model == "mpm"].reset_index()
     assert list(table.model) == ["mpm", "mpm", "fem (check)", "fem (reference)"]
     assert mpm.rmse_pct[1] < 0.75 * mpm.rmse_pct[0]
     assert table.rmse_pct.iloc[-1] == 0.0 and np.all(mpm.fit_residual_pct < mpm.rmse_pct)
     assert mpm.mass_kg[1] < mpm.mass_kg[0]                          # the voxel body thins towards the solid
+
+
+def test_a_kept_fem_run_is_read_back_only_for_the_same_inputs(tmp_path):
+    """The floor study's finite-element runs are kept by what they depend on: the same inputs
+    read the kept displacements back, bit for bit, without computing; another theta, another
+    grid or another record length computes anew. The ci Pillow's FEM at n_grid 12, P1, one step
+    a frame (about 2 s a run)."""
+    import dataclasses
+
+    from knockgs_core.assets import build_asset
+    from knockgs_core.contract import load_contract
+    from knockgs_core.experiments._floor import _fem_run, _with_record
+    from knockgs_core.fem import FemWorld
+
+    contract = load_contract("pillow", "ci")
+    probe = contract.roles["calibration"]
+    short = _with_record(contract, probe, 6)
+    ps = build_asset(contract).particles
+    points = np.asarray(ps.positions[: ps.n_gs], dtype=np.float64)
+    world = FemWorld(degree=1, steps_per_frame=1, n_grid=12)
+    first = _fem_run(short, ps, points, world, (1.0, 1.0), probe, cache=tmp_path)
+    again = _fem_run(short, ps, points, world, (1.0, 1.0), probe, cache=tmp_path)
+    assert not first["cached"] and again["cached"] and len(list(tmp_path.iterdir())) == 1
+    assert first["u"].shape == (6, len(points), 3) and np.abs(first["u"]).max() > 0
+    np.testing.assert_array_equal(again["u"], first["u"])
+    keys = ("cells", "dofs", "volume", "scale")
+    assert {k: again[k] for k in keys} == {k: first[k] for k in keys}
+    for other in (dict(theta=(1.2, 1.0)), dict(world=dataclasses.replace(world, n_grid=10)),
+                  dict(contract=_with_record(contract, probe, 5))):
+        args = {"contract": short, "world": world, "theta": (1.0, 1.0), **other}
+        run = _fem_run(args["contract"], ps, points, args["world"], args["theta"], probe, cache=tmp_path)
+        assert not run["cached"], other
+    assert len(list(tmp_path.iterdir())) == 4
+    assert not _fem_run(short, ps, points, world, (1.0, 1.0), probe)["cached"]   # no cache: computed
 
 
 def test_a_floor_object_the_reference_cannot_hold_is_one_line_at_config_read(tmp_path):

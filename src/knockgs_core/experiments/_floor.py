@@ -220,7 +220,8 @@ def _order(e_coarse: float, e_fine: float, h_coarse: float, h_fine: float) -> fl
 
 
 def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1.0, 1.0), device: str | None = None,
-                deterministic: bool = False, log: Callable[[str], None] | None = None) -> pd.DataFrame:
+                deterministic: bool = False, log: Callable[[str], None] | None = None,
+                reference_cache=None) -> pd.DataFrame:
     """The floor table of ``contract``'s object (one base material region): one row per MPM
     level of ``settings.n_grid`` (coarsest first), then the reference's check and the reference
     (module docstring). Columns: ``model`` (``mpm``, ``fem (check)``, ``fem (reference)``),
@@ -232,9 +233,13 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
     ``fit_residual_pct`` (the theta fit; NaN without one), ``cost_s`` (wall seconds of the
     level's rollouts and fit, or of the FEM run), ``enclosed_empty`` (:func:`enclosed_empty_cells`
     on the row's grid), ``fem_scale`` (the FEM's factor on E and rho; NaN for the MPM). ``theta``: the material compared;
-    ``device``, ``deterministic``: the MPM rollouts'."""
+    ``device``, ``deterministic``: the MPM rollouts'. ``reference_cache``: a folder where each
+    finite-element run (the reference and its check) is kept once computed and read back by a
+    later study with the same inputs (:func:`_fem_run`): the reference depends on the fill, the
+    grid and the FEM settings, not on the MPM levels, and at the default profile's n_grid 48 it
+    costs minutes of one CPU core."""
     from ..assets import build_asset
-    from ..fem import FemWorld, fem_world_mesh, fem_world_rollout
+    from ..fem import FemWorld
     from ..rollout import run_rollouts
 
     say = log or (lambda msg: None)
@@ -256,14 +261,10 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
     fem = {}
     for name, n in (("fem (reference)", settings.fem_n_grid), ("fem (check)", settings.fem_check_n_grid)):
         world = FemWorld(degree=settings.fem_degree, steps_per_frame=settings.fem_steps_per_frame, n_grid=int(n))
-        t0 = time.perf_counter()
-        geo = fem_world_mesh(ref_contract, ref_particles, world=world)
-        # the voxel body carries the particles' own volume where they have one (module docstring)
-        scale = 1.0 if ref_particles.volumes is None else body_volume(ref_particles, geo["dx"]) / geo["volume"]
-        Y = fem_world_rollout(ref_contract, ref_particles, (theta[0] * scale, theta[1] * scale), probe, points,
-                              world=world)
-        fem[name] = {"u": Y - Y[0], "n_grid": int(n), "cost": time.perf_counter() - t0, "geo": geo, "scale": scale}
-        say(f"{name}: n_grid {n}, {len(geo['cells'])} cells, E and rho x {scale:.4f}, {time.perf_counter() - t0:.1f} s")
+        fem[name] = _fem_run(ref_contract, ref_particles, points, world, theta, probe, cache=reference_cache)
+        f = fem[name]
+        say(f"{name}: n_grid {n}, {f['cells']} cells, E and rho x {f['scale']:.4f}, {f['cost']:.1f} s"
+            + (" (kept from an earlier study)" if f["cached"] else ""))
     u_ref = fem["fem (reference)"]["u"]
     p_ref = probe_period(times, u_ref, direction)
     rec = slice(0, n_record)
@@ -313,11 +314,10 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
         f = fem[name]
         dx = contract.sim.grid_lim / f["n_grid"]
         period = probe_period(times, f["u"], direction)
-        ndofs = 3 * (len(f["geo"]["mesh"].p.T) + (len(f["geo"]["mesh"].edges.T) if settings.fem_degree == 2 else 0))
         rows.append({"model": name, "n_grid": f["n_grid"], "dx_m": dx,
                      "dt_s": float(pr.export.frame_dt) / settings.fem_steps_per_frame,
-                     "particles": ndofs, "cells_through": cells_through(ref_particles.positions, dx),
-                     "mass_kg": f["geo"]["volume"] * f["scale"] * rho, "rmse_pct": _rel(f["u"][rec], u_ref[rec]),
+                     "particles": f["dofs"], "cells_through": cells_through(ref_particles.positions, dx),
+                     "mass_kg": f["volume"] * f["scale"] * rho, "rmse_pct": _rel(f["u"][rec], u_ref[rec]),
                      "period_s": period, "period_fem_s": p_ref, "period_error_pct": 100.0 * (period - p_ref) / p_ref,
                      "order_rmse": float("nan"), "order_period": float("nan"), "s_E_fit": float("nan"),
                      "s_rho_fit": float("nan"), "fit_residual_pct": float("nan"), "cost_s": f["cost"],
@@ -326,6 +326,52 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
                "period_fem_s", "period_error_pct", "order_rmse", "order_period", "s_E_fit", "s_rho_fit",
                "fit_residual_pct", "cost_s", "enclosed_empty", "fem_scale"]
     return pd.DataFrame(rows, columns=columns)
+
+
+def _fem_run(contract, particles, points, world, theta, probe, *, cache=None) -> dict:
+    """One finite-element run of the floor study: the displacement ``u`` [T, M, 3] m of
+    ``points`` (the Gaussians' rest positions) from frame 0, the mesh's ``cells``, ``dofs`` and
+    voxel ``volume`` [m^3], the factor ``scale`` on E and rho (the voxel body carries the
+    particles' own volume where they have one, module docstring), its ``cost`` [s] and whether
+    it was read from ``cache`` (a folder, or None). A kept run is named by a SHA-256 of all it
+    depends on: the finite-element package's source, the contract (its record's length
+    included), the world's settings, theta, the probe, and the particles and points."""
+    import hashlib
+    import sys
+    from pathlib import Path
+
+    from .. import fem as fem_package
+    from ..fem import fem_world_mesh, fem_world_rollout
+
+    path = None
+    if cache is not None:
+        h = hashlib.sha256()
+        for source in sorted(Path(fem_package.__file__).parent.rglob("*.py")):
+            h.update(source.read_bytes())
+        with np.printoptions(threshold=sys.maxsize, precision=17):
+            h.update(repr((contract, world, tuple(float(t) for t in theta), probe)).encode())
+        for a in (particles.positions, particles.volumes, points):
+            h.update(b"none" if a is None else np.ascontiguousarray(a).tobytes())
+        path = Path(cache) / f"fem_n{world.n_grid}_{h.hexdigest()[:24]}.npz"
+        if path.is_file():
+            with np.load(path) as z:
+                return {"u": z["u"], "n_grid": int(world.n_grid), "cells": int(z["cells"]), "dofs": int(z["dofs"]),
+                        "volume": float(z["volume"]), "scale": float(z["scale"]), "cost": float(z["cost"]),
+                        "cached": True}
+    t0 = time.perf_counter()
+    geo = fem_world_mesh(contract, particles, world=world)
+    scale = 1.0 if particles.volumes is None else body_volume(particles, geo["dx"]) / geo["volume"]
+    Y = fem_world_rollout(contract, particles, (theta[0] * scale, theta[1] * scale), probe, points, world=world)
+    mesh = geo["mesh"]
+    run = {"u": Y - Y[0], "n_grid": int(world.n_grid), "cells": len(geo["cells"]),
+           "dofs": 3 * (len(mesh.p.T) + (len(mesh.edges.T) if world.degree == 2 else 0)),
+           "volume": float(geo["volume"]), "scale": float(scale), "cost": time.perf_counter() - t0, "cached": False}
+    if path is not None:
+        from ..io import atomic_write
+
+        with atomic_write(path) as fh:
+            np.savez(fh, **{k: np.asarray(v) for k, v in run.items() if k not in ("cached", "n_grid")})
+    return run
 
 
 def floor_note(table: pd.DataFrame, contract, settings: FloorSettings, *, theta=(1.0, 1.0)) -> str:
