@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import pickle
 
 import numpy as np
 import pytest
@@ -334,12 +335,45 @@ YIELD_TRUTH = (0.95, 1.35)
 YIELD_CATALOGUE = ("plasticity", "stiffness_gradient_z")
 
 
+class _SharedRollouts:
+    """Rollouts shared by loops on the same data: ``with shared:`` runs its block with
+    :func:`knockgs_core.rollout.run_rollout` answered from every call made under ``shared``
+    before (the same contract and particle objects, theta, probe and options), else simulated
+    and kept. CPU rollouts are the same bit for bit on every run, so a loop run again on the same
+    data with other settings makes every decision it would make alone, and simulates only the
+    models where it departs from the first (``simulated`` of ``calls`` counts them)."""
+
+    def __init__(self):
+        self._done, self.calls, self.simulated = {}, 0, 0
+
+    def __enter__(self):
+        import knockgs_core.rollout as rollout
+
+        real = rollout.run_rollout
+
+        def run_rollout(contract, theta, probe_name, *, particles=None, **options):
+            key = (id(contract), id(particles), tuple(float(t) for t in theta), probe_name,
+                   pickle.dumps(sorted(options.items())))
+            self.calls += 1
+            if key not in self._done:  # the objects are kept with the rollout: their ids stay theirs
+                self.simulated += 1
+                self._done[key] = (contract, particles, real(contract, theta, probe_name, particles=particles, **options))
+            return self._done[key][2]
+
+        self._patch = pytest.MonkeyPatch()
+        self._patch.setattr(rollout, "run_rollout", run_rollout)
+        return self
+
+    def __exit__(self, *exc):
+        self._patch.undo()
+
+
 @pytest.fixture(scope="module")
 def yield_world(loop_model):
     """Plasticity in data from the same MPM on a grid twice as fine (one rollout of the world on
     a grid of 64^3), and the loop on them at its smallest (two catalogue terms, the loop's model
-    at 2 substeps per frame; about 140 rollouts of the model and a few of the refined one):
-    (measurement, result)."""
+    at 2 substeps per frame; about 150 rollouts of the model and a few of the refined one):
+    (measurement, result, the loop's rollouts, shared with the second loop on these data)."""
     from knockgs_core.assets import build_asset
     from knockgs_core.sim import VonMisesPlasticity
 
@@ -347,7 +381,10 @@ def yield_world(loop_model):
     world = refined_contract(contract, 2.0)
     m, _ = _tracks(world, build_asset(world).particles, YIELD_TRUTH, "standard_x",
                    (VonMisesPlasticity(yield_stress=80.0),), np.random.default_rng(11))
-    return m, run_discrepancy(m, contract, particles, settings=LoopSettings(catalogue=YIELD_CATALOGUE))
+    shared = _SharedRollouts()
+    with shared:
+        res = run_discrepancy(m, contract, particles, settings=LoopSettings(catalogue=YIELD_CATALOGUE))
+    return m, res, shared
 
 
 @pytest.mark.slow
@@ -356,7 +393,7 @@ def test_a_yield_in_a_finer_world_is_named_with_its_own_discretization_term(yiel
     under refinement in its own way: scored with the term of its own fitted model it is named
     and its theta interval holds the truth."""
     # About a minute on an idle 2-core machine (the fixture: one whole loop, see yield_world)
-    _, res = yield_world
+    _, res, _ = yield_world
     assert res.identified == ["plasticity"], res.verdict
     row = next(r for r in res.rounds[0]["table"] if r["key"] == "plasticity")
     assert row["own_term"] and row["signature_ok"]
@@ -373,12 +410,15 @@ def test_a_yield_in_a_finer_world_is_missed_with_the_theta_only_models_term(loop
     """The same data scored with the term of the theta-only model: the yield explains less of
     the residual beyond the floor and is not added (a stiffness gradient, ahead of it there, may
     be named in its place): what the own term of the test above changes."""
-    # About a minute on an idle 2-core machine: a second whole loop on the same data
+    # A second whole loop on the same data, about 15 s: every model of the loop's grid that it
+    # simulates, the loop of the fixture has simulated (which differs from it only by the own
+    # terms it adds), so it reads them; only the refined model, which each loop rebuilds, runs again
     contract, particles = loop_model
-    m, res = yield_world
+    m, res, shared = yield_world
     row = next(r for r in res.rounds[0]["table"] if r["key"] == "plasticity")
-    old = run_discrepancy(m, contract, particles,
-                          settings=LoopSettings(catalogue=YIELD_CATALOGUE, model_error_own_term=False))
+    with shared:
+        old = run_discrepancy(m, contract, particles,
+                              settings=LoopSettings(catalogue=YIELD_CATALOGUE, model_error_own_term=False))
     assert "plasticity" not in old.identified, old.verdict
     old_row = next(r for r in old.rounds[0]["table"] if r["key"] == "plasticity")
     assert "own_term" not in old_row and old_row["explained_excess"] < row["explained_excess"]
