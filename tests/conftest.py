@@ -73,3 +73,15 @@ def pytest_collection_modifyitems(config, items):
         return len(FIRST) + (0 if item.path in slow_modules else 1)
 
     items.sort(key=rank)  # stable: the order within each rank is the collection's
+
+
+def pytest_configure(config):
+    """Under ``--dist loadgroup`` pytest-xdist names each grouped item ``NODEID@GROUP`` on the
+    workers, which is how it sends a group to one worker. pytest 9.2 keeps node ids where
+    pytest-xdist 3.8 no longer reaches them, so every group would be spread over the workers, and
+    a worker that needs a shared run would wait for the other to build it: stop, saying why."""
+    version = tuple(int(p) for p in pytest.__version__.split(".")[:2] if p.isdigit())
+    workers = config.getoption("numprocesses", default=None)
+    if workers not in (None, 0) and config.getoption("dist", default="no") == "loadgroup" and version >= (9, 2):
+        raise pytest.UsageError(f"pytest {pytest.__version__} breaks pytest-xdist's --dist loadgroup (the tests' "
+                                "groups would be spread over the workers): pip install -e '.[test]' (pytest < 9.2)")
