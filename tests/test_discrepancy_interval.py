@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from _linear import LinearForward
 
 from knockgs_core.discrepancy._interval import MIN_ORDER, interval_from_estimates
 
@@ -160,28 +161,6 @@ def test_an_unbounded_interval_is_scored_after_its_round_trip_through_the_result
     assert interval_cells(None, (0.8, 1.2)) == ("", False)
 
 
-class _Export:
-    frame_dt, n_frames = 0.02, 12
-
-
-class _Particles:
-    def __init__(self, X0):
-        self.positions, self.n_gs = X0, len(X0)
-
-
-class _LinearForward:
-    """A linear 'simulator': positions = rest + s_E * A(t) + s_rho * B(t)."""
-
-    def __init__(self, X0, A, B):
-        self.particles, self.X0, self.A, self.B = _Particles(X0), X0, A, B
-
-    def probe_export(self, probe):
-        return _Export
-
-    def rollout(self, spec, probe):
-        return self.X0[None] + spec.theta[0] * self.A + spec.theta[1] * self.B
-
-
 def test_a_refinement_that_acts_as_a_change_of_theta_is_read_back_as_that_change(rng):
     """The loop reads a refinement's theta as the theta at which the model makes the refined
     model's response. A refined model (the second refinement) that responds as the model at
@@ -200,7 +179,7 @@ def test_a_refinement_that_acts_as_a_change_of_theta_is_read_back_as_that_change
     X0 = rng.uniform(0, 1, size=(M, 3))
     t = np.arange(T)[:, None, None] * 0.02
     A, B = np.sin(9 * t) * rng.normal(size=(1, M, 3)) * 1e-3, np.sin(4 * t) * rng.normal(size=(1, M, 3)) * 1e-3
-    fw, spec = _LinearForward(X0, A, B), ModelSpec((0.8, 1.2))
+    fw, spec = LinearForward(X0, A, B), ModelSpec((0.8, 1.2))
     noise = rng.normal(0.0, 1e-6, size=(T, M, 3))
     noise[0] = 0.0
     m = Measurement(points=fw.rollout(spec, "p") + noise, frames=np.arange(T), times=None, particle=np.arange(M),

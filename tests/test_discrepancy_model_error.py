@@ -7,6 +7,7 @@ import pickle
 
 import numpy as np
 import pytest
+from _linear import LinearForward
 
 from knockgs_core.discrepancy import LoopSettings, Measurement, run_discrepancy
 from knockgs_core.discrepancy._fitting import Problem
@@ -52,28 +53,6 @@ def test_displacement_kernel_reproduces_constant_and_smooth_fields(rng):
 # -------------------------------------------------------------------------------------
 # the term's coefficient, profiled on the fit window
 # -------------------------------------------------------------------------------------
-class _Export:
-    frame_dt, n_frames = 0.02, 12
-
-
-class _Particles:
-    def __init__(self, X0):
-        self.positions, self.n_gs = X0, len(X0)
-
-
-class _Forward:
-    """A linear 'simulator': positions = rest + s_E * A(t) (s_rho unused)."""
-
-    def __init__(self, X0, A):
-        self.particles, self.A, self.X0 = _Particles(X0), A, X0
-
-    def probe_export(self, probe):
-        return _Export
-
-    def rollout(self, spec, probe):
-        return self.X0[None] + spec.theta[0] * self.A
-
-
 def test_coefficient_is_profiled_on_the_fit_window_and_bounded(rng):
     T, M = 12, 30
     X0 = rng.uniform(0, 1, size=(M, 3))
@@ -81,7 +60,7 @@ def test_coefficient_is_profiled_on_the_fit_window_and_bounded(rng):
     A = np.sin(9 * t) * rng.normal(size=(1, M, 3)) * 1e-3
     term = np.cos(5 * t) * rng.normal(size=(1, M, 3)) * 1e-3
     term[0] = 0
-    fw = _Forward(X0, A)
+    fw = LinearForward(X0, A)
     spec = ModelSpec((1.0, 1.0))
     for c_true, c_max, expected in [(0.7, 6.0, 0.7), (-0.5, 6.0, 0.0), (9.0, 6.0, 6.0)]:
         Y = fw.rollout(spec, "p") + c_true * term
@@ -114,15 +93,15 @@ def test_coefficient_is_profiled_on_the_fit_window_and_bounded(rng):
     assert plain.model_floor(plain.val_rows) == 0.0 and plain.coefficient(plain.raw_residual(spec)) == 0.0
 
 
-class _ForwardWithEffect(_Forward):
-    """positions = rest + s_E * A(t) + u * B(t), u the strength of effect ``"set"``."""
+class _ForwardWithEffect(LinearForward):
+    """positions = rest + s_E * A(t) + u * B(t), u the strength of effect ``"set"`` (s_rho unused)."""
 
     def __init__(self, X0, A, B):
         super().__init__(X0, A)
-        self.B = B
+        self.effect = B
 
     def rollout(self, spec, probe):
-        return super().rollout(spec, probe) + dict(spec.effects).get("set", 0.0) * self.B
+        return super().rollout(spec, probe) + dict(spec.effects).get("set", 0.0) * self.effect
 
 
 def test_time_signature_reads_only_thirds_the_discretization_floor_cannot_move(rng):

@@ -46,9 +46,12 @@ reference is the voxel body itself (``fem_scale`` 1).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
+import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Mapping
 
 import numpy as np
@@ -336,10 +339,6 @@ def _fem_run(contract, particles, points, world, theta, probe, *, cache=None) ->
     it was read from ``cache`` (a folder, or None). A kept run is named by a SHA-256 of all it
     depends on: the finite-element package's source, the contract (its record's length
     included), the world's settings, theta, the probe, and the particles and points."""
-    import hashlib
-    import sys
-    from pathlib import Path
-
     from .. import fem as fem_package
     from ..fem import fem_world_mesh, fem_world_rollout
 
