@@ -203,8 +203,8 @@ def test_the_pillows_gap_to_the_fem_reference_falls_under_refinement(tmp_path):
 def test_a_kept_fem_run_is_read_back_only_for_the_same_inputs(tmp_path):
     """The floor study's finite-element runs are kept by what they depend on: the same inputs
     read the kept displacements back, bit for bit, without computing; another theta, another
-    grid or another record length computes anew. The ci Pillow's FEM at n_grid 12, P1, one step
-    a frame (about 2 s a run)."""
+    grid or another record length computes anew; where the checkout lies does not matter. The
+    ci Pillow's FEM at n_grid 12, P1, one step a frame (about 2 s a run)."""
     import dataclasses
 
     from knockgs_core.assets import build_asset
@@ -225,6 +225,10 @@ def test_a_kept_fem_run_is_read_back_only_for_the_same_inputs(tmp_path):
     np.testing.assert_array_equal(again["u"], first["u"])
     keys = ("cells", "dofs", "volume", "scale")
     assert {k: again[k] for k in keys} == {k: first[k] for k in keys}
+    # the same contract read from another checkout (its files elsewhere) reads it back too
+    moved = dataclasses.replace(short, source=Path("elsewhere") / short.source.name,
+                                candidates_path=Path("elsewhere") / short.candidates_path.name)
+    assert _fem_run(moved, ps, points, world, (1.0, 1.0), probe, cache=tmp_path)["cached"]
     for other in (dict(theta=(1.2, 1.0)), dict(world=dataclasses.replace(world, n_grid=10)),
                   dict(contract=_with_record(contract, probe, 5))):
         args = {"contract": short, "world": world, "theta": (1.0, 1.0), **other}

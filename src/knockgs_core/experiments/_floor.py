@@ -331,6 +331,32 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
     return pd.DataFrame(rows, columns=columns)
 
 
+def _placeless(contract):
+    """``contract`` with its files named by their names alone (its own, the asset's PLY, the
+    candidate and target tables), so that a kept run's name does not depend on where the
+    checkout lies; what the files hold enters the key through the particles."""
+    def name(path):
+        return None if path is None else Path(path).name
+
+    asset = dataclasses.replace(contract.asset, ply=name(contract.asset.ply))
+    return dataclasses.replace(contract, source=name(contract.source), asset=asset,
+                               candidates_path=name(contract.candidates_path), targets_path=name(contract.targets_path))
+
+
+def _fem_key(contract, particles, points, world, theta, probe) -> str:
+    """The name of a kept finite-element run (:func:`_fem_run`): 24 hex digits of a SHA-256."""
+    from .. import fem as fem_package
+
+    h = hashlib.sha256()
+    for source in sorted(Path(fem_package.__file__).parent.rglob("*.py")):
+        h.update(source.read_bytes())
+    with np.printoptions(threshold=sys.maxsize, precision=17):
+        h.update(repr((_placeless(contract), world, tuple(float(t) for t in theta), probe)).encode())
+    for a in (particles.positions, particles.volumes, points):
+        h.update(b"none" if a is None else np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()[:24]
+
+
 def _fem_run(contract, particles, points, world, theta, probe, *, cache=None) -> dict:
     """One finite-element run of the floor study: the displacement ``u`` [T, M, 3] m of
     ``points`` (the Gaussians' rest positions) from frame 0, the mesh's ``cells``, ``dofs`` and
@@ -338,20 +364,13 @@ def _fem_run(contract, particles, points, world, theta, probe, *, cache=None) ->
     particles' own volume where they have one, module docstring), its ``cost`` [s] and whether
     it was read from ``cache`` (a folder, or None). A kept run is named by a SHA-256 of all it
     depends on: the finite-element package's source, the contract (its record's length
-    included), the world's settings, theta, the probe, and the particles and points."""
-    from .. import fem as fem_package
+    included; not where its files lie, :func:`_placeless`), the world's settings, theta, the
+    probe, and the particles and points."""
     from ..fem import fem_world_mesh, fem_world_rollout
 
     path = None
     if cache is not None:
-        h = hashlib.sha256()
-        for source in sorted(Path(fem_package.__file__).parent.rglob("*.py")):
-            h.update(source.read_bytes())
-        with np.printoptions(threshold=sys.maxsize, precision=17):
-            h.update(repr((contract, world, tuple(float(t) for t in theta), probe)).encode())
-        for a in (particles.positions, particles.volumes, points):
-            h.update(b"none" if a is None else np.ascontiguousarray(a).tobytes())
-        path = Path(cache) / f"fem_n{world.n_grid}_{h.hexdigest()[:24]}.npz"
+        path = Path(cache) / f"fem_n{world.n_grid}_{_fem_key(contract, particles, points, world, theta, probe)}.npz"
         if path.is_file():
             with np.load(path) as z:
                 return {"u": z["u"], "n_grid": int(world.n_grid), "cells": int(z["cells"]), "dofs": int(z["dofs"]),
