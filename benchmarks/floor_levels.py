@@ -10,8 +10,10 @@ machine's CPU. Writes the table as CSV and Markdown under ``--out``.
 enclosed, wall; the contract's own when left out). ``--reference-cache``: a folder where the
 finite-element runs are kept and read back by a later call with the same inputs (the
 reference at n_grid 48 costs minutes of one CPU core: compute it once, e.g. on this machine,
-then spend a GPU call on the MPM levels). The reference's settings not named here are the
-profile's ``floor`` block's.
+then spend a GPU call on the MPM levels). ``--check-kept``: say where the two finite-element
+runs would be kept and whether they are, then stop (exit 2 where one is not): seconds, where the
+study would spend minutes computing a reference that was not kept. The reference's settings not
+named here are the profile's ``floor`` block's.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from pathlib import Path
 import yaml
 
 from knockgs_core.contract import load_contract
-from knockgs_core.experiments import FloorSettings, floor_note, floor_study
+from knockgs_core.experiments import FloorSettings, floor_note, floor_study, kept_reference_files
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -41,7 +43,10 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--reference-cache", type=Path, default=None)
+    ap.add_argument("--check-kept", action="store_true", help="say whether the references are kept, then stop")
     args = ap.parse_args()
+    if args.check_kept and args.reference_cache is None:
+        ap.error("--check-kept needs --reference-cache")
 
     profile = {"config": "default"}.get(args.profile, args.profile)
     block = yaml.safe_load((ROOT / "config" / f"{args.profile}.yaml").read_text())["floor"]
@@ -53,6 +58,11 @@ def main() -> None:
     contract = load_contract(args.object, profile)
     if args.volumes is not None:
         contract = dataclasses.replace(contract, fill=dataclasses.replace(contract.fill, volumes=args.volumes))
+    if args.check_kept:
+        kept = kept_reference_files(contract, settings, reference_cache=args.reference_cache)
+        for name, (path, there) in kept.items():
+            print(f"{name}: {path} {'kept' if there else 'NOT KEPT'}")
+        raise SystemExit(0 if all(there for _, there in kept.values()) else 2)
     t0 = time.perf_counter()
     table = floor_study(contract, settings, device=args.device, log=lambda m: print(m, flush=True),
                         reference_cache=args.reference_cache)

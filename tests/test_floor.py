@@ -238,6 +238,24 @@ def test_a_kept_fem_run_is_read_back_only_for_the_same_inputs(tmp_path):
     assert not _fem_run(short, ps, points, world, (1.0, 1.0), probe)["cached"]   # no cache: computed
 
 
+def test_the_kept_files_a_study_would_read_are_named_before_it_runs(tmp_path):
+    """``kept_reference_files`` names, without solving, the two finite-element runs a floor study
+    keeps: not there before the study, there after it, and the study's only files. The ci
+    Pillow at MPM n_grid 12, its FEM at 12 (check 10), P1, one step a frame, one record."""
+    from knockgs_core.contract import load_contract
+    from knockgs_core.experiments import FloorSettings, floor_study, kept_reference_files
+
+    contract = load_contract("pillow", "ci")
+    settings = FloorSettings(n_grid=(12,), fem_n_grid=12, fem_check_n_grid=10, fem_degree=1, fem_steps_per_frame=1,
+                             record_factor=1, fit_steps=0)
+    before = kept_reference_files(contract, settings, reference_cache=tmp_path)
+    assert set(before) == {"fem (reference)", "fem (check)"} and not any(kept for _, kept in before.values())
+    floor_study(contract, settings, reference_cache=tmp_path)
+    after = kept_reference_files(contract, settings, reference_cache=tmp_path)
+    assert {p for p, _ in after.values()} == {p for p, _ in before.values()} == set(tmp_path.iterdir())
+    assert all(kept for _, kept in after.values())
+
+
 def test_a_floor_object_the_reference_cannot_hold_is_one_line_at_config_read(tmp_path):
     # the Ficus has two material regions; the FEM reference holds one
     from _workflow import scratch_copy, snakemake

@@ -96,7 +96,7 @@ from ._passive import (
     ratio_span_pct,
 )
 from ._floor import (FloorSettings, at_resolution, body_volume, cells_through, enclosed_empty_cells, fit_theta, floor_note,
-                     floor_study, plot_floor, probe_period)
+                     floor_study, kept_reference_files, plot_floor, probe_period)
 from ._convergence import NOT_ASYMPTOTIC, convergence_note, convergence_study, observed_order, plot_convergence
 from ._main import (
     camera_from_contract,
@@ -138,6 +138,7 @@ __all__ = [
     "probe_period",
     "fit_theta",
     "floor_study",
+    "kept_reference_files",
     "floor_note",
     "plot_floor",
     "NOT_ASYMPTOTIC",

@@ -242,7 +242,6 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
     grid and the FEM settings, not on the MPM levels, and at the default profile's n_grid 48 it
     costs minutes of one CPU core."""
     from ..assets import build_asset
-    from ..fem import FemWorld
     from ..rollout import run_rollouts
 
     say = log or (lambda msg: None)
@@ -259,14 +258,11 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
     points = np.asarray(gs.positions[: gs.n_gs], dtype=np.float64)   # the Gaussians: the same at every level
 
     # the reference: one particle set, voxelized on fem_n_grid (and on the coarser check grid)
-    ref_contract = _with_record(at_resolution(contract, settings.fem_n_grid), probe, n_long)
-    ref_particles = build_asset(at_resolution(contract, settings.fem_n_grid)).particles
     fem = {}
-    for name, n in (("fem (reference)", settings.fem_n_grid), ("fem (check)", settings.fem_check_n_grid)):
-        world = FemWorld(degree=settings.fem_degree, steps_per_frame=settings.fem_steps_per_frame, n_grid=int(n))
+    for name, (ref_contract, ref_particles, world) in _reference_runs(contract, settings).items():
         fem[name] = _fem_run(ref_contract, ref_particles, points, world, theta, probe, cache=reference_cache)
         f = fem[name]
-        say(f"{name}: n_grid {n}, {f['cells']} cells, E and rho x {f['scale']:.4f}, {f['cost']:.1f} s"
+        say(f"{name}: n_grid {world.n_grid}, {f['cells']} cells, E and rho x {f['scale']:.4f}, {f['cost']:.1f} s"
             + (" (kept from an earlier study)" if f["cached"] else ""))
     u_ref = fem["fem (reference)"]["u"]
     p_ref = probe_period(times, u_ref, direction)
@@ -341,6 +337,39 @@ def _placeless(contract):
     asset = dataclasses.replace(contract.asset, ply=name(contract.asset.ply))
     return dataclasses.replace(contract, source=name(contract.source), asset=asset,
                                candidates_path=name(contract.candidates_path), targets_path=name(contract.targets_path))
+
+
+def _reference_runs(contract, settings: FloorSettings) -> dict:
+    """{name: (contract, particles, world)} of the reference and its check: the particle set built
+    at ``fem_n_grid``, with the calibration probe's record ``record_factor`` times longer, voxelized
+    on ``fem_n_grid`` and on ``fem_check_n_grid``."""
+    from ..assets import build_asset
+    from ..fem import FemWorld
+
+    probe = contract.roles["calibration"]
+    n_long = (int(contract.probes[probe].export.n_frames) - 1) * int(settings.record_factor) + 1
+    ref_contract = _with_record(at_resolution(contract, settings.fem_n_grid), probe, n_long)
+    ref_particles = build_asset(at_resolution(contract, settings.fem_n_grid)).particles
+    return {name: (ref_contract, ref_particles, FemWorld(degree=settings.fem_degree, steps_per_frame=settings.fem_steps_per_frame,
+                                                          n_grid=int(n)))
+            for name, n in (("fem (reference)", settings.fem_n_grid), ("fem (check)", settings.fem_check_n_grid))}
+
+
+def kept_reference_files(contract, settings: FloorSettings = FloorSettings(), *, theta=(1.0, 1.0), reference_cache) -> dict:
+    """{name: (path, kept)} of the finite-element runs :func:`floor_study` would read from
+    ``reference_cache`` (the reference and its check): where each is kept, and whether it is
+    there. Cheap (the particle sets, no solve): to learn before a costly call whether the
+    study will compute a reference."""
+    from ..assets import build_asset
+
+    probe = contract.roles["calibration"]
+    gs = build_asset(contract).particles
+    points = np.asarray(gs.positions[: gs.n_gs], dtype=np.float64)
+    out = {}
+    for name, (c, particles, world) in _reference_runs(contract, settings).items():
+        path = Path(reference_cache) / f"fem_n{world.n_grid}_{_fem_key(c, particles, points, world, theta, probe)}.npz"
+        out[name] = (path, path.is_file())
+    return out
 
 
 def _fem_key(contract, particles, points, world, theta, probe) -> str:
