@@ -9,7 +9,7 @@ import numpy as np
 
 from knockgs_core.io import check_files_in, check_job_inputs, staged_folders, write_npz
 from knockgs_core.assets import load_scene, read_ply
-from knockgs_core.experiments import camera_from_contract, render_rollout
+from knockgs_core.render import camera_from_contract, render_rollout  # not the studies' package: a lighter import
 from knockgs_core.rollout import read_deformation, read_rollout
 
 log = open(snakemake.log[0], "w")

@@ -161,7 +161,7 @@ def _figure(args) -> int:
 
 def _camera_view(contract, built):
     """The asset at rest through the contract camera, [H, W, 3] in [0, 1] (CPU)."""
-    from knockgs_core.experiments import camera_from_contract
+    from knockgs_core.render import camera_from_contract
     from knockgs_core.render import render
 
     g = built.gaussians

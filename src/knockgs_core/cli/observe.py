@@ -77,7 +77,7 @@ def run_rgbd(args) -> int:
     from ..io import check_outputs
     from .._warp import warp_device
     from ..contract import load_contract
-    from ..experiments import camera_from_contract
+    from ..render import camera_from_contract
     from ..observe import render_rgbd, write_rgbd
     from ._common import contract_inputs
     from .render import _check_inputs, _load, _paths

@@ -144,7 +144,7 @@ def run_frames(args) -> int:
     from PIL import Image
 
     from ..contract import load_contract
-    from ..experiments import camera_from_contract, render_rollout
+    from ..render import camera_from_contract, render_rollout
 
     from ..io import atomic_write
     from .._warp import warp_device

@@ -277,7 +277,7 @@ class VideoScene:
         ``{assets_dir}/{object}.ply``, ``.scene.npz`` and ``.particles.npz`` (the particles
         checked against ``contract``)."""
         from ..assets import load_particles, load_scene, read_ply
-        from ._main import camera_from_contract
+        from ..render import camera_from_contract
 
         root = Path(assets_dir)
         gaussians = read_ply(root / f"{contract.name}.ply")
@@ -289,7 +289,7 @@ class VideoScene:
     @classmethod
     def from_asset(cls, contract, built, *, width: int, height: int) -> VideoScene:
         """A :class:`knockgs_core.assets.BuiltAsset` of ``contract`` held in memory."""
-        from ._main import camera_from_contract
+        from ..render import camera_from_contract
 
         return cls(built.gaussians, np.asarray(built.static_mask), np.asarray(built.particles.gaussian_index),
                    built.particles, camera_from_contract(contract.camera, width=width, height=height))

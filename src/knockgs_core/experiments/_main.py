@@ -17,7 +17,7 @@ import pandas as pd
 from ..descriptors import FEATURE_NAMES, descriptor
 from ..errors import InputError
 from ..metrics import curve_differences, joint_error_pct, rms_displacement_curve, trajectory_rmse
-from ..render import render_rollout  # re-exported: the workflow's render scripts import it from here
+from ..render import camera_from_contract, render_rollout  # re-exported: the studies' callers import them from here
 from ..rollout import read_rollout, theta_tag
 from ..io import ordered_map
 
@@ -220,19 +220,9 @@ def evaluate_methods(
     return {m: pd.DataFrame([row for rows in per_target for row in rows[m]]) for m in thetas}
 
 
-
-
 # ------------------------------------------------------------------------------------
 # rendered frames
 # ------------------------------------------------------------------------------------
-def camera_from_contract(camera: Mapping, *, width: int | None = None, height: int | None = None):
-    """The contract's look-at camera, optionally at another image size (same field of view)."""
-    from ..render import Camera
-
-    return Camera.look_at(camera["eye"], camera["target"], camera["up"], fov_deg=camera["fov_deg"],
-                          width=int(width or camera["width"]), height=int(height or camera["height"]))
-
-
 def render_metrics_rows(estimate: Mapping, targets: pd.DataFrame, render_path, probes: Sequence[str]) -> pd.DataFrame:
     """Foreground PSNR and object-crop SSIM of each target x probe (prediction vs truth,
     same renderer and camera). ``render_path(probe, theta)`` locates a render ``.npz``."""

@@ -13,7 +13,7 @@ Conventions: OpenCV camera (x right, y down, z forward); pixel ``(row, col)`` ha
 centre at ``(u, v) = (col + 0.5, row + 0.5)``; colours are RGB in [0, 1].
 """
 
-from ._camera import Camera, Projection, RenderOutput, TileBins
+from ._camera import Camera, Projection, RenderOutput, TileBins, camera_from_contract
 from ._constants import TILE_SIZE
 from ._deform import (Scene, covariance_to_scale_rotation, deform_covariances, deformed_gaussians, deformed_scene, render_frames,
                       render_outputs, render_rollout)
@@ -50,6 +50,7 @@ __all__ = [
     "deform_covariances",
     "render_frames",
     "render_rollout",
+    "camera_from_contract",
     "render_outputs",
     "deformed_scene",
     "deformed_gaussians",

@@ -179,3 +179,10 @@ class TileBins:
     @property
     def tiles_y(self) -> int:
         return -(-self.height // self.tile_size)
+
+
+def camera_from_contract(camera, *, width: int | None = None, height: int | None = None) -> Camera:
+    """The contract's look-at camera (its ``camera`` mapping: eye, target, up, fov_deg, width,
+    height), optionally at another image size (same field of view)."""
+    return Camera.look_at(camera["eye"], camera["target"], camera["up"], fov_deg=camera["fov_deg"],
+                          width=int(width or camera["width"]), height=int(height or camera["height"]))
