@@ -18,18 +18,40 @@ unexplained. See docs/discrepancy.md.
   of the attribution (``DiscrepancyResult.rounds`` holds their dicts).
 """
 
-from ._attribution import AttributionRound, AttributionRow
-from ._cases import default_cases, make_case
-from ._catalogue import CATALOGUE_KEYS, Candidate, CatalogueContext, default_catalogue
-from ._files import audit_truth_separation, evaluate_files, run_files
-from ._loop import DiscrepancyResult, LibrarySource, LoopSettings, run_discrepancy
-from ._measured import Correspondence, Measurement, match_points, read_measured, write_measured
-from ._planted import PLANTED_EFFECTS, CaseSpec
-from ._report import write_report, write_result
-from ._scoring import acceptance, evaluate_case, world_acceptance
-from ._tables import case_table, table_figure, write_case_table
-from ._views import residual_views, view_summary
-from ._worlds import FEM_EFFECTS, FINER_EFFECTS, make_world_case, world_cases, world_contract
+# Each name is imported from its module on first use, so that a caller who needs one study's
+# names (a workflow file at parse time, a script) pays for that module alone, not for every
+# study's imports (Warp among them).
+_LAZY = {
+    "._attribution": ("AttributionRound", "AttributionRow"),
+    "._cases": ("default_cases", "make_case"),
+    "._catalogue": ("CATALOGUE_KEYS", "Candidate", "CatalogueContext", "default_catalogue"),
+    "._files": ("audit_truth_separation", "evaluate_files", "run_files"),
+    "._loop": ("DiscrepancyResult", "LibrarySource", "LoopSettings", "run_discrepancy"),
+    "._measured": ("Correspondence", "Measurement", "match_points", "read_measured", "write_measured"),
+    "._planted": ("PLANTED_EFFECTS", "CaseSpec"),
+    "._report": ("write_report", "write_result"),
+    "._scoring": ("acceptance", "evaluate_case", "world_acceptance"),
+    "._tables": ("case_table", "table_figure", "write_case_table"),
+    "._views": ("residual_views", "view_summary"),
+    "._worlds": ("FEM_EFFECTS", "FINER_EFFECTS", "make_world_case", "world_cases", "world_contract"),
+}
+_MODULE_OF = {name: module for module, names in _LAZY.items() for name in names}
+
+
+def __getattr__(name):
+    module = _MODULE_OF.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module, __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_MODULE_OF))
+
 
 __all__ = [
     "Measurement",

@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 
 from ..io import write_json, write_npz
-from ..sim import with_effects
 from ._measured import Measurement, write_measured
 from ._planted import LEVELS, PLANTED_EFFECTS, WORLDS, CaseSpec, search_strength
 from ._worlds import make_world_case
@@ -52,6 +51,8 @@ def default_cases(targets: list[tuple[float, float]] | None = None, *, targets_p
 
 def _sim(contract, particles, theta, probe, effects=(), *, device=None, deterministic: bool = False):
     from ..rollout import run_rollout
+
+    from ..sim import with_effects
 
     params = with_effects(contract.sim, *effects)
     r = run_rollout(contract, theta, probe, particles=particles, device=device, deterministic=deterministic,

@@ -16,17 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
-from ..sim import (
-    BodyForcePulse,
-    Box,
-    Gravity,
-    HiddenMass,
-    PoissonShift,
-    StiffnessGradient,
-    SupportSlip,
-    VelocityDamping,
-    VonMisesPlasticity,
-)
+from .. import sim  # its effects are looked up when a case is built: the table reads without Warp
+from ..sim import Box
 
 __all__ = ["PLANTED_EFFECTS", "LEVELS", "WORLDS", "CaseSpec", "search_strength"]
 
@@ -54,20 +45,20 @@ def _end_box(particles, frac=0.3):
 #: planted effect -> (builder(strength, particles, horizon), starting strength, in the catalogue,
 #: strength -> (parameter, value, unit)). Strength grows with the effect's size.
 PLANTED_EFFECTS = {
-    "damping": (lambda s, ps, H: VelocityDamping(rate=s), 1.0, True, lambda s: ("rate", s, "1/s")),
-    "gravity": (lambda s, ps, H: Gravity(g=s), 0.02, True, lambda s: ("g", s, "m/s^2")),
-    "plasticity": (lambda s, ps, H: VonMisesPlasticity(yield_stress=1.0 / s), 1.0 / 40.0, True,
+    "damping": (lambda s, ps, H: sim.VelocityDamping(rate=s), 1.0, True, lambda s: ("rate", s, "1/s")),
+    "gravity": (lambda s, ps, H: sim.Gravity(g=s), 0.02, True, lambda s: ("g", s, "m/s^2")),
+    "plasticity": (lambda s, ps, H: sim.VonMisesPlasticity(yield_stress=1.0 / s), 1.0 / 40.0, True,
                    lambda s: ("yield_stress", 1.0 / s, "Pa")),
     # a shear-dominated response barely sees nu: a 12-25% change needs a large drop
-    "poisson": (lambda s, ps, H: PoissonShift(delta_nu=-s), 0.3, True, lambda s: ("delta_nu", -s, "")),
-    "stiffness_gradient_z": (lambda s, ps, H: StiffnessGradient(slope=s, axis=2), 1.0, True, lambda s: ("slope", s, "")),
-    "support_slip": (lambda s, ps, H: SupportSlip(slip_time=s), 0.005, True, lambda s: ("slip_time", s, "s")),
-    "force_pulse": (lambda s, ps, H: BodyForcePulse(accel=s, direction=(0.0, 1.0, 0.0), box=_top_box(ps),
+    "poisson": (lambda s, ps, H: sim.PoissonShift(delta_nu=-s), 0.3, True, lambda s: ("delta_nu", -s, "")),
+    "stiffness_gradient_z": (lambda s, ps, H: sim.StiffnessGradient(slope=s, axis=2), 1.0, True, lambda s: ("slope", s, "")),
+    "support_slip": (lambda s, ps, H: sim.SupportSlip(slip_time=s), 0.005, True, lambda s: ("slip_time", s, "s")),
+    "force_pulse": (lambda s, ps, H: sim.BodyForcePulse(accel=s, direction=(0.0, 1.0, 0.0), box=_top_box(ps),
                                                     start=0.2 * H, end=0.6 * H),
                     0.05, False, lambda s: ("accel", s, "m/s^2")),
-    "hidden_mass": (lambda s, ps, H: HiddenMass(fraction=s, box=_end_box(ps)), 0.5, False, lambda s: ("fraction", s, "")),
+    "hidden_mass": (lambda s, ps, H: sim.HiddenMass(fraction=s, box=_end_box(ps)), 0.5, False, lambda s: ("fraction", s, "")),
     # a transient push on the whole body along -z: not a sustained load
-    "vertical_push": (lambda s, ps, H: BodyForcePulse(accel=s, direction=(0.0, 0.0, -1.0), box=_top_box(ps, frac=1.0),
+    "vertical_push": (lambda s, ps, H: sim.BodyForcePulse(accel=s, direction=(0.0, 0.0, -1.0), box=_top_box(ps, frac=1.0),
                                                       start=0.2 * H, end=0.6 * H),
                       0.1, False, lambda s: ("accel", s, "m/s^2")),
 }

@@ -30,7 +30,6 @@ import numpy as np
 from ..io import write_json, write_npz
 from ..errors import InputError
 from ._measured import Measurement, write_measured
-from ._model_error import displacement_at
 from ._planted import LEVELS, PLANTED_EFFECTS, CaseSpec, search_strength
 
 __all__ = ["FEM_EFFECTS", "FINER_EFFECTS", "world_cases", "world_contract", "make_world_case"]
@@ -126,6 +125,7 @@ class _World:
         if self.spec.world == "finer":
             from ..rollout import run_rollout
             from ..sim import with_effects
+            from ._model_error import displacement_at
 
             effects = () if strength is None else (PLANTED_EFFECTS[planted][0](strength, self.wp, self.H),)
             p = with_effects(self.wc.sim, *effects)

@@ -15,103 +15,53 @@ another probe duration and contact) and :mod:`._passive` (passive versus active 
 library observed the same way).
 """
 
-from ._boundaries import (
-    BOUNDARY_KINDS,
-    BOUNDARY_LIBRARIES,
-    BoundaryStudyCondition,
-    BoundarySettings,
-    ConditionWorld,
-    RESOLUTION_NEIGHBOURS,
-    boundary_condition,
-    boundary_conditions,
-    boundary_note,
-    boundary_table,
-    condition_contract,
-    condition_world,
-    resolution_profile,
-    loo_table,
-    shared_library,
-)
-from ._identifiability import condition_table, identifiability_summary, pair_table, plot_identifiability
-from ._sensitivity import (
-    SensitivitySettings,
-    k_alpha_grid,
-    knn_reference,
-    nested_subsets,
-    plot_sensitivity,
-    prediction_counts,
-    size_sensitivity,
-    size_summary,
-)
-from ._splits import plot_splits, split_row, splits_note, splits_table
-from ._probe_shifts import (
-    contact_table,
-    duration_table,
-    evaluate_shift,
-    probe_impulse,
-    probe_total_force,
-    protocol_distance,
-    shift_note,
-)
-from ._cmaes import (
-    CMAES_METHOD,
-    DEPTH_WEIGHT,
-    VideoScene,
-    candidate_bounds,
-    cmaes_calibrate,
-    cmaes_estimate,
-    cmaes_note,
-    cmaes_rows,
-    cmaes_table,
-    rollout_video,
-    video_depth_scale,
-    video_loss,
-    video_simulator,
-)
-from ._own_object import (
-    BASE_THETA,
-    OBSERVE_TRACKS_DEFAULTS,
-    ObservationSettings,
-    as_stored,
-    calibration_report,
-    camera_from_dict,
-    camera_to_dict,
-    calibration_rows,
-    estimate_summary,
-    measured_observation,
-    observe_frames,
-    observe_rollout,
-    plot_calibration,
-)
-from ._ladder import LadderSettings, ladder_note, ladder_rungs, ladder_table, plot_ladder, rung_descriptors
-from ._passive import (
-    PASSIVE_PROBE,
-    PassiveProtocol,
-    error_directions,
-    passive_active_note,
-    passive_active_table,
-    passive_protocol,
-    passive_rollout,
-    plot_passive_active,
-    ratio_span_pct,
-)
-from ._floor import (FloorSettings, at_resolution, body_volume, cells_through, enclosed_empty_cells, fit_theta, floor_note,
-                     floor_study, kept_reference_files, plot_floor, probe_period)
-from ._convergence import NOT_ASYMPTOTIC, convergence_note, convergence_study, observed_order, plot_convergence
-from ._main import (
-    camera_from_contract,
-    estimate_thetas,
-    evaluate_method,
-    evaluate_methods,
-    file_sha256,
-    frozen_estimate,
-    library_table,
-    oracle_estimate,
-    query_table,
-    render_metrics_rows,
-    render_rollout,
-    theta_tag,
-)
+# Each name is imported from its module on first use, so that a caller who needs one study's
+# names (a workflow file at parse time, a script) pays for that module alone, not for every
+# study's imports (Warp among them).
+_LAZY = {
+    "._boundaries": ("BOUNDARY_KINDS", "BOUNDARY_LIBRARIES", "BoundaryStudyCondition", "BoundarySettings",
+        "ConditionWorld", "RESOLUTION_NEIGHBOURS", "boundary_condition", "boundary_conditions", "boundary_note",
+        "boundary_table", "condition_contract", "condition_world", "resolution_profile", "loo_table",
+        "shared_library"),
+    "._identifiability": ("condition_table", "identifiability_summary", "pair_table", "plot_identifiability"),
+    "._sensitivity": ("SensitivitySettings", "k_alpha_grid", "knn_reference", "nested_subsets", "plot_sensitivity",
+        "prediction_counts", "size_sensitivity", "size_summary"),
+    "._splits": ("plot_splits", "split_row", "splits_note", "splits_table"),
+    "._probe_shifts": ("contact_table", "duration_table", "evaluate_shift", "probe_impulse", "probe_total_force",
+        "protocol_distance", "shift_note"),
+    "._cmaes": ("CMAES_METHOD", "DEPTH_WEIGHT", "VideoScene", "candidate_bounds", "cmaes_calibrate",
+        "cmaes_estimate", "cmaes_note", "cmaes_rows", "cmaes_table", "rollout_video", "video_depth_scale",
+        "video_loss", "video_simulator"),
+    "._own_object": ("BASE_THETA", "OBSERVE_TRACKS_DEFAULTS", "ObservationSettings", "as_stored",
+        "calibration_report", "camera_from_dict", "camera_to_dict", "calibration_rows", "estimate_summary",
+        "measured_observation", "observe_frames", "observe_rollout", "plot_calibration"),
+    "._ladder": ("LadderSettings", "ladder_note", "ladder_rungs", "ladder_table", "plot_ladder", "rung_descriptors"),
+    "._passive": ("PASSIVE_PROBE", "PassiveProtocol", "error_directions", "passive_active_note",
+        "passive_active_table", "passive_protocol", "passive_rollout", "plot_passive_active", "ratio_span_pct"),
+    "._floor": ("FloorSettings", "at_resolution", "body_volume", "cells_through", "enclosed_empty_cells",
+        "fit_theta", "floor_note", "floor_study", "kept_reference_files", "plot_floor", "probe_period"),
+    "._convergence": ("NOT_ASYMPTOTIC", "convergence_note", "convergence_study", "observed_order", "plot_convergence"),
+    "._main": ("camera_from_contract", "estimate_thetas", "evaluate_method", "evaluate_methods", "file_sha256",
+        "frozen_estimate", "library_table", "oracle_estimate", "query_table", "render_metrics_rows",
+        "render_rollout", "theta_tag"),
+}
+_MODULE_OF = {name: module for module, names in _LAZY.items() for name in names}
+
+
+def __getattr__(name):
+    module = _MODULE_OF.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module, __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_MODULE_OF))
+
 
 __all__ = [
     "library_table",

@@ -1,0 +1,251 @@
+"""The discrepancy loop at the floor table's resolutions, on worlds a continuum made (issue 57,
+part 3): does the loop's theta hold, and does its interval contain the truth, once the model
+runs at a resolution whose measured floor is small?
+
+The worlds are the floor study's finite-element reference (``experiments.floor_study``): the
+object's particle set at ``--fem-n-grid`` voxelized on that grid, P2 tetrahedra, Newmark, E and
+rho scaled so the voxel body carries the particles' volume (``fem_scale``), at a held-out
+target's theta, with no effect or a planted Rayleigh damping. They are observed as the
+discrepancy suite's world cases are (``discrepancy._worlds``): tracks without identity of a
+random 60 % of the neighbouring finer profile's Gaussians (at most ``--surface-points`` of
+them), noise 2 % of the calibration response's RMS displacement; the truth kept for scoring is
+the world's motion of the loop's Gaussian particles. The loop (``run_discrepancy``, default
+settings, Gauss-Newton base calibration from (1, 1)) then runs on the same data at each of
+``--levels`` (the contract at that n_grid, fill refined with it: ``experiments.at_resolution``)
+on ``--device``, and each run is scored as a world case (``evaluate_case``,
+``world_acceptance``).
+
+Two phases, each resumable (a finished file is read back, not recomputed):
+
+    # the worlds: finite-element runs, one process each (CPU; minutes each at n_grid 48)
+    python3 benchmarks/floor_loop.py worlds --object pillow --profile config --volumes enclosed \
+        --fem-n-grid 48 --worlds WORLDS --jobs 8
+    # the loop at each level, on the GPU
+    python3 benchmarks/floor_loop.py loop --object pillow --profile config --volumes enclosed \
+        --fem-n-grid 48 --worlds WORLDS --levels 32 64 96 --device cuda:0 --jobs 3 --out OUT
+
+Writes ``OUT/floor_loop_{object}.csv|md``: a row per (case, level).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import multiprocessing
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: (case, planted effect, theta, strength): held-out targets of split main; the Rayleigh damping's
+#: rate alpha [1/s] is the one the ci world suite's search found for a 25 % held-out change
+#: (docs/discrepancy.md); its change here is measured and reported, not searched again
+CASES = (("fem_null", "none", (0.95, 1.35), None), ("fem_null_2", "none", (0.70, 1.20), None),
+         ("fem_damping", "damping", (0.95, 1.35), 1.41))
+NOISE_REL = 0.02
+SEED = 2008
+
+
+def _setup(args):
+    from knockgs_core.contract import load_contract
+
+    profile = {"config": "default"}.get(args.profile, args.profile)
+    contract = load_contract(args.object, profile)
+    if args.volumes is not None:
+        contract = dataclasses.replace(contract, fill=dataclasses.replace(contract.fill, volumes=args.volumes))
+    block = yaml.safe_load((ROOT / "config" / f"{args.profile}.yaml").read_text())["floor"]
+    return contract, block
+
+
+def _world_runs(contract, block, args):
+    """{(case, role): (theta, effect, strength, probe)} of every finite-element run."""
+    probes = {"calib": contract.roles["calibration"], "heldout": contract.roles["heldout"][0]}
+    runs = {}
+    for name, effect, theta, strength in CASES:
+        for role, probe in probes.items():
+            runs[(name, role)] = (theta, effect, strength, probe)
+        if effect != "none":
+            runs[(name, "heldout_null")] = (theta, "none", None, probes["heldout"])
+    return runs
+
+
+def _points(contract, args):
+    """The loop's Gaussians [n, 3] and the surface points the tracks follow [P, 3]."""
+    from knockgs_core.assets import build_asset
+    from knockgs_core.contract import load_contract
+
+    gs = build_asset(contract).particles
+    loop_points = np.asarray(gs.positions[: gs.n_gs], dtype=np.float64)
+    finer = {"ci": "default", "default": "paper"}.get(contract.profile, contract.profile)
+    fs = build_asset(load_contract(contract.source, finer)).particles
+    surface = np.asarray(fs.positions[: fs.n_gs], dtype=np.float64)
+    if len(surface) > args.surface_points:
+        surface = surface[np.sort(np.random.default_rng(SEED).permutation(len(surface))[: args.surface_points])]
+    return loop_points, surface
+
+
+def _fem_run(job):
+    """One finite-element run of a world, kept as ``path`` (float32 positions [T, n + P, 3])."""
+    from knockgs_core.assets import build_asset
+    from knockgs_core.discrepancy import FEM_EFFECTS
+    from knockgs_core.experiments import at_resolution, body_volume
+    from knockgs_core.fem import FemWorld, fem_world_mesh, fem_world_rollout
+
+    args, key, (theta, effect, strength, probe), path = job
+    if Path(path).is_file():
+        return key, path, 0.0
+    t0 = time.perf_counter()
+    contract, block = _setup(args)
+    ref = at_resolution(contract, args.fem_n_grid)
+    particles = build_asset(ref).particles
+    loop_points, surface = _points(contract, args)
+    H = contract.probes[contract.roles["calibration"]].export.horizon
+    world = FemWorld(degree=int(block["fem_degree"]), steps_per_frame=int(block["fem_steps_per_frame"]),
+                     n_grid=int(args.fem_n_grid))
+    if effect != "none":
+        world = dataclasses.replace(world, **FEM_EFFECTS[effect][0](strength, H))
+    geo = fem_world_mesh(ref, particles, world=world)
+    scale = 1.0 if particles.volumes is None else body_volume(particles, geo["dx"]) / geo["volume"]
+    Y = fem_world_rollout(ref, particles, (theta[0] * scale, theta[1] * scale), probe,
+                          np.concatenate([loop_points, surface]), world=world)
+    tmp = Path(path).with_suffix(".tmp.npz")
+    np.savez(tmp, Y=Y.astype(np.float32), scale=scale, cost=time.perf_counter() - t0)
+    tmp.replace(path)
+    return key, path, time.perf_counter() - t0
+
+
+def worlds(args) -> None:
+    contract, block = _setup(args)
+    args.worlds.mkdir(parents=True, exist_ok=True)
+    runs = _world_runs(contract, block, args)
+    jobs = [(args, key, spec, str(args.worlds / f"{key[0]}__{key[1]}.npz")) for key, spec in runs.items()]
+    with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        for key, path, cost in pool.map(_fem_run, jobs):
+            print(f"{key}: {path} ({cost:.0f} s{', kept' if cost == 0 else ''})", flush=True)
+
+
+def _rel_change(Y, Y0):
+    d, D = Y - Y0, Y0 - Y0[0]
+    return float(np.sqrt(np.mean(np.sum(d**2, -1))) / np.sqrt(np.mean(np.sum(D**2, -1))))
+
+
+def _case_files(args, contract, name, effect, theta, strength, folder: Path) -> dict:
+    """The case's measured files and truth folder (``make_world_case``'s layout) from its runs."""
+    from knockgs_core.discrepancy import Measurement, write_measured
+    from knockgs_core.io import write_json, write_npz
+
+    loop_points, _ = _points(contract, args)
+    n = len(loop_points)
+    Y = {role: np.load(args.worlds / f"{name}__{role}.npz")["Y"].astype(np.float64) for role in ("calib", "heldout")}
+    probes = {"calib": contract.roles["calibration"], "heldout": contract.roles["heldout"][0]}
+    rng = np.random.default_rng(SEED)
+    clean = {role: Y[role][:, :n] for role in Y}
+    sigma = NOISE_REL * float(np.sqrt(np.mean(np.sum((clean["calib"] - clean["calib"][0]) ** 2, -1))))
+    surface = {role: Y[role][:, n:] for role in Y}
+    idx = rng.permutation(surface["calib"].shape[1])[: int(0.6 * surface["calib"].shape[1])]
+    tracks = rng.permutation(len(idx)) + 1
+    files = {}
+    for role, pr in probes.items():
+        S = surface[role][:, idx]
+        m = Measurement(points=S + rng.normal(0.0, sigma, size=S.shape), frames=np.arange(S.shape[0]), times=None,
+                        particle=None, track=tracks, meta={"object": contract.name, "profile": contract.profile, "probe": pr},
+                        source=f"case {name}")
+        files[role] = folder / f"measured_{role}.parquet"
+        write_measured(files[role], m)
+    change = 0.0
+    if effect != "none":
+        Y0 = np.load(args.worlds / f"{name}__heldout_null.npz")["Y"].astype(np.float64)[:, :n]
+        change = _rel_change(clean["heldout"], Y0)
+    write_npz(folder / "clean.npz", calib=clean["calib"].astype(np.float32), heldout=clean["heldout"].astype(np.float32))
+    truth = {"case": name, "world": "fem", "planted_effect": effect, "in_catalogue": True, "level": "fixed",
+             "planted_parameter": ({"parameter": "rayleigh_alpha", "value": strength, "unit": "1/s"} if strength else None),
+             "heldout_change": change, "theta_true": list(theta), "noise_std": sigma, "observation": "gs_tracks",
+             "seed": SEED, "calibration_probe": probes["calib"], "heldout_probe": probes["heldout"],
+             "measured_files": {k: str(v) for k, v in files.items()}}
+    write_json(folder / "truth.json", truth)
+    return truth
+
+
+def _loop_run(job):
+    from knockgs_core.assets import build_asset
+    from knockgs_core.discrepancy import evaluate_case, read_measured, run_discrepancy, world_acceptance, write_result
+    from knockgs_core.experiments import at_resolution
+
+    args, name, level, case_dir = job
+    out = Path(case_dir) / f"n{level}"
+    if (out / "row.json").is_file():
+        return json.loads((out / "row.json").read_text())
+    contract, _ = _setup(args)
+    truth = json.loads((Path(case_dir) / "truth.json").read_text())
+    c = at_resolution(contract, level)
+    particles = build_asset(c).particles
+    m = read_measured(truth["measured_files"]["calib"])
+    held = {truth["heldout_probe"]: read_measured(truth["measured_files"]["heldout"])}
+    t0 = time.perf_counter()
+    result = run_discrepancy(m, c, particles, probe=truth["calibration_probe"], heldout_probes=[truth["heldout_probe"]],
+                             heldout_measured=held, device=args.device)
+    seconds = time.perf_counter() - t0
+    out.mkdir(parents=True, exist_ok=True)
+    write_result(result, out)
+    with np.load(out / "predictions.npz") as z:  # the predictions as the run's files hold them ({probe}/{stage})
+        row = evaluate_case(json.loads((out / "result.json").read_text()), dict(z), case_dir)
+    ok, why = world_acceptance(row)
+    row.update({"level": level, "accepted": ok, "why": why, "seconds": seconds, "floor_statement": result.floor_statement or ""})
+    (out / "row.json").write_text(json.dumps(row, default=float))
+    return row
+
+
+def loop(args) -> None:
+    contract, _ = _setup(args)
+    cases_dir = args.out / "cases"
+    jobs = []
+    for name, effect, theta, strength in CASES:
+        folder = cases_dir / name
+        folder.mkdir(parents=True, exist_ok=True)
+        if not (folder / "truth.json").is_file():
+            _case_files(args, contract, name, effect, theta, strength, folder)
+        jobs += [(args, name, level, str(folder)) for level in args.levels]
+    with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        rows = list(pool.map(_loop_run, jobs))
+    table = pd.DataFrame(rows)
+    cols = ["case", "level", "theta_true", "theta_before", "theta_after", "theta_error_before_pct", "theta_error_after_pct",
+            "theta_interval", "theta_in_interval", "identified_effect", "verdict_kind", "heldout_change",
+            "heldout_traj_rmse_before", "heldout_traj_rmse_after", "heldout_improvement", "accepted", "why",
+            "n_simulations", "seconds", "floor_statement"]
+    table = table[[c for c in cols if c in table.columns]]
+    args.out.mkdir(parents=True, exist_ok=True)
+    table.to_csv(args.out / f"floor_loop_{args.object}.csv", index=False)
+    statements = "\n".join(f"- {r.case} at n_grid {r.level}: {r.floor_statement}"
+                           for r in table.itertuples() if r.floor_statement)
+    md = table.drop(columns=["floor_statement"]).to_markdown(index=False)
+    (args.out / f"floor_loop_{args.object}.md").write_text(md + "\n\n" + statements + "\n")
+    print(table.drop(columns=["floor_statement", "why"]).to_string())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("phase", choices=("worlds", "loop"))
+    ap.add_argument("--object", default="pillow")
+    ap.add_argument("--profile", default="config", help="config file stem: ci, config (default), paper")
+    ap.add_argument("--volumes", default=None, choices=("cell_share", "enclosed", "wall"))
+    ap.add_argument("--fem-n-grid", type=int, required=True)
+    ap.add_argument("--surface-points", type=int, default=20000)
+    ap.add_argument("--worlds", type=Path, required=True, help="folder of the finite-element runs (kept)")
+    ap.add_argument("--levels", type=int, nargs="+", default=None)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    if args.phase == "loop" and (args.levels is None or args.out is None):
+        ap.error("the loop phase needs --levels and --out")
+    worlds(args) if args.phase == "worlds" else loop(args)
+
+
+if __name__ == "__main__":
+    main()
