@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -187,16 +188,20 @@ def _loop_run(job):
     particles = build_asset(c).particles
     m = read_measured(truth["measured_files"]["calib"])
     held = {truth["heldout_probe"]: read_measured(truth["measured_files"]["heldout"])}
-    t0 = time.perf_counter()
-    result = run_discrepancy(m, c, particles, probe=truth["calibration_probe"], heldout_probes=[truth["heldout_probe"]],
-                             heldout_measured=held, device=args.device)
-    seconds = time.perf_counter() - t0
-    out.mkdir(parents=True, exist_ok=True)
-    write_result(result, out)
+    seconds = math.nan
+    if not ((out / "result.json").is_file() and (out / "predictions.npz").is_file()):  # a run killed after it wrote them
+        t0 = time.perf_counter()
+        result = run_discrepancy(m, c, particles, probe=truth["calibration_probe"], heldout_probes=[truth["heldout_probe"]],
+                                 heldout_measured=held, device=args.device)
+        seconds = time.perf_counter() - t0
+        out.mkdir(parents=True, exist_ok=True)
+        write_result(result, out)
+    result = json.loads((out / "result.json").read_text())
     with np.load(out / "predictions.npz") as z:  # the predictions as the run's files hold them ({probe}/{stage})
-        row = evaluate_case(json.loads((out / "result.json").read_text()), dict(z), case_dir)
+        row = evaluate_case(result, dict(z), case_dir)
     ok, why = world_acceptance(row)
-    row.update({"level": level, "accepted": ok, "why": why, "seconds": seconds, "floor_statement": result.floor_statement or ""})
+    row.update({"level": level, "accepted": ok, "why": why, "seconds": seconds,
+                "floor_statement": result.get("floor_statement") or ""})
     (out / "row.json").write_text(json.dumps(row, default=float))
     return row
 
