@@ -77,10 +77,15 @@ def _world_runs(contract, block, args):
 
 
 def _points(contract, args):
-    """The loop's Gaussians [n, 3] and the surface points the tracks follow [P, 3]."""
+    """The loop's Gaussians [n, 3] and the surface points the tracks follow [P, 3], kept in
+    ``--worlds`` (points.npz) once drawn: the finer profile's asset is built once."""
     from knockgs_core.assets import build_asset
     from knockgs_core.contract import load_contract
 
+    kept = args.worlds / "points.npz"
+    if kept.is_file():
+        with np.load(kept) as z:
+            return z["loop"], z["surface"]
     gs = build_asset(contract).particles
     loop_points = np.asarray(gs.positions[: gs.n_gs], dtype=np.float64)
     finer = {"ci": "default", "default": "paper"}.get(contract.profile, contract.profile)
@@ -88,6 +93,9 @@ def _points(contract, args):
     surface = np.asarray(fs.positions[: fs.n_gs], dtype=np.float64)
     if len(surface) > args.surface_points:
         surface = surface[np.sort(np.random.default_rng(SEED).permutation(len(surface))[: args.surface_points])]
+    args.worlds.mkdir(parents=True, exist_ok=True)
+    np.savez(args.worlds / "points.tmp.npz", loop=loop_points, surface=surface)
+    (args.worlds / "points.tmp.npz").replace(kept)
     return loop_points, surface
 
 
@@ -123,7 +131,7 @@ def _fem_run(job):
 
 def worlds(args) -> None:
     contract, block = _setup(args)
-    args.worlds.mkdir(parents=True, exist_ok=True)
+    _points(contract, args)  # drawn once, before the runs read them
     runs = _world_runs(contract, block, args)
     jobs = [(args, key, spec, str(args.worlds / f"{key[0]}__{key[1]}.npz")) for key, spec in runs.items()]
     with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
