@@ -571,3 +571,42 @@ def test_where_the_theta_only_model_shows_no_floor_unpassed_candidates_are_resco
     att = round_(0.9)  # passes on the round's floor: not rescored
     _rescore_unpassed(shows, att, lambda spec: shows, (rss_val, rss_val), settings)
     assert not att.table[0].own_term and att.table[0].explained_val == 0.9
+
+
+def test_the_loop_runs_at_the_grid_it_is_told_and_refuses_particles_of_another(tmp_path, rng, monkeypatch, capsys):
+    """``knockgs discrepancy run --n-grid N``: the loop's model is the contract at N cells per axis
+    (fill refined with it, the substep by the contracts' rule); particles built at the profile's
+    grid are refused by the contract's hash, in one line, exit 2. The loop itself is replaced by a
+    recorder: what is tested is the model it is handed."""
+    import knockgs_core.discrepancy._files as files
+    from knockgs_core.assets import build_asset, save_particles
+    from knockgs_core.cli import main
+    from knockgs_core.contract import at_resolution, load_contract
+
+    ci = load_contract("pillow", "ci")
+    T, M = ci.probes["standard_x"].export.n_frames, 20
+    X = rng.normal(scale=0.01, size=(T, M, 3)) + 1.0
+    write_measured(tmp_path / "m.parquet", Measurement(points=X, frames=np.arange(T), times=None, particle=None,
+                                                       track=np.arange(M), meta={"object": "pillow", "probe": "standard_x"},
+                                                       source="test"))
+    seen = {}
+
+    def recorder(measured, contract, particles, **kw):
+        seen.update(contract=contract, particles=particles)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(files, "run_discrepancy", recorder)
+    with pytest.raises(SystemExit):
+        main(["discrepancy", "run", "--object", "pillow", "--profile", "ci", "--measured", str(tmp_path / "m.parquet"),
+              "--n-grid", "48", "-o", str(tmp_path / "out"), "--quiet"])
+    c = seen["contract"]
+    assert c.hash == at_resolution(ci, 48).hash != ci.hash
+    assert (c.sim.n_grid, c.fill.resolution) == (48, round(ci.fill.resolution * 48 / ci.sim.n_grid))
+    assert c.sim.dt == pytest.approx(c.cfl_dt()) and c.sim.dt < ci.sim.dt
+    assert len(seen["particles"].positions) == len(build_asset(c).particles.positions)
+    save_particles(build_asset(ci).particles, tmp_path / "p.npz", contract=ci)
+    capsys.readouterr()
+    code = main(["discrepancy", "run", "--object", "pillow", "--profile", "ci", "--measured", str(tmp_path / "m.parquet"),
+                 "--n-grid", "48", "--particles", str(tmp_path / "p.npz"), "-o", str(tmp_path / "out2"), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "p.npz" in err and "contract_hash" in err, err

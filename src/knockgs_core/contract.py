@@ -52,6 +52,7 @@ from .sim import (
 
 __all__ = [
     "ObjectContract",
+    "at_resolution",
     "AssetSettings",
     "FillSettings",
     "Profile",
@@ -365,6 +366,20 @@ def _canonical_hash(d: dict) -> str:
 
 
 # --------------------------------------------------------------------------- locating files
+
+def at_resolution(contract: ObjectContract, n_grid: int) -> ObjectContract:
+    """``contract`` on a grid of ``n_grid`` cells per axis, its fill resolution scaled by
+    ``n_grid / contract.sim.n_grid`` (rounded) and the substep by the contracts' rule
+    (:meth:`ObjectContract.cfl_dt`). Gaussians, materials and probes unchanged; its
+    :attr:`~ObjectContract.hash` is the new grid's (files made at another grid are refused)."""
+    if isinstance(n_grid, bool) or int(n_grid) != n_grid or int(n_grid) < 8:
+        raise InputError(contract.source, "sim.n_grid", f"a grid of at least 8 cells per axis, got {n_grid!r}")
+    n = int(n_grid)
+    factor = n / contract.sim.n_grid
+    fill = replace(contract.fill, resolution=max(2, int(round(contract.fill.resolution * factor))))
+    out = replace(contract, sim=replace(contract.sim, n_grid=n), fill=fill)
+    return replace(out, sim=replace(out.sim, dt=float(out.cfl_dt())))
+
 
 def find_config_dir(config_dir: str | os.PathLike | None = None) -> Path:
     """The configuration directory (see the module docstring for the search order)."""

@@ -14,7 +14,7 @@ import math
 import sys
 
 from ..errors import InputError
-from ._common import contract_inputs, nonnegative_float, nonnegative_int
+from ._common import contract_inputs, nonnegative_float, nonnegative_int, positive_int
 
 __all__ = ["register"]
 
@@ -70,6 +70,10 @@ def register(subparsers) -> argparse.ArgumentParser:
                         "local ridge instead of Gauss-Newton from (1, 1)")
     p.add_argument("--catalogue", help="comma-separated catalogue keys to consider (default: all that apply)")
     p.add_argument("--max-effects", type=nonnegative_int, default=2, help="most effects to add (default 2)")
+    p.add_argument("--n-grid", type=positive_int, metavar="N",
+                   help="simulate the loop's model on a grid of N cells per axis, fill refined with it (default: the "
+                        "profile's grid; choose it where the floor table, docs/floor.md, puts the model's error under "
+                        "the effects to name; a GPU --device for fine grids)")
     p.add_argument("-o", "--output", required=True, metavar="DIR",
                    help="report folder (report.md, result.json, predictions.npz, figures)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -145,7 +149,8 @@ def _run(args) -> int:
     say = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     result = run_files(args.object, args.profile, args.measured, args.output, particles=args.particles, probe=args.probe,
                        heldout_probes=args.heldout_probe, heldout_measured=held, library_rollouts=args.library_rollout,
-                       settings=settings, device=args.device, config_dir=args.config_dir, progress=say)
+                       settings=settings, device=args.device, config_dir=args.config_dir, progress=say,
+                       n_grid=args.n_grid)
     print(f"{result.verdict} -> {args.output}/report.md", file=sys.stderr)
     return 0
 

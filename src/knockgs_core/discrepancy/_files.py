@@ -88,17 +88,22 @@ def run_files(
     deterministic: bool = False,
     config_dir=None,
     progress: Callable[[str], None] | None = None,
+    n_grid: int | None = None,
 ) -> DiscrepancyResult:
     """Load the contract and particles (``particles``: a ``.npz`` from ``knockgs asset``,
     else the asset is built), read ``measured`` (and ``heldout_measured``: probe -> file),
     run :func:`run_discrepancy` (library base calibration when ``library_rollouts`` are
     given; ``device`` and ``deterministic``: its rollouts') and write the report into
-    ``out_dir``. Every file read is listed in ``result.inputs``."""
+    ``out_dir``. Every file read is listed in ``result.inputs``. ``n_grid``: the model's grid, the
+    contract at that resolution (:func:`~knockgs_core.contract.at_resolution`; particles and
+    library rollouts made at another grid are refused by its hash)."""
     from ..io import check_outputs
-    from ..contract import load_contract
+    from ..contract import at_resolution, load_contract
     from ..rollout import check_rollout_meta, read_rollout_meta
 
     contract = load_contract(object_name, profile, config_dir=config_dir)
+    if n_grid is not None:
+        contract = at_resolution(contract, n_grid)
     held_files = dict(heldout_measured or {})
     check_outputs({"--output": out_dir},
                   {"--object": contract.source, "--measured": measured, "--particles": particles,

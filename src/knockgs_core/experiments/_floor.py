@@ -57,6 +57,7 @@ from typing import Callable, Mapping
 import numpy as np
 import pandas as pd
 
+from ..contract import at_resolution  # re-exported: the studies and benchmarks import it from here
 from ..errors import InputError
 
 __all__ = ["FloorSettings", "at_resolution", "cells_through", "enclosed_empty_cells", "body_volume", "probe_period",
@@ -107,17 +108,6 @@ class FloorSettings:
         """Settings from the config's ``floor`` block (workflow-only keys ignored)."""
         names = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in block.items() if k in names})
-
-
-def at_resolution(contract, n_grid: int):
-    """``contract`` on a grid of ``n_grid`` cells per axis, its fill resolution scaled by
-    ``n_grid / contract.sim.n_grid`` (rounded) and the substep by the contracts' rule
-    (:meth:`~knockgs_core.contract.ObjectContract.cfl_dt`). Gaussians and probes unchanged."""
-    n = int(n_grid)
-    factor = n / contract.sim.n_grid
-    fill = dataclasses.replace(contract.fill, resolution=max(2, int(round(contract.fill.resolution * factor))))
-    out = dataclasses.replace(contract, sim=dataclasses.replace(contract.sim, n_grid=n), fill=fill)
-    return dataclasses.replace(out, sim=dataclasses.replace(out.sim, dt=float(out.cfl_dt())))
 
 
 def _with_record(contract, probe: str, n_frames: int):
