@@ -42,6 +42,8 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from knockgs_core.io import write_json, write_npz, write_text
+
 ROOT = Path(__file__).resolve().parents[1]
 
 #: (case, planted effect, theta, strength): held-out targets of split main; the Rayleigh damping's
@@ -100,8 +102,7 @@ def _points(contract, args):
     if len(surface) > args.surface_points:
         surface = surface[np.sort(np.random.default_rng(SEED).permutation(len(surface))[: args.surface_points])]
     args.worlds.mkdir(parents=True, exist_ok=True)
-    np.savez(args.worlds / "points.tmp.npz", loop=loop_points, surface=surface)
-    (args.worlds / "points.tmp.npz").replace(kept)
+    write_npz(kept, loop=loop_points, surface=surface)  # atomic: a stopped run leaves no partial file
     return loop_points, surface
 
 
@@ -129,9 +130,7 @@ def _fem_run(job):
     scale = 1.0 if particles.volumes is None else body_volume(particles, geo["dx"]) / geo["volume"]
     Y = fem_world_rollout(ref, particles, (theta[0] * scale, theta[1] * scale), probe,
                           np.concatenate([loop_points, surface]), world=world)
-    tmp = Path(path).with_suffix(".tmp.npz")
-    np.savez(tmp, Y=Y.astype(np.float32), scale=scale, cost=time.perf_counter() - t0)
-    tmp.replace(path)
+    write_npz(path, Y=Y.astype(np.float32), scale=scale, cost=time.perf_counter() - t0)
     return key, path, time.perf_counter() - t0
 
 
@@ -153,7 +152,6 @@ def _rel_change(Y, Y0):
 def _case_files(args, contract, name, effect, theta, strength, folder: Path) -> dict:
     """The case's measured files and truth folder (``make_world_case``'s layout) from its runs."""
     from knockgs_core.discrepancy import Measurement, write_measured
-    from knockgs_core.io import write_json, write_npz
 
     loop_points, _ = _points(contract, args)
     n = len(loop_points)
@@ -218,7 +216,7 @@ def _loop_run(job):
     ok, why = world_acceptance(row)
     row.update({"level": level, "accepted": ok, "why": why, "seconds": seconds,
                 "floor_statement": result.get("floor_statement") or ""})
-    (out / "row.json").write_text(json.dumps(row, default=float))
+    write_json(out / "row.json", row)
     return row
 
 
@@ -243,11 +241,11 @@ def loop(args) -> None:
             "n_simulations", "seconds", "floor_statement"]
     table = table[[c for c in cols if c in table.columns]]
     args.out.mkdir(parents=True, exist_ok=True)
-    table.to_csv(args.out / f"floor_loop_{args.object}.csv", index=False)
+    write_text(args.out / f"floor_loop_{args.object}.csv", table.to_csv(index=False))
     statements = "\n".join(f"- {r.case} at n_grid {r.level}: {r.floor_statement}"
                            for r in table.itertuples() if r.floor_statement)
     md = table.drop(columns=["floor_statement"]).to_markdown(index=False)
-    (args.out / f"floor_loop_{args.object}.md").write_text(md + "\n\n" + statements + "\n")
+    write_text(args.out / f"floor_loop_{args.object}.md", md + "\n\n" + statements + "\n")
     print(table.drop(columns=["floor_statement", "why"]).to_string())
 
 

@@ -51,8 +51,8 @@ ROOT = Path(__file__).resolve().parents[1] / "src" / PACKAGE
 
 #: The layers, lowest first: a module imports only its own layer or lower ones.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    # foundations: errors, files and formats, the Warp set-up, the device lock
-    ("knockgs_core", "errors", "io", "_warp", "_device_claim"),
+    # foundations: errors, files and formats, the Warp set-up, the device lock, lazy package names
+    ("knockgs_core", "errors", "io", "_warp", "_device_claim", "_lazy"),
     # the simulator
     ("sim",),
     # what builds and runs one simulation: assets, the object contract, rollouts
@@ -317,3 +317,20 @@ def test_reading_contracts_tables_and_frames_does_not_start_warp():
     assert render.render is render._pipeline.render
     with pytest.raises(AttributeError):
         sim.no_such_name  # noqa: B018
+
+
+def test_the_workflow_reads_its_names_without_starting_warp():
+    """Every ``knockgs_core`` name a workflow file imports at parse time loads without Warp (the
+    studies' and the loop's packages import a name's module on first use); the simulator's effects
+    still load Warp when asked for. A fresh interpreter, so nothing is imported before."""
+    import re
+
+    names = []
+    for smk in sorted((Path(__file__).resolve().parents[1] / "workflow" / "rules").rglob("*.smk")):
+        names += re.findall(r"^from (knockgs_core[\w.]*) import ([^\n]+)", smk.read_text(), flags=re.M)
+    assert {"knockgs_core.discrepancy", "knockgs_core.experiments"} <= {mod for mod, _ in names}
+    code = "\n".join(f"from {mod} import {items}" for mod, items in names)
+    code += "\nimport sys\nassert 'warp' not in sys.modules, sorted(m for m in sys.modules if m.startswith('knockgs_core.'))"
+    code += "\nfrom knockgs_core.sim import with_effects\nassert 'warp' in sys.modules"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]

@@ -18,6 +18,8 @@ unexplained. See docs/discrepancy.md.
   of the attribution (``DiscrepancyResult.rounds`` holds their dicts).
 """
 
+from .._lazy import lazy_names
+
 # Each name is imported from its module on first use, so that a caller who needs one study's
 # names (a workflow file at parse time, a script) pays for that module alone, not for every
 # study's imports (Warp among them).
@@ -35,22 +37,7 @@ _LAZY = {
     "._views": ("residual_views", "view_summary"),
     "._worlds": ("FEM_EFFECTS", "FINER_EFFECTS", "make_world_case", "world_cases", "world_contract"),
 }
-_MODULE_OF = {name: module for module, names in _LAZY.items() for name in names}
-
-
-def __getattr__(name):
-    module = _MODULE_OF.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(module, __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_MODULE_OF))
+__getattr__, __dir__ = lazy_names(__name__, globals(), _LAZY)
 
 
 __all__ = [

@@ -12,6 +12,7 @@ physics terms, all off by default, are effects (:mod:`knockgs_core.sim._effects`
 ``setup(model)`` and held by the solver), switched on with :func:`with_effects`.
 """
 
+from .._lazy import lazy_names
 from ._config import (
     BoundaryCondition,
     Box,
@@ -40,22 +41,7 @@ _LAZY = {
     "._simulate": ("SimResult", "simulate", "simulate_many"),
     "._solver": ("MPMSolver",),
 }
-_MODULE_OF = {name: module for module, names in _LAZY.items() for name in names}
-
-
-def __getattr__(name):
-    module = _MODULE_OF.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(module, __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_MODULE_OF))
+__getattr__, __dir__ = lazy_names(__name__, globals(), _LAZY)
 
 
 __all__ = [
