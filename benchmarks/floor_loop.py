@@ -15,6 +15,13 @@ settings, Gauss-Newton base calibration from (1, 1)) then runs on the same data 
 on ``--device``, and each run is scored as a world case (``evaluate_case``,
 ``world_acceptance``).
 
+With ``--finer-cases`` the loop phase also runs the discrepancy suite's finer-grid worlds
+(``discrepancy.world_cases``: the same MPM on a grid twice as fine as the loop's, with its
+fill, the loop profile's Gaussians (the paper profile's 1.3 million would be observed at every
+one) and the loop contract's volume rule; null or with a planted catalogue effect
+whose strength is searched for a 25 % held-out change), made on ``--device`` at twice each
+level (``make_world_case``) and kept in ``OUT/cases/{case}_n{2 x level}``.
+
 Two phases, each resumable (a finished file is read back, not recomputed):
 
     # the worlds: finite-element runs, one process each (CPU; about 90 s each at n_grid 48)
@@ -197,9 +204,11 @@ def _loop_run(job):
     if (out / "row.json").is_file():
         return json.loads((out / "row.json").read_text())
     contract, _ = _setup(args)
-    truth = json.loads((Path(case_dir) / "truth.json").read_text())
     c = at_resolution(contract, level)
     particles = build_asset(c).particles
+    if not (Path(case_dir) / "truth.json").is_file():  # a finer-grid world, made at twice the level
+        _finer_case(c, particles, name, Path(case_dir), args.device)
+    truth = json.loads((Path(case_dir) / "truth.json").read_text())
     m = read_measured(truth["measured_files"]["calib"])
     held = {truth["heldout_probe"]: read_measured(truth["measured_files"]["heldout"])}
     seconds = math.nan
@@ -220,10 +229,22 @@ def _loop_run(job):
     return row
 
 
+def _finer_case(contract, particles, name, folder: Path, device) -> dict:
+    """The suite's finer-grid world case ``name`` for the loop's ``contract`` (at its level),
+    written to ``folder`` as ``make_world_case`` writes it."""
+    from knockgs_core.discrepancy import make_world_case, world_cases
+
+    spec = next(s for s in world_cases() if s.name == name)
+    folder.mkdir(parents=True, exist_ok=True)
+    return make_world_case(spec, contract, particles, measured_dir=folder, truth_dir=folder,
+                           calibration_probe=contract.roles["calibration"], heldout_probe=contract.roles["heldout"][0],
+                           device=device, world_profile=contract.profile)
+
+
 def loop(args) -> None:
     contract, _ = _setup(args)
     cases_dir = args.out / "cases"
-    jobs = []
+    jobs = [(args, name, level, str(cases_dir / f"{name}_n{2 * level}")) for name in args.finer_cases for level in args.levels]
     for name, effect, theta, strength in CASES:
         if args.cases and name not in args.cases:
             continue
@@ -262,6 +283,8 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--cases", nargs="+", default=None, help="the loop phase on these cases only (default: all)")
+    ap.add_argument("--finer-cases", nargs="*", default=[],
+                    help="finer-grid world cases of the discrepancy suite (finer_null, finer_damping, ...) to run too")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     if args.phase == "loop" and (args.levels is None or args.out is None):

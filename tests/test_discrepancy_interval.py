@@ -191,7 +191,8 @@ def test_a_refinement_that_acts_as_a_change_of_theta_is_read_back_as_that_change
         assert level == 2 and at is spec and points.shape == (M, 3)
         return model.rollout(at.with_theta(tuple(np.asarray(at.theta) * np.exp(change))), probe) - model.rollout(at, probe)
 
-    me = SimpleNamespace(theta_shift=np.array([0.2, 0.0]), second=object(), spec=spec, factor=1.5, difference=difference)
+    me = SimpleNamespace(theta_shift=np.array([0.2, 0.0]), second=object(), spec=spec, factor=1.5, difference=difference,
+                         theta_per_misfit=None)
     u = _theta_interval(problem, spec, me, LoopSettings(), shows_error=True)
     h = LoopSettings().theta_step  # the sensitivities are forward differences: slope (e^h - 1) / h per unit
     want = np.asarray(spec.theta) * np.exp(-(np.exp(change) - 1.0) * h / (math.exp(h) - 1.0))
@@ -201,3 +202,57 @@ def test_a_refinement_that_acts_as_a_change_of_theta_is_read_back_as_that_change
     me.difference = None  # not simulated where the data show no discretization error
     v = _theta_interval(problem, spec, me, LoopSettings(), shows_error=False)
     assert "second_refinement" not in v["theta_at"] and v["basis"] == "statistical"
+
+
+def test_a_model_error_shaped_like_a_grid_placements_change_is_covered_by_the_floors_share_on_both_sides(rng):
+    """Data = the model at the truth + a model error C of the kind a grid placement makes: a
+    part along theta's sensitivities, which biases the fitted theta, and a part no theta
+    represents, which stays in the residual. On a simulator linear in log theta the bias is
+    exactly C's theta part; the floor's share (C's theta-per-misfit ratio times the residual
+    above the noise) equals it, so the interval holds the truth, where the statistical
+    interval alone misses it by many half-widths. The share has no sign: the same error with
+    the other sign is covered too. Data that do not show the error get no share."""
+    from types import SimpleNamespace
+
+    from knockgs_core.discrepancy import LoopSettings, Measurement
+    from knockgs_core.discrepancy._fitting import Problem, theta_sensitivities
+    from knockgs_core.discrepancy._forward import ModelSpec
+    from knockgs_core.discrepancy._interval import theta_per_misfit
+    from knockgs_core.discrepancy._loop import _theta_interval
+
+    class LogLinear(LinearForward):
+        def rollout(self, spec, probe):
+            return self.X0[None] + math.log(spec.theta[0]) * self.A + math.log(spec.theta[1]) * self.B
+
+    T, M, sigma = 12, 40, 1e-6
+    X0 = rng.uniform(0, 1, size=(M, 3))
+    t = np.arange(T)[:, None, None] * 0.02
+    A, B = np.sin(9 * t) * rng.normal(size=(1, M, 3)) * 1e-2, np.sin(4 * t) * rng.normal(size=(1, M, 3)) * 1e-2
+    O = np.sin(23 * t) * rng.normal(size=(1, M, 3)) * 1e-3  # what no theta represents
+    fw, truth = LogLinear(X0, A, B), np.log([0.8, 1.2])
+    settings = LoopSettings()
+    for sign in (1.0, -1.0):
+        C = sign * (0.03 * A - 0.02 * B + O)
+        noise = rng.normal(0.0, sigma, size=(T, M, 3))
+        noise[0] = 0.0
+        Y = fw.rollout(ModelSpec(tuple(np.exp(truth))), "p") + C + noise
+        m = Measurement(points=Y, frames=np.arange(T), times=None, particle=np.arange(M), track=np.arange(M))
+        problem = Problem(m, fw, "p", settings)
+        # the least-squares fit in log theta (exact here: the model is linear in it)
+        cols = np.column_stack([np.broadcast_to(A, (T, M, 3))[1:].reshape(-1), np.broadcast_to(B, (T, M, 3))[1:].reshape(-1)])
+        est = np.linalg.lstsq(cols, (Y - fw.rollout(ModelSpec((1.0, 1.0)), "p"))[1:].reshape(-1), rcond=None)[0]
+        spec = ModelSpec(tuple(np.exp(est)))
+        bias = est - truth
+        assert np.all(np.abs(bias) > 0.015)  # C's theta part: 0.03 and 0.02 and O's small projection
+        J = theta_sensitivities(problem, spec, settings)
+        ratios, _ = theta_per_misfit(J, [C[1:].reshape(-1)])
+        me = SimpleNamespace(theta_shift=None, second=None, spec=spec, factor=1.5, theta_per_misfit=ratios)
+        u = _theta_interval(problem, spec, me, settings, shows_error=True, noise_floor=sigma**2)
+        np.testing.assert_allclose(u["floor_share_log"], np.abs(bias), rtol=0.02)
+        for k in range(2):
+            lo, hi = np.log(u["interval"][k])
+            assert lo < truth[k] < hi, (k, u["interval"], np.exp(truth))
+            assert abs(bias[k]) > 2 * u["statistical_half_width_log"][k]
+        v = _theta_interval(problem, spec, me, settings, shows_error=False, noise_floor=sigma**2)
+        assert v["floor_share_log"] == [0.0, 0.0]
+        assert not all(lo <= x <= hi for (lo, hi), x in zip(v["interval"], np.exp(truth)))

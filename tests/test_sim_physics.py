@@ -11,6 +11,7 @@ import pytest
 import warp as wp
 
 from knockgs_core.errors import InputError, SimulationError
+from knockgs_core.sim._kernels import stencil_inside
 from knockgs_core.sim import (Box, DomainWalls, Effect, FixedCuboid, MPMSolver, Probe, SimParams, VonMisesPlasticity,
                               build_model, effect_examples, make_state, simulate)
 
@@ -213,6 +214,28 @@ def test_guard_stops_an_unstable_run_with_a_message():
     model = build_model(X, E=1e4, nu=0.3, rho=100.0, params=params, probe=probe)
     with pytest.raises(SimulationError, match=r"CFL violation at step \d+ \(t = .* s\).*dt"):
         simulate(model, make_state(model, X), frame_dt=0.02, n_frames=3)
+
+
+@wp.kernel
+def _stencil_inside_at(bases: wp.array(dtype=wp.vec3i), lo: wp.vec3i, hi: wp.vec3i, out: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    out[i] = wp.where(stencil_inside(bases[i], lo, hi), 1, 0)
+
+
+def test_a_particle_flung_to_the_int32_limit_is_outside_the_active_box():
+    """A particle that runs away between guard checks has its stencil base cast from a huge
+    float: on a GPU the cast saturates at the int32 limits. Its stencil must count as outside
+    the active box (the guard then stops the run with "outran"), never wrap round into it and
+    index outside the grid (a GPU's illegal memory access). At the box's edges the test is the
+    plain one: a 3-node stencil from base b fits [lo, hi) iff lo <= b and b + 2 < hi."""
+    i32 = np.iinfo(np.int32)
+    lo, hi = (2, 2, 2), (32, 32, 32)
+    cases = {(5, 5, 5): 1, (2, 5, 29): 1, (1, 5, 5): 0, (5, 30, 5): 0,
+             (i32.max, 5, 5): 0, (i32.max - 1, 5, 5): 0, (5, i32.max - 2, 5): 0, (5, 5, i32.min): 0}
+    bases = wp.array(np.array(list(cases), dtype=np.int32), dtype=wp.vec3i, device="cpu")
+    out = wp.zeros(len(cases), dtype=wp.int32, device="cpu")
+    wp.launch(_stencil_inside_at, dim=len(cases), inputs=[bases, wp.vec3i(*lo), wp.vec3i(*hi)], outputs=[out], device="cpu")
+    assert dict(zip(cases, out.numpy().tolist())) == cases
 
 
 def test_guard_refuses_an_elastically_unstable_dt():

@@ -24,6 +24,14 @@ observed order from three) and the interval reaches it on the refinement's side;
 side it is widened by ``|e1|`` (the refinement's change gives the size, not the sign, where
 convergence is not monotone). Not asymptotic: no continuum value is given (``None`` with the
 reason) and the interval is unbounded on the refinement's side (0 or infinity in theta).
+
+Where the data show the error, the interval also carries the *floor's share* ``w`` on both
+sides: the bias in theta that the misfit the fit leaves above the noise could hide. A model
+error shaped like one of the discretization changes the loop knows (the grid placements', the
+refinement's) leaves a misfit of norm ``m`` behind a theta bias of ``m`` times that change's
+theta-per-misfit ratio; ``w`` is the largest of those ratios times the measured excess misfit.
+The refinement's change has a sign, this share has none: a model error of the data's own
+kind (a continuum against a grid, a body sampled differently) biases theta either way.
 """
 
 from __future__ import annotations
@@ -32,7 +40,7 @@ import math
 
 import numpy as np
 
-__all__ = ["MIN_ORDER", "interval_from_estimates"]
+__all__ = ["MIN_ORDER", "interval_from_estimates", "theta_per_misfit"]
 
 #: the smallest observed order of convergence at which three estimates are taken as asymptotic
 MIN_ORDER = 0.5
@@ -47,14 +55,30 @@ def _order(e1: float, e2: float, factor: float) -> float | None:
     return math.log(abs(e1) / abs(e2)) / math.log(factor)
 
 
+def theta_per_misfit(A: np.ndarray, changes) -> tuple[np.ndarray, np.ndarray]:
+    """How far each model change ``changes`` ([K, rows] or a list of [rows], m) would bias
+    theta per unit of the misfit it leaves, when the fit's columns are ``A`` [rows, k] (the
+    first two: log s_E, log s_rho). A change ``D = A x + s`` (``s`` orthogonal to the columns)
+    in the data moves the least-squares theta by ``x[:2]`` and leaves the misfit ``s``.
+
+    Returns (``ratios`` [K', 2], ``|x[:2]| / |s|`` [1/m] of each change with a misfit,
+    ``shapes`` [K, rows], the misfits ``s``)."""
+    coefs = [np.linalg.lstsq(A, np.asarray(D, dtype=np.float64), rcond=None)[0] for D in changes]
+    shapes = np.stack([np.asarray(D, dtype=np.float64) - A @ x for D, x in zip(changes, coefs)])
+    norms = np.linalg.norm(shapes, axis=1)
+    ratios = [np.abs(x[:2]) / n for x, n in zip(coefs, norms) if n > 0]
+    return (np.stack(ratios) if ratios else np.zeros((0, 2))), shapes
+
+
 def interval_from_estimates(estimate, sd, *, remaining=None, refined=None, second=None, factor: float = 1.5,
-                            shows_error: bool = True) -> dict:
+                            shows_error: bool = True, floor_share=None) -> dict:
     """The theta interval from the estimates of one fit, in log theta (each [2]: log s_E,
     log s_rho): ``estimate`` and its statistical ``sd``; ``remaining``, the step the
     linearized fit still asks for (None: 0); ``refined`` and ``second``, theta fitted by the
     model refined by ``factor`` and by ``factor**2`` (None: not available); ``shows_error``,
     whether the data show the model's discretization error (else the interval is the
-    statistical one whatever the refinement does).
+    statistical one whatever the refinement does); ``floor_share`` [2], the floor's share of
+    the half-width in log theta (None: 0), added on both sides where ``shows_error``.
 
     Returns a dict: ``interval`` [[lo, hi] of s_E, [lo, hi] of s_rho] (0 or ``inf`` where
     unbounded), ``unbounded`` [[lo?, hi?], ...], ``statistical_sd_log`` [2],
@@ -62,7 +86,9 @@ def interval_from_estimates(estimate, sd, *, remaining=None, refined=None, secon
     ``refinement``), ``asymptotic`` [2] (None without a refined estimate), ``observed_order``
     [2] (None where not measured), ``continuum`` [2] (theta extrapolated to the continuum, None
     where the estimates are not asymptotic), ``continuum_reason`` [2] (why not; None where
-    given) and ``theta_at`` (theta at ``estimate``, ``refined``, ``second_refinement``)."""
+    given), ``floor_share_log`` [2] (the share added on both sides; 0 where the data do not
+    show the error) and ``theta_at`` (theta at ``estimate``, ``refined``,
+    ``second_refinement``)."""
     est = np.asarray(estimate, dtype=np.float64).reshape(2)
     sd = np.asarray(sd, dtype=np.float64).reshape(2)
     rem = np.zeros(2) if remaining is None else np.abs(np.asarray(remaining, dtype=np.float64).reshape(2))
@@ -121,6 +147,9 @@ def interval_from_estimates(estimate, sd, *, remaining=None, refined=None, secon
                     "continuum_reason": reasons})
         if shows_error:
             out["basis"] = "refinement"
+    share = np.zeros(2) if (floor_share is None or not shows_error) else np.abs(np.asarray(floor_share, np.float64).reshape(2))
+    lo, hi = lo - share, hi + share
+    out["floor_share_log"] = [float(x) for x in share]
     out["interval"] = [[float(math.exp(lo[k])) if math.isfinite(lo[k]) else 0.0,
                         float(math.exp(hi[k])) if math.isfinite(hi[k]) else math.inf] for k in range(2)]
     out["unbounded"] = [[not math.isfinite(lo[k]), not math.isfinite(hi[k])] for k in range(2)]

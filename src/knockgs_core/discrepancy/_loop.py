@@ -39,7 +39,7 @@ from ._attribution import AttributionRound, _passes, attribute, within_floor
 from ._catalogue import Candidate, CatalogueContext, default_catalogue, dev_strain_norm
 from ._fitting import Parametrization, Problem, levenberg_marquardt, lm_fit, theta_sensitivities
 from ._forward import ForwardModel, ModelSpec
-from ._interval import interval_from_estimates
+from ._interval import interval_from_estimates, theta_per_misfit
 from ._measured import Measurement
 from ._model_error import ModelError, build_model_error
 from ._settings import LoopSettings
@@ -250,6 +250,7 @@ def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loop
     me.record(spec, D, term, shift)
     out = problem.with_term(term, me.c_max)
     me.leftover_share = None
+    me.theta_per_misfit = theta_per_misfit(J, [flat])[0]  # the refinement's change, its term the misfit
     # the floor's shapes are needed only where the data show the term: at the model's own
     # resolution (c below half the ramp's start) the floor's weight is 0, and neither the
     # placements nor the second refinement are simulated
@@ -262,9 +263,10 @@ def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loop
         else:
             points = np.asarray(fw.particles.positions, dtype=np.float64)[problem.corr.index]
             changes = [me.difference(fw, spec, problem.probe, points, level=2)[problem.frames][1:].reshape(-1)]
-        A = np.column_stack([J, flat])
-        shapes = np.stack([Dk - A @ np.linalg.lstsq(A, Dk, rcond=None)[0] for Dk in changes])
+        ratios, shapes = theta_per_misfit(np.column_stack([J, flat]), changes)
         out.floor_shape = shapes
+        # the placements' ratios first, the refinement's (computed above) last
+        me.theta_per_misfit = np.vstack([ratios] + ([] if me.theta_per_misfit is None else [me.theta_per_misfit]))
         me.leftover_share = float(np.sum(shapes * shapes)) / max(float(sum(Dk @ Dk for Dk in changes)), 1e-300)
     return out
 
@@ -302,7 +304,7 @@ def _fit_covariance(A: np.ndarray, r: np.ndarray, n_points: int) -> tuple[np.nda
 
 
 def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, settings: LoopSettings, *,
-                    shows_error: bool) -> dict:
+                    shows_error: bool, noise_floor: float = 0.0) -> dict:
     """The theta interval at the final model ``spec`` (:func:`._interval.interval_from_estimates`):
     the statistical part from the linearized least squares in log theta (2 standard deviations,
     :func:`_fit_covariance`, the discretization term among the columns, plus the Gauss-Newton
@@ -311,7 +313,10 @@ def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, se
     and, where the loop has a second refinement (``model_error_floor = "second_refinement"``)
     and the data show the model's discretization error, theta fitted by that one too.
     ``shows_error``: whether the data show that error (the term's coefficient above the ramp's
-    start, or a residual that nothing explains); else the interval is the statistical one."""
+    start, or a residual that nothing explains); else the interval is the statistical one.
+    Where they do, the floor's share (:mod:`._interval`) is the largest theta-per-misfit ratio
+    of the discretization changes the loop knows (``ModelError.theta_per_misfit``) times the
+    norm of the residual above the noise (``noise_floor``: its variance per scalar, m^2)."""
     J = theta_sensitivities(problem, spec, settings)
     r = problem.residual(spec)
     A = np.column_stack([J, problem.term]) if problem.term is not None else J
@@ -327,9 +332,14 @@ def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, se
             D2 = me.difference(problem.forward, at, problem.probe, points, level=2)[problem.frames]
             J2 = theta_sensitivities(problem, at, settings)
             second = logt - np.linalg.lstsq(J2, D2[1:].reshape(-1), rcond=None)[0]
+    excess = math.sqrt(max(float(r @ r) - r.size * float(noise_floor), 0.0))
+    ratios = None if me is None else me.theta_per_misfit
+    share = None if ratios is None or len(ratios) == 0 else excess * np.max(ratios, axis=0)
     out = interval_from_estimates(logt, sd, remaining=remaining, refined=refined, second=second,
-                                  factor=me.factor if me is not None else 1.5, shows_error=shows_error)
+                                  factor=me.factor if me is not None else 1.5, shows_error=shows_error, floor_share=share)
     out["shows_discretization_error"] = bool(shows_error)
+    out["misfit_above_noise"] = excess
+    out["theta_per_misfit"] = None if ratios is None else [[float(x) for x in row] for row in ratios]
     return out
 
 
@@ -681,7 +691,7 @@ def run_discrepancy(
     residual = _residual_size(pb, final, floor, stop_reason)
     model_error = _model_error_summary(pb, final, me, floor, settings, coefficients) if me is not None else None
     shows_error = model_error is not None and (model_error["floor_weight"] > 0 or unexplained)
-    theta_interval = _theta_interval(pb, final, me, settings, shows_error=shows_error)
+    theta_interval = _theta_interval(pb, final, me, settings, shows_error=shows_error, noise_floor=floor)
     fw = pb.forward
     effects = _effects_found(fw.catalogue, final)
     kind = _verdict_kind(effects, unexplained, model_error)

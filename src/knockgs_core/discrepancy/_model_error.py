@@ -136,7 +136,11 @@ class ModelError:
     (:data:`FLOOR_KINDS`); ``second``: the model refined by ``r^2`` (``second_refinement``);
     ``placements``: the model at the grid placements :data:`FLOOR_SHIFTS` (``shifts``);
     ``leftover_share``: the energy of the parts of their changes that theta and the term cannot
-    represent (the floor's shapes, held by the problem), as a share of those changes'."""
+    represent (the floor's shapes, held by the problem), as a share of those changes';
+    ``theta_per_misfit`` [K, 2]: for each of the floor's changes (and the refinement's), the
+    change of log theta it asks of the fit per unit of the misfit it leaves (|theta part| /
+    norm of the part theta and the term cannot represent, 1/m): the bias in theta that a model
+    error of that shape leaves behind a post-fit misfit of a given size."""
 
     refined: ForwardModel
     factor: float
@@ -150,6 +154,7 @@ class ModelError:
     change: np.ndarray | None = None
     theta_shift: np.ndarray | None = None
     leftover_share: float | None = None
+    theta_per_misfit: np.ndarray | None = None
 
     @property
     def richardson(self) -> float:

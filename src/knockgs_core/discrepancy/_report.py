@@ -153,7 +153,7 @@ def _bounds(lo: float, hi: float) -> str:
 
 def _interval_lines(result: DiscrepancyResult) -> list[str]:
     """The theta interval in words: its bounds, what they rest on (the fit's statistics, or the
-    refinement), which sides are unbounded and why, and the continuum where the estimates allow
+    refinement and the floor's share), which sides are unbounded and why, and the continuum where the estimates allow
     one."""
     iv, u = result.theta_interval, result.theta_uncertainty
     if not iv:
@@ -169,6 +169,11 @@ def _interval_lines(result: DiscrepancyResult) -> list[str]:
     else:
         L.append(f"  - the data show the model's discretization error: the interval spans the refinement's change "
                  f"(its size on both sides) and the fit's statistics ({half[0]:.3g} and {half[1]:.3g} in log theta)")
+        share = u.get("floor_share_log") or [0.0, 0.0]
+        if any(share):
+            L.append(f"  - and, on both sides, the floor's share ({share[0]:.3g} and {share[1]:.3g} in log theta): the "
+                     "theta bias a model error of the kind the grid placements and the refinement make would hide "
+                     "behind the residual left above the noise")
     cont = u.get("continuum") or [None, None]
     for k in range(2):
         if any(u["unbounded"][k]):

@@ -66,16 +66,18 @@ def world_cases(targets: list[tuple[float, float]] | None = None, *, targets_pat
                      seed=2000 + i, world=world) for i, (name, eff, world) in enumerate(names)]
 
 
-def world_contract(contract):
-    """The finer world's contract: ``contract``'s object at the neighbouring finer profile
-    (its Gaussians), with grid and fill at twice ``contract``'s n_grid and fill resolution
-    and the contracts' time-step rule."""
+def world_contract(contract, *, profile: str | None = None):
+    """The finer world's contract: ``contract``'s object at ``profile`` (its Gaussians; None:
+    the neighbouring finer profile), with grid and fill at twice ``contract``'s n_grid and fill resolution,
+    ``contract``'s particle-volume rule (the same body, sampled more finely) and the contracts'
+    time-step rule."""
     from ..contract import load_contract
 
-    finer = load_contract(contract.source, _FINER_PROFILE.get(contract.profile, contract.profile))
+    finer = load_contract(contract.source, profile or _FINER_PROFILE.get(contract.profile, contract.profile))
     n = 2 * contract.sim.n_grid
-    out = dataclasses.replace(finer, sim=dataclasses.replace(finer.sim, n_grid=n),
-                              fill=dataclasses.replace(finer.fill, resolution=2 * contract.fill.resolution))
+    fill = dataclasses.replace(finer.fill, resolution=2 * contract.fill.resolution, volumes=contract.fill.volumes,
+                               wall_thickness=contract.fill.wall_thickness)
+    out = dataclasses.replace(finer, sim=dataclasses.replace(finer.sim, n_grid=n), fill=fill)
     return dataclasses.replace(out, sim=dataclasses.replace(out.sim, dt=float(out.cfl_dt())))
 
 
@@ -91,16 +93,18 @@ def _surface_points(contract) -> np.ndarray:
 class _World:
     """Simulates one world: ``run(theta, probe, strength)`` returns (clean positions of the
     loop's Gaussian particles [T, n_gs, 3], positions of the world's surface points [T, P, 3]).
-    ``device`` and ``deterministic``: the finer world's rollouts'."""
+    ``device`` and ``deterministic``: the finer world's rollouts'; ``world_profile``: whose
+    Gaussians it simulates (None: the neighbouring finer profile's)."""
 
-    def __init__(self, spec: CaseSpec, contract, particles, horizon: float, *, device=None, deterministic: bool = False):
+    def __init__(self, spec: CaseSpec, contract, particles, horizon: float, *, device=None, deterministic: bool = False,
+                 world_profile: str | None = None):
         self.spec, self.contract, self.particles, self.H, self.device = spec, contract, particles, horizon, device
         self.deterministic = deterministic
         self.loop_points = np.asarray(particles.positions[: particles.n_gs], dtype=np.float64)
         if spec.world == "finer":
             from ..assets import build_asset
 
-            self.wc = world_contract(contract)
+            self.wc = world_contract(contract, profile=world_profile)
             self.wp = build_asset(self.wc).particles
             self.surface = np.arange(self.wp.n_gs)
             self.description = {"world": "finer", "profile": self.wc.profile, "n_grid": self.wc.sim.n_grid,
@@ -152,15 +156,16 @@ def _rel_change(Y, Y0):
 
 
 def make_world_case(spec: CaseSpec, contract, particles, *, measured_dir, truth_dir, calibration_probe: str,
-                    heldout_probe: str, device=None, deterministic: bool = False) -> dict:
+                    heldout_probe: str, device=None, deterministic: bool = False, world_profile: str | None = None) -> dict:
     """Write the case ``spec`` (world ``finer`` or ``fem``) as :func:`make_case` does: the
     measured files (tracks without identity of the world's surface points, metadata object,
     the loop's profile, probe) to ``measured_dir``; ``truth.json`` and ``clean.npz`` (the world's
     motion of the loop's Gaussian particles) to ``truth_dir``. ``device`` and ``deterministic``:
-    the finer world's rollouts'. Returns the truth record."""
+    the finer world's rollouts'; ``world_profile``: whose Gaussians the finer world simulates
+    and is observed at (None: the neighbouring finer profile's). Returns the truth record."""
     rng = np.random.default_rng(spec.seed)
     H = contract.probes[calibration_probe].export.horizon
-    world = _World(spec, contract, particles, H, device=device, deterministic=deterministic)
+    world = _World(spec, contract, particles, H, device=device, deterministic=deterministic, world_profile=world_profile)
     search, strength, achieved, param = [], None, 0.0, None
     if spec.planted != "none":
         table = PLANTED_EFFECTS if spec.world == "finer" else FEM_EFFECTS

@@ -161,9 +161,12 @@ def stencil_base(gx: wp.vec3) -> wp.vec3i:
 
 @wp.func(module=MODULE)
 def stencil_inside(base: wp.vec3i, lo: wp.vec3i, hi: wp.vec3i) -> bool:
-    """Whether the stencil starting at ``base`` lies in the active box [lo, hi)."""
+    """Whether the stencil starting at ``base`` lies in the active box [lo, hi). Written so
+    that no sum can overflow: a particle flung far away between guard checks has its base
+    cast from a huge float, which saturates at the int32 limits (on a GPU), and ``base + 2``
+    would wrap round to a small number and let its stencil index outside the grid."""
     for a in range(3):
-        if base[a] < lo[a] or base[a] + 2 >= hi[a]:
+        if base[a] < lo[a] or base[a] > hi[a] - 3:
             return False
     return True
 
