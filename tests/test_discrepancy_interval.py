@@ -228,11 +228,11 @@ def test_a_model_error_shaped_like_a_grid_placements_change_is_covered_by_the_fl
     X0 = rng.uniform(0, 1, size=(M, 3))
     t = np.arange(T)[:, None, None] * 0.02
     A, B = np.sin(9 * t) * rng.normal(size=(1, M, 3)) * 1e-2, np.sin(4 * t) * rng.normal(size=(1, M, 3)) * 1e-2
-    O = np.sin(23 * t) * rng.normal(size=(1, M, 3)) * 1e-3  # what no theta represents
+    other = np.sin(23 * t) * rng.normal(size=(1, M, 3)) * 1e-3  # what no theta represents
     fw, truth = LogLinear(X0, A, B), np.log([0.8, 1.2])
     settings = LoopSettings()
     for sign in (1.0, -1.0):
-        C = sign * (0.03 * A - 0.02 * B + O)
+        C = sign * (0.03 * A - 0.02 * B + other)
         noise = rng.normal(0.0, sigma, size=(T, M, 3))
         noise[0] = 0.0
         Y = fw.rollout(ModelSpec(tuple(np.exp(truth))), "p") + C + noise
@@ -243,7 +243,7 @@ def test_a_model_error_shaped_like_a_grid_placements_change_is_covered_by_the_fl
         est = np.linalg.lstsq(cols, (Y - fw.rollout(ModelSpec((1.0, 1.0)), "p"))[1:].reshape(-1), rcond=None)[0]
         spec = ModelSpec(tuple(np.exp(est)))
         bias = est - truth
-        assert np.all(np.abs(bias) > 0.015)  # C's theta part: 0.03 and 0.02 and O's small projection
+        assert np.all(np.abs(bias) > 0.015)  # C's theta part: 0.03 and 0.02 and the small projection of its other part
         J = theta_sensitivities(problem, spec, settings)
         ratios, _ = theta_per_misfit(J, [C[1:].reshape(-1)])
         me = SimpleNamespace(theta_shift=None, second=None, spec=spec, factor=1.5, theta_per_misfit=ratios)
