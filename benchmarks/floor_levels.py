@@ -7,7 +7,8 @@ machine's CPU. Writes the table as CSV and Markdown under ``--out``.
         --reference-cache floor_fem
 
 ``--volumes``: the particles' rest-volume rule (``fill.volumes`` of the contract: cell_share,
-enclosed, wall; the contract's own when left out). ``--reference-cache``: a folder where the
+enclosed, wall; the contract's own when left out); ``--solid``: the closed surface's inside
+filled (``contract.with_body``: a solid vase, where the contract has no fill). ``--reference-cache``: a folder where the
 finite-element runs are kept and read back by a later call with the same inputs (the
 reference at n_grid 48 costs minutes of one CPU core: compute it once, e.g. on this machine,
 then spend a GPU call on the MPM levels). ``--check-kept``: say where the two finite-element
@@ -25,7 +26,7 @@ from pathlib import Path
 
 import yaml
 
-from knockgs_core.contract import load_contract
+from knockgs_core.contract import load_contract, with_body
 from knockgs_core.experiments import FloorSettings, floor_note, floor_study, kept_reference_files
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,6 +37,7 @@ def main() -> None:
     ap.add_argument("--object", default="pillow")
     ap.add_argument("--profile", default="config", help="config file stem: ci, config (default), paper")
     ap.add_argument("--volumes", default=None, choices=("cell_share", "enclosed", "wall"))
+    ap.add_argument("--solid", action="store_true", help="fill the closed surface's inside (contract.with_body)")
     ap.add_argument("--levels", type=int, nargs="+", required=True)
     ap.add_argument("--fem-n-grid", type=int, required=True)
     ap.add_argument("--fem-check-n-grid", type=int, required=True)
@@ -56,8 +58,7 @@ def main() -> None:
         changes["fit_steps"] = args.fit_steps
     settings = dataclasses.replace(settings, **changes)
     contract = load_contract(args.object, profile)
-    if args.volumes is not None:
-        contract = dataclasses.replace(contract, fill=dataclasses.replace(contract.fill, volumes=args.volumes))
+    contract = with_body(contract, volumes=args.volumes, solid=args.solid)
     if args.check_kept:
         kept = kept_reference_files(contract, settings, reference_cache=args.reference_cache)
         for name, (path, there) in kept.items():
@@ -67,7 +68,7 @@ def main() -> None:
     table = floor_study(contract, settings, device=args.device, log=lambda m: print(m, flush=True),
                         reference_cache=args.reference_cache)
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = f"floor_{args.object}_{contract.fill.volumes}"
+    stem = f"floor_{args.object}_{contract.fill.volumes}{'_solid' if args.solid else ''}"
     table.to_csv(args.out / f"{stem}.csv", index=False)
     (args.out / f"{stem}.md").write_text(floor_note(table, contract, settings))
     print(f"{stem}: {time.perf_counter() - t0:.0f} s on {args.device}")

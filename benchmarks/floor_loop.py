@@ -64,12 +64,10 @@ SEED = 2008
 
 
 def _setup(args):
-    from knockgs_core.contract import load_contract
+    from knockgs_core.contract import load_contract, with_body
 
     profile = {"config": "default"}.get(args.profile, args.profile)
-    contract = load_contract(args.object, profile)
-    if args.volumes is not None:
-        contract = dataclasses.replace(contract, fill=dataclasses.replace(contract.fill, volumes=args.volumes))
+    contract = with_body(load_contract(args.object, profile), volumes=args.volumes, solid=args.solid)
     block = yaml.safe_load((ROOT / "config" / f"{args.profile}.yaml").read_text())["floor"]
     return contract, block
 
@@ -276,6 +274,7 @@ def main() -> None:
     ap.add_argument("--object", default="pillow")
     ap.add_argument("--profile", default="config", help="config file stem: ci, config (default), paper")
     ap.add_argument("--volumes", default=None, choices=("cell_share", "enclosed", "wall"))
+    ap.add_argument("--solid", action="store_true", help="fill the closed surface's inside (contract.with_body)")
     ap.add_argument("--fem-n-grid", type=int, required=True)
     ap.add_argument("--surface-points", type=int, default=10000)
     ap.add_argument("--worlds", type=Path, required=True, help="folder of the finite-element runs (kept)")

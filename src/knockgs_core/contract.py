@@ -53,6 +53,7 @@ from .sim import (
 __all__ = [
     "ObjectContract",
     "at_resolution",
+    "with_body",
     "AssetSettings",
     "FillSettings",
     "Profile",
@@ -379,6 +380,24 @@ def at_resolution(contract: ObjectContract, n_grid: int) -> ObjectContract:
     fill = replace(contract.fill, resolution=max(2, int(round(contract.fill.resolution * factor))))
     out = replace(contract, sim=replace(contract.sim, n_grid=n), fill=fill)
     return replace(out, sim=replace(out.sim, dt=float(out.cfl_dt())))
+
+
+def with_body(contract: ObjectContract, *, volumes: str | None = None, solid: bool = False, seed: int = 11) -> ObjectContract:
+    """``contract`` with its body stated: the particles' rest-volume rule ``volumes``
+    (``fill.volumes``: ``cell_share``, ``enclosed``, ``wall``; None: the contract's own) and,
+    with ``solid``, the inside of its closed Gaussian surface filled (PhysGaussian's fill over
+    the whole domain, ``seed``; ``enclosed`` volumes unless ``volumes`` says otherwise): the
+    body a closed surface bounds, whatever its contract's fill. Its hash is the new body's."""
+    fill = contract.fill
+    if solid:
+        lim = float(contract.sim.grid_lim) / 2.0
+        fill = replace(fill, enabled=True, box=Box((lim, lim, lim), (lim, lim, lim)), seed=int(seed),
+                       volumes=volumes or "enclosed")
+    elif volumes is not None:
+        fill = replace(fill, volumes=volumes)
+    out = replace(contract, fill=fill)
+    check_volume_rule(out.fill, contract.source)
+    return out
 
 
 def find_config_dir(config_dir: str | os.PathLike | None = None) -> Path:
