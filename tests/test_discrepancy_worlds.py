@@ -36,7 +36,7 @@ def test_world_cases_and_their_validation():
         CaseSpec("x", "none", world="moon")
 
 
-def test_the_finer_world_has_twice_the_grid_and_the_next_profiles_gaussians(pillow):
+def test_the_finer_world_has_twice_the_grid_the_next_profiles_gaussians_and_the_loops_body(pillow):
     from knockgs_core.contract import cfl_dt
 
     contract, _ = pillow
@@ -44,6 +44,14 @@ def test_the_finer_world_has_twice_the_grid_and_the_next_profiles_gaussians(pill
     assert (w.sim.n_grid, w.fill.resolution) == (2 * contract.sim.n_grid, 2 * contract.fill.resolution)
     assert w.profile == "default" and w.asset.n_gaussians > contract.asset.n_gaussians
     assert w.sim.dt <= cfl_dt(w.materials, n_grid=w.sim.n_grid, grid_lim=w.sim.grid_lim) * (1 + 1e-12)
+    # the same body as the loop's: the loop contract's volume rule, whatever the world's profile says
+    from knockgs_core.contract import with_body
+
+    solid = with_body(contract, volumes="enclosed")
+    assert world_contract(contract).fill.volumes == "cell_share"
+    assert world_contract(solid).fill.volumes == "enclosed"
+    own = world_contract(solid, profile=contract.profile)
+    assert own.asset == contract.asset and own.sim.n_grid == 2 * contract.sim.n_grid and own.fill.volumes == "enclosed"
 
 
 @pytest.fixture(scope="module")
