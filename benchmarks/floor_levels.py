@@ -28,6 +28,7 @@ import yaml
 
 from knockgs_core.contract import load_contract, with_body
 from knockgs_core.experiments import FloorSettings, floor_note, floor_study, kept_reference_files
+from knockgs_core.io import write_text
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -69,8 +70,8 @@ def main() -> None:
                         reference_cache=args.reference_cache)
     args.out.mkdir(parents=True, exist_ok=True)
     stem = f"floor_{args.object}_{contract.fill.volumes}{'_solid' if args.solid else ''}"
-    table.to_csv(args.out / f"{stem}.csv", index=False)
-    (args.out / f"{stem}.md").write_text(floor_note(table, contract, settings))
+    write_text(args.out / f"{stem}.csv", table.to_csv(index=False))  # atomic: a stopped run leaves the old file
+    write_text(args.out / f"{stem}.md", floor_note(table, contract, settings))
     print(f"{stem}: {time.perf_counter() - t0:.0f} s on {args.device}")
     print(table.to_string())
 

@@ -250,7 +250,9 @@ def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loop
     me.record(spec, D, term, shift)
     out = problem.with_term(term, me.c_max)
     me.leftover_share = None
-    me.theta_per_misfit = theta_per_misfit(J, [flat])[0]  # the refinement's change, its term the misfit
+    # the refinement's change: its theta part is ``shift``, its misfit the term (no second least squares)
+    misfit = float(np.linalg.norm(term[1:]))
+    me.theta_per_misfit = np.abs(shift)[None, :] / misfit if misfit > 0 else np.zeros((0, 2))
     # the floor's shapes are needed only where the data show the term: at the model's own
     # resolution (c below half the ramp's start) the floor's weight is 0, and neither the
     # placements nor the second refinement are simulated
