@@ -149,45 +149,28 @@ def worlds(args) -> None:
             print(f"{key}: {path} ({cost:.0f} s{', kept' if cost == 0 else ''})", flush=True)
 
 
-def _rel_change(Y, Y0):
-    d, D = Y - Y0, Y0 - Y0[0]
-    return float(np.sqrt(np.mean(np.sum(d**2, -1))) / np.sqrt(np.mean(np.sum(D**2, -1))))
-
-
 def _case_files(args, contract, name, effect, theta, strength, folder: Path) -> dict:
     """The case's measured files and truth folder (``make_world_case``'s layout) from its runs."""
-    from knockgs_core.discrepancy import Measurement, write_measured
+    from knockgs_core.discrepancy import observe_world, planted_change
 
     loop_points, _ = _points(contract, args)
     n = len(loop_points)
     Y = {role: np.load(args.worlds / f"{name}__{role}.npz")["Y"].astype(np.float64) for role in ("calib", "heldout")}
     probes = {"calib": contract.roles["calibration"], "heldout": contract.roles["heldout"][0]}
-    rng = np.random.default_rng(SEED)
     clean = {role: Y[role][:, :n] for role in Y}
-    sigma = NOISE_REL * float(np.sqrt(np.mean(np.sum((clean["calib"] - clean["calib"][0]) ** 2, -1))))
-    surface = {role: Y[role][:, n:] for role in Y}
-    idx = rng.permutation(surface["calib"].shape[1])[: int(0.6 * surface["calib"].shape[1])]
-    tracks = rng.permutation(len(idx)) + 1
-    files = {}
-    for role, pr in probes.items():
-        S = surface[role][:, idx]
-        m = Measurement(points=S + rng.normal(0.0, sigma, size=S.shape), frames=np.arange(S.shape[0]), times=None,
-                        particle=None, track=tracks, meta={"object": contract.name, "profile": contract.profile, "probe": pr},
-                        source=f"case {name}")
-        files[role] = folder / f"measured_{role}.parquet"
-        write_measured(files[role], m)
+    files, sigma = observe_world(clean, {role: Y[role][:, n:] for role in Y}, probes=probes,
+                                 meta={"object": contract.name, "profile": contract.profile}, source=f"case {name}",
+                                 noise_rel=NOISE_REL, seed=SEED, measured_dir=folder, truth_dir=folder)
     change = 0.0
     if effect != "none":
         null = _null_of(theta)
         ref = f"{null}__heldout.npz" if null is not None else f"{name}__heldout_null.npz"
-        Y0 = np.load(args.worlds / ref)["Y"].astype(np.float64)[:, :n]
-        change = _rel_change(clean["heldout"], Y0)
-    write_npz(folder / "clean.npz", calib=clean["calib"].astype(np.float32), heldout=clean["heldout"].astype(np.float32))
+        change = planted_change(clean["heldout"], np.load(args.worlds / ref)["Y"].astype(np.float64)[:, :n])
     truth = {"case": name, "world": "fem", "planted_effect": effect, "in_catalogue": True, "level": "fixed",
              "planted_parameter": ({"parameter": "rayleigh_alpha", "value": strength, "unit": "1/s"} if strength else None),
              "heldout_change": change, "theta_true": list(theta), "noise_std": sigma, "observation": "gs_tracks",
              "seed": SEED, "calibration_probe": probes["calib"], "heldout_probe": probes["heldout"],
-             "measured_files": {k: str(v) for k, v in files.items()}}
+             "measured_files": files}
     write_json(folder / "truth.json", truth)
     return truth
 

@@ -193,3 +193,20 @@ def test_a_solid_body_stated_for_a_contract_without_fill_is_the_drawn_vase_at_ev
     assert shell[32] / shell[48] > 1.5, shell  # the contract's own body: the grid's cells, not the vase
     with pytest.raises(InputError, match="fill.volumes"):
         with_body(base, volumes="wall", solid=True)
+
+
+def test_a_fill_grid_finer_than_the_surface_sampling_keeps_the_body_whole():
+    """1,500 Gaussians on the ellipsoid, measured on fill grids of cells from 1.3 to 0.3 times
+    their sampling spacing: the enclosed body stays 4/3 pi abc within 3 % (measured 0.991 and
+    0.980). With each Gaussian widened by half a cell only, the shell on the finer grid has holes
+    between neighbours, the rays of the interior test leave through them and the body loses
+    19 % at n = 128 (55 % at 192): a world built finer than its Gaussians is not the same body."""
+    from knockgs_core.assets import body_fraction, fill_grid
+    from knockgs_core.sim import Box
+
+    gs = ellipsoid_gaussians(1500, SEMI_AXES)
+    exact = 4.0 / 3.0 * np.pi * np.prod(SEMI_AXES)
+    box = Box(center=(0.0, 0.0, 0.0), half_size=(0.6, 0.6, 0.6))
+    for n in (32, 128):
+        grid = fill_grid(gs, fill_box=box, resolution=n, density_threshold=0.3)
+        assert float(body_fraction(grid, gs.means).sum()) * float(np.prod(grid.h)) / exact == pytest.approx(1.0, abs=0.03), n

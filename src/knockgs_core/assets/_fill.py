@@ -4,8 +4,13 @@
    ``d(c) = sum_i o_i exp(-1/2 (c - mu_i)^T (Sigma_i + (h/2)^2 I)^-1 (c - mu_i))`` at cell
    centres ``c``. Each Gaussian is widened by half a cell so that thin surface Gaussians
    register in every cell their surface crosses (an axis-aligned row of cells always has
-   a centre within h/2 of a crossing surface). Work is bounded: each Gaussian touches a
-   fixed stencil of at most 7^3 cells.
+   a centre within h/2 of a crossing surface), and at least by the surface's sampling
+   spacing ``s`` (the 90th percentile of the centres' nearest-neighbour distances), so that
+   on a grid finer than the Gaussians sample the surface the shell has no hole between
+   neighbours (through which step 3's rays would leave the body: the Pillow's 3,530
+   Gaussians lost 7 % of its volume at n = 192 and 12 % at 256). A grid coarser than the
+   sampling (h/2 >= s) is unchanged. Work is bounded: each Gaussian touches a fixed stencil
+   of at most 7^3 cells, or of 3 widening lengths where the widening is wider.
 2. Cells with ``d > density_threshold`` form the shell.
 3. A non-shell cell is interior when rays from it along +x, -x, +y, -y, +z and -z all
    hit the shell (six cumulative maxima over the grid; no iteration).
@@ -36,6 +41,8 @@ __all__ = ["FillResult", "FillGrid", "fill_interior", "fill_grid", "density_grid
 _SMOOTH_CELLS = 0.5
 #: largest stencil radius in cells (bounded work for very large Gaussians)
 _MAX_RADIUS = 3
+#: the quantile of the centres' nearest-neighbour distances taken as the surface's sampling spacing
+_SPACING_QUANTILE = 0.9
 #: Gaussians per vectorized batch
 _CHUNK = 1 << 16
 #: width of the shell cells' body-fraction ramp, in cells (1: exact for a plane parallel to the faces)
@@ -75,6 +82,18 @@ def _box_bounds(fill_box, source, field):
     return c - h, c + h
 
 
+def sampling_spacing(points: np.ndarray) -> float:
+    """The spacing [m] at which ``points`` [N, 3] m (the Gaussian centres) sample the surface:
+    the 90th percentile of their nearest-neighbour distances (0 for fewer than two)."""
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, np.float64)
+    if len(p) < 2:
+        return 0.0
+    d, _ = cKDTree(p).query(p, k=2)
+    return float(np.quantile(d[:, 1], _SPACING_QUANTILE))
+
+
 def density_grid(gs: GaussianSet, *, lo, hi, resolution: int) -> np.ndarray:
     """Gaussian density (step 1 of the module docstring) on the ``resolution^3`` cells of
     the box ``[lo, hi]``; returns [n, n, n] float64 indexed (ix, iy, iz)."""
@@ -84,11 +103,14 @@ def density_grid(gs: GaussianSet, *, lo, hi, resolution: int) -> np.ndarray:
     flat = np.zeros(n ** 3, dtype=np.float64)
     if len(gs) == 0:
         return flat.reshape(n, n, n)
-    covs = gs.covariances().astype(np.float64) + np.diag((_SMOOTH_CELLS * h) ** 2)[None]
-    # stencil radius from the widest Gaussian along any axis (99.9th percentile, capped)
+    widen = np.maximum(_SMOOTH_CELLS * h, sampling_spacing(gs.means))
+    covs = gs.covariances().astype(np.float64) + np.diag(widen ** 2)[None]
+    # stencil radius from the widest Gaussian along any axis (99.9th percentile), capped at
+    # _MAX_RADIUS or at three widening lengths
     sig = np.sqrt(np.diagonal(covs, axis1=1, axis2=2)) / h
     q = float(np.quantile(sig.max(axis=1), 0.999))
-    radius = int(np.clip(np.ceil(3.0 * q - 0.5), 1, _MAX_RADIUS))
+    cap = max(_MAX_RADIUS, int(np.ceil(3.0 * float(np.max(widen / h)) - 0.5)))
+    radius = int(np.clip(np.ceil(3.0 * q - 0.5), 1, cap))
     r = np.arange(-radius, radius + 1)
     offsets = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
     prec = np.linalg.inv(covs)

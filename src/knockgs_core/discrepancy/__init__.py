@@ -30,12 +30,12 @@ _LAZY = {
     "._files": ("audit_truth_separation", "evaluate_files", "run_files"),
     "._loop": ("DiscrepancyResult", "LibrarySource", "LoopSettings", "run_discrepancy"),
     "._measured": ("Correspondence", "Measurement", "match_points", "read_measured", "write_measured"),
-    "._planted": ("PLANTED_EFFECTS", "CaseSpec"),
+    "._planted": ("PLANTED_EFFECTS", "CaseSpec", "planted_change"),
     "._report": ("write_report", "write_result"),
     "._scoring": ("acceptance", "evaluate_case", "world_acceptance"),
     "._tables": ("case_table", "table_figure", "write_case_table"),
     "._views": ("residual_views", "view_summary"),
-    "._worlds": ("FEM_EFFECTS", "FINER_EFFECTS", "make_world_case", "world_cases", "world_contract"),
+    "._worlds": ("FEM_EFFECTS", "FINER_EFFECTS", "make_world_case", "observe_world", "world_cases", "world_contract"),
 }
 __getattr__, __dir__ = lazy_names(__name__, globals(), _LAZY)
 
@@ -67,6 +67,8 @@ __all__ = [
     "world_cases",
     "world_contract",
     "make_world_case",
+    "observe_world",
+    "planted_change",
     "FEM_EFFECTS",
     "FINER_EFFECTS",
     "world_acceptance",

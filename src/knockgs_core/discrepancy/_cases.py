@@ -20,7 +20,7 @@ import numpy as np
 
 from ..io import write_json, write_npz
 from ._measured import Measurement, write_measured
-from ._planted import LEVELS, PLANTED_EFFECTS, WORLDS, CaseSpec, search_strength
+from ._planted import LEVELS, PLANTED_EFFECTS, WORLDS, CaseSpec, planted_change, search_strength
 from ._worlds import make_world_case
 
 __all__ = ["PLANTED_EFFECTS", "LEVELS", "WORLDS", "CaseSpec", "default_cases", "make_case", "search_strength"]
@@ -60,20 +60,14 @@ def _sim(contract, particles, theta, probe, effects=(), *, device=None, determin
     return np.asarray(r.positions, dtype=np.float64)
 
 
-def _rel_change(Y, Y0, n_gs):
-    d = Y[:, :n_gs] - Y0[:, :n_gs]
-    D = Y0[:, :n_gs] - Y0[0, :n_gs]
-    return float(np.sqrt(np.mean(np.sum(d**2, -1))) / np.sqrt(np.mean(np.sum(D**2, -1))))
-
-
 def _find_strength(contract, particles, planted, target, theta, probe, H, log, *, device, deterministic):
     """Strength of ``planted`` whose held-out change relative to the clean response is
     ``target`` (within 10%): doubling/halving to bracket, then bisection in log."""
     build, s0, _, _ = PLANTED_EFFECTS[planted]
     Y0 = _sim(contract, particles, theta, probe, device=device, deterministic=deterministic)
     return search_strength(
-        lambda s: _rel_change(_sim(contract, particles, theta, probe, (build(s, particles, H),), device=device,
-                                   deterministic=deterministic), Y0, particles.n_gs),
+        lambda s: planted_change(_sim(contract, particles, theta, probe, (build(s, particles, H),), device=device,
+                                       deterministic=deterministic)[:, :particles.n_gs], Y0[:, :particles.n_gs]),
         s0, target, log)
 
 

@@ -19,7 +19,7 @@ from ..errors import InputError
 from .. import sim  # its effects are looked up when a case is built: the table reads without Warp
 from ..sim import Box
 
-__all__ = ["PLANTED_EFFECTS", "LEVELS", "WORLDS", "CaseSpec", "search_strength"]
+__all__ = ["PLANTED_EFFECTS", "LEVELS", "WORLDS", "CaseSpec", "planted_change", "search_strength"]
 
 
 def _top_box(particles, frac=0.5):
@@ -96,6 +96,14 @@ class CaseSpec:
             raise InputError("case", "planted", f"unknown effect '{self.planted}'; known: none, {', '.join(PLANTED_EFFECTS)}")
         if self.observation not in ("gs_identity", "gs_tracks", "all_identity"):
             raise InputError("case", "observation", "one of gs_identity, gs_tracks, all_identity")
+
+
+def planted_change(Y, Y0) -> float:
+    """The RMS of ``Y - Y0`` over the RMS displacement of ``Y0`` from its first frame (both
+    [T, n, 3], m): a planted effect's change of a response, as the strength search measures it."""
+    d = Y - Y0
+    D = Y0 - Y0[0]
+    return float(np.sqrt(np.mean(np.sum(d**2, -1))) / np.sqrt(np.mean(np.sum(D**2, -1))))
 
 
 def search_strength(response_change, s0: float, target: float, log: list) -> tuple[float, float]:

@@ -30,9 +30,9 @@ import numpy as np
 from ..io import write_json, write_npz
 from ..errors import InputError
 from ._measured import Measurement, write_measured
-from ._planted import LEVELS, PLANTED_EFFECTS, CaseSpec, search_strength
+from ._planted import LEVELS, PLANTED_EFFECTS, CaseSpec, planted_change, search_strength
 
-__all__ = ["FEM_EFFECTS", "FINER_EFFECTS", "world_cases", "world_contract", "make_world_case"]
+__all__ = ["FEM_EFFECTS", "FINER_EFFECTS", "world_cases", "world_contract", "make_world_case", "observe_world"]
 
 #: the neighbouring finer profile whose Gaussians the worlds' surfaces are sampled from
 _FINER_PROFILE = {"ci": "default", "default": "paper", "paper": "paper"}
@@ -149,10 +149,33 @@ class _World:
         return Y[:, :n], Y[:, n:]
 
 
-def _rel_change(Y, Y0):
-    d = Y - Y0
-    D = Y0 - Y0[0]
-    return float(np.sqrt(np.mean(np.sum(d**2, -1))) / np.sqrt(np.mean(np.sum(D**2, -1))))
+def observe_world(clean: dict, surface: dict, *, probes: dict, meta: dict, source: str, noise_rel: float, seed: int,
+                  measured_dir, truth_dir) -> tuple[dict, float]:
+    """Observe a world's runs as the world cases are observed, and keep its truth.
+
+    ``clean[role]`` [T, n, 3] (m): the world's motion of the loop's Gaussian particles, kept as
+    ``truth_dir/clean.npz``; ``surface[role]`` [T, P, 3] (m): its surface points, of which a
+    random 60 % are written as tracks without identity, with Gaussian noise of std ``noise_rel``
+    times the calibration response's RMS displacement, to ``measured_dir/measured_{role}.parquet``
+    (metadata ``meta`` plus the role's probe from ``probes``). Roles: ``calib`` and ``heldout``.
+    Returns ({role: measured file}, the noise std in m)."""
+    rng = np.random.default_rng(seed)
+    Yc = clean["calib"]
+    sigma = noise_rel * float(np.sqrt(np.mean(np.sum((Yc - Yc[0]) ** 2, -1))))
+    n_surf = surface["calib"].shape[1]
+    idx = rng.permutation(n_surf)[: max(1, int(0.6 * n_surf))]
+    tracks = rng.permutation(len(idx)) + 1
+    measured_dir, truth_dir = Path(measured_dir), Path(truth_dir)
+    files = {}
+    for role in ("calib", "heldout"):
+        S = surface[role][:, idx]
+        m = Measurement(points=S + rng.normal(0.0, sigma, size=S.shape), frames=np.arange(S.shape[0]), times=None,
+                        particle=None, track=tracks, meta={**meta, "probe": probes[role]}, source=source)
+        path = measured_dir / f"measured_{role}.parquet"
+        write_measured(path, m)
+        files[role] = str(path)
+    write_npz(truth_dir / "clean.npz", calib=clean["calib"].astype(np.float32), heldout=clean["heldout"].astype(np.float32))
+    return files, sigma
 
 
 def make_world_case(spec: CaseSpec, contract, particles, *, measured_dir, truth_dir, calibration_probe: str,
@@ -163,7 +186,6 @@ def make_world_case(spec: CaseSpec, contract, particles, *, measured_dir, truth_
     motion of the loop's Gaussian particles) to ``truth_dir``. ``device`` and ``deterministic``:
     the finer world's rollouts'; ``world_profile``: whose Gaussians the finer world simulates
     and is observed at (None: the neighbouring finer profile's). Returns the truth record."""
-    rng = np.random.default_rng(spec.seed)
     H = contract.probes[calibration_probe].export.horizon
     world = _World(spec, contract, particles, H, device=device, deterministic=deterministic, world_profile=world_profile)
     search, strength, achieved, param = [], None, 0.0, None
@@ -172,8 +194,8 @@ def make_world_case(spec: CaseSpec, contract, particles, *, measured_dir, truth_
         s0, in_cat, describe = table[spec.planted][1], table[spec.planted][2], table[spec.planted][3]
         target = LEVELS[spec.level] if isinstance(spec.level, str) else float(spec.level)
         Y0 = world.run(spec.theta, heldout_probe)[0]
-        strength, achieved = search_strength(lambda s: _rel_change(world.run(spec.theta, heldout_probe, s)[0], Y0), s0, target,
-                                             search)
+        strength, achieved = search_strength(lambda s: planted_change(world.run(spec.theta, heldout_probe, s)[0], Y0),
+                                             s0, target, search)
         p, v, u = describe(strength)
         param = {"parameter": p, "value": v, "unit": u}
         in_catalogue = bool(in_cat)
@@ -182,21 +204,9 @@ def make_world_case(spec: CaseSpec, contract, particles, *, measured_dir, truth_
     clean, surface = {}, {}
     for role, pr in (("calib", calibration_probe), ("heldout", heldout_probe)):
         clean[role], surface[role] = world.run(spec.theta, pr, strength)
-    Yc = clean["calib"]
-    sigma = spec.noise_rel * float(np.sqrt(np.mean(np.sum((Yc - Yc[0]) ** 2, -1))))
-    n_surf = surface["calib"].shape[1]
-    idx = rng.permutation(n_surf)[: max(1, int(0.6 * n_surf))]
-    tracks = rng.permutation(len(idx)) + 1
-    measured_dir, truth_dir = Path(measured_dir), Path(truth_dir)
-    files = {}
-    for role, pr in (("calib", calibration_probe), ("heldout", heldout_probe)):
-        S = surface[role][:, idx]
-        P = S + rng.normal(0.0, sigma, size=S.shape)
-        m = Measurement(points=P, frames=np.arange(S.shape[0]), times=None, particle=None, track=tracks,
-                        meta={"object": contract.name, "profile": contract.profile, "probe": pr}, source=f"case {spec.name}")
-        path = measured_dir / f"measured_{role}.parquet"
-        write_measured(path, m)
-        files[role] = str(path)
+    files, sigma = observe_world(clean, surface, probes={"calib": calibration_probe, "heldout": heldout_probe},
+                                 meta={"object": contract.name, "profile": contract.profile}, source=f"case {spec.name}",
+                                 noise_rel=spec.noise_rel, seed=spec.seed, measured_dir=measured_dir, truth_dir=truth_dir)
     truth = {
         "case": spec.name,
         "world": spec.world,
@@ -216,6 +226,5 @@ def make_world_case(spec: CaseSpec, contract, particles, *, measured_dir, truth_
         "measured_files": files,
         "spec": asdict(spec),
     }
-    write_npz(truth_dir / "clean.npz", calib=clean["calib"].astype(np.float32), heldout=clean["heldout"].astype(np.float32))
-    write_json(truth_dir / "truth.json", truth)
+    write_json(Path(truth_dir) / "truth.json", truth)
     return truth
