@@ -17,7 +17,7 @@ from _workflow import CI, CI_RUN_CONFIG, scratch_copy, snakemake
 
 from knockgs_core.audits import audit_completion, audit_duplicates, audit_leakage
 from knockgs_core.calibration import METHOD_NAMES, METHOD_OPTIONS
-from knockgs_core.contract import load_candidates, load_targets
+from knockgs_core.contract import load_candidates, load_contract, load_targets
 from knockgs_core.rollout import read_rollout
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -537,6 +537,28 @@ def test_discrepancy_cases_run_at_their_configured_resolution(tmp_path):
     assert "discrepancy_library" not in shared and shared.get("rollout_library") == 9 and shared.get("asset") == 1
     bad = snakemake(work, "-n", "--config", "discrepancy={resolution: huge}", "--", table)
     assert bad.returncode != 0 and "huge" in bad.stdout + bad.stderr
+
+
+def test_the_loop_runs_on_the_grid_its_config_names(tmp_path):
+    """discrepancy.n_grid: the cases, their asset and library at that grid (the fill refined with
+    it), in a folder of their own; the asset job builds the contract at that grid (its hash is
+    at_resolution's, which the loop's run checks its particles and library against); a grid the
+    contract refuses is one line at config read."""
+    work = scratch_copy(tmp_path)
+    cfg = ("--configfile=config/ci.yaml", "--config", "objects=[pillow]", "discrepancy={resolution: ci, n_grid: 24}")
+    table = f"{CI}/tables/discrepancy.csv"
+    plan = _planned(work, *cfg, "--", table)
+    assert plan.get("discrepancy_asset") == 1 and plan.get("discrepancy_library") == 9 and "rollout_library" not in plan
+    summary = f"{CI}/discrepancy/ci_n24/assets/pillow.summary.json"
+    run = snakemake(work, *cfg, "--cores", "1", "--", summary)
+    assert run.returncode == 0, run.stderr[-3000:]
+    built = json.loads((work / summary).read_text())
+    assert built["contract_hash"] == load_contract("pillow", "ci", n_grid=24).hash
+    assert built["contract_hash"] != load_contract("pillow", "ci").hash
+    bad = snakemake(work, "-n", "--configfile=config/ci.yaml", "--config", "discrepancy={resolution: ci, n_grid: 4}", "--", table)
+    lines = [line for line in bad.stderr.splitlines() if line.strip()]
+    assert bad.returncode != 0 and "Traceback" not in bad.stderr, bad.stderr[-2000:]
+    assert "discrepancy" in lines[-1] and "n_grid" in lines[-1], lines[-1]
 
 
 @pytest.mark.slow

@@ -705,13 +705,15 @@ def _resolve_path(name_or_path: str | os.PathLike, config_dir) -> Path:
 
 
 def load_contract(name_or_path: str | os.PathLike, profile: str = "default", *,
-                  config_dir: str | os.PathLike | None = None) -> ObjectContract:
+                  config_dir: str | os.PathLike | None = None, n_grid: int | None = None) -> ObjectContract:
     """Load, validate and resolve an object contract at one profile.
 
     ``name_or_path``: an object name (``config/objects/NAME.yaml`` under the configuration
     directory, see :func:`find_config_dir`) or a path to a YAML file. ``profile`` in the
-    file's ``profiles`` (``ci``, ``default``, ``paper``). Unknown keys, wrong types and
-    inconsistent references raise :class:`InputError` naming the file and the field.
+    file's ``profiles`` (``ci``, ``default``, ``paper``). ``n_grid``: the profile's contract on
+    that many cells per axis (:func:`at_resolution`); None: the profile's grid. Unknown keys,
+    wrong types and inconsistent references raise :class:`InputError` naming the file and the
+    field.
     """
     path = _resolve_path(name_or_path, config_dir)
     data = _read_yaml(path)
@@ -720,7 +722,8 @@ def load_contract(name_or_path: str | os.PathLike, profile: str = "default", *,
         _check_finite(data, path)
         _check_resources(data, path)
     _validate(data, path, schema_path())
-    return _build(data, path, _tables_dir(path, config_dir), profile)
+    contract = _build(data, path, _tables_dir(path, config_dir), profile)
+    return contract if n_grid is None else at_resolution(contract, n_grid)
 
 
 def _tables_dir(path: Path, config_dir) -> Path:

@@ -217,9 +217,10 @@ wildcard_constraints:
 
 
 @cache
-def contract(obj, profile=PROFILE):
-    """The object contract at a resolution profile (loaded once)."""
-    return load_contract(obj, profile)
+def contract(obj, profile=PROFILE, n_grid=None):
+    """The object contract at a resolution profile (loaded once), on ``n_grid`` cells per axis
+    where given (``at_resolution``)."""
+    return load_contract(obj, profile, n_grid=n_grid)
 
 
 for _obj in OBJECTS:  # a broken or unknown contract fails at parse time, naming its file and field

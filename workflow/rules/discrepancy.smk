@@ -17,15 +17,19 @@
 #   P/audits/discrepancy_worlds_truth.json                 the world cases (finer grid, FEM): target
 #                                                          `discrepancy_worlds`, not in `all`
 #
-# The cases run at config discrepancy.resolution. At the profile's own resolution they share
-# its asset (P/assets) and candidate library (P/rollouts/{object}/lib); at another, the
-# D/{res}/ asset and library are built for them.
+# The cases run at config discrepancy.resolution, on discrepancy.n_grid cells per axis where it
+# is set (the fill refined with it: knockgs_core.contract.at_resolution). At the profile's own
+# resolution they share its asset (P/assets) and candidate library (P/rollouts/{object}/lib); at
+# another, the D/{res}/ asset and library are built for them ({res}: the resolution, or
+# {resolution}_n{n_grid}).
 
 from knockgs_core.discrepancy import default_cases, world_cases
 
 D = f"{P}/discrepancy"
 DISCREPANCY_OBJECT = DISCREPANCY["object"]
-DISCREPANCY_RES = DISCREPANCY["resolution"]
+DISCREPANCY_PROFILE = DISCREPANCY["resolution"]
+DISCREPANCY_N_GRID = DISCREPANCY.get("n_grid")
+DISCREPANCY_RES = DISCREPANCY_PROFILE if DISCREPANCY_N_GRID is None else f"{DISCREPANCY_PROFILE}_n{DISCREPANCY_N_GRID}"
 DISCREPANCY_CASES = [c.name for c in default_cases()]
 _WORLD_CASES = [c.name for c in world_cases()]
 _unknown_worlds = sorted(set(DISCREPANCY.get("worlds") or []) - set(_WORLD_CASES))
@@ -33,7 +37,10 @@ if _unknown_worlds:
     raise ValueError(f"config discrepancy.worlds: unknown world cases {_unknown_worlds}; known: {_WORLD_CASES}")
 # the world cases (data the loop's model cannot match exactly), in world_cases() order
 DISCREPANCY_WORLD_CASES = [c for c in _WORLD_CASES if c in (DISCREPANCY.get("worlds") or _WORLD_CASES)]
-_DISCREPANCY_CONTRACT = contract(DISCREPANCY_OBJECT, DISCREPANCY_RES)
+try:
+    _DISCREPANCY_CONTRACT = contract(DISCREPANCY_OBJECT, DISCREPANCY_PROFILE, n_grid=DISCREPANCY_N_GRID)
+except InputError as exc:  # an object the grid cannot hold: one line at config read
+    config_refusal(f"{_config_file_of('discrepancy')}: discrepancy: {exc}")
 _DISCREPANCY_SHARED = DISCREPANCY_RES == PROFILE
 DISCREPANCY_PARTICLES = (f"{P}/assets/{DISCREPANCY_OBJECT}.particles.npz" if _DISCREPANCY_SHARED
                          else f"{D}/{DISCREPANCY_RES}/assets/{DISCREPANCY_OBJECT}.particles.npz")
@@ -70,8 +77,11 @@ rule discrepancy_asset:
         figure=f"{D}/{{res}}/assets/{{object}}.fill.png",
     log:
         f"logs/{PROFILE}/discrepancy/{{res}}/asset_{{object}}.log",
+    wildcard_constraints:
+        res=re.escape(DISCREPANCY_RES),  # the one resolution its params build
     params:
-        profile=lambda wc: wc.res,
+        profile=DISCREPANCY_PROFILE,
+        n_grid=DISCREPANCY_N_GRID,
     resources:
         mem_mb=2000,
         runtime=30,
@@ -93,10 +103,13 @@ rule discrepancy_library:
         f"logs/{PROFILE}/discrepancy/{{res}}/library/{{object}}/chunk{{chunk}}.log",
     benchmark:
         f"{P}/benchmarks/discrepancy/{{res}}/library/{{object}}/chunk{{chunk}}.tsv"
+    wildcard_constraints:
+        res=re.escape(DISCREPANCY_RES),
     params:
-        profile=lambda wc: wc.res,
+        profile=DISCREPANCY_PROFILE,
+        n_grid=DISCREPANCY_N_GRID,
         object=lambda wc: wc.object,
-        runs=lambda wc: library_runs(wc.chunk, contract(wc.object, wc.res).roles["calibration"], f"{D}/{wc.res}/library/{wc.object}",
+        runs=lambda wc: library_runs(wc.chunk, _DISCREPANCY_CONTRACT.roles["calibration"], f"{D}/{wc.res}/library/{wc.object}",
                                      export_F=False),
         device=DEVICE,
         deterministic=DETERMINISTIC,
@@ -125,7 +138,8 @@ rule discrepancy_case:
         f"logs/{PROFILE}/discrepancy/case_{{case}}.log",
     params:
         object=DISCREPANCY_OBJECT,
-        profile=DISCREPANCY_RES,
+        profile=DISCREPANCY_PROFILE,
+        n_grid=DISCREPANCY_N_GRID,
         device=DEVICE,
         deterministic=DETERMINISTIC,
     resources:
@@ -155,7 +169,8 @@ rule discrepancy_run:
         f"{P}/benchmarks/discrepancy/run_{{case}}.tsv"
     params:
         object=DISCREPANCY_OBJECT,
-        profile=DISCREPANCY_RES,
+        profile=DISCREPANCY_PROFILE,
+        n_grid=DISCREPANCY_N_GRID,
         device=DEVICE,
         deterministic=DETERMINISTIC,
         probe=_DISCREPANCY_CONTRACT.roles["calibration"],

@@ -8,7 +8,8 @@ from knockgs_core.contract import load_contract
 
 sys.stderr = open(snakemake.log[0], "w")
 # a contract by name (the object wildcard), or by its file where the rule gives one (params.contract)
-contract = load_contract(getattr(snakemake.params, "contract", None) or snakemake.wildcards.object, snakemake.params.profile)
+contract = load_contract(getattr(snakemake.params, "contract", None) or snakemake.wildcards.object, snakemake.params.profile,
+                         n_grid=getattr(snakemake.params, "n_grid", None))
 built = build_asset(contract)
 write_ply(built.gaussians, snakemake.output.ply)
 save_particles(built.particles, snakemake.output.particles, contract=contract)

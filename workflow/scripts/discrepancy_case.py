@@ -11,6 +11,6 @@ p = snakemake.params
 out = snakemake.output
 cases = default_cases(targets_path=snakemake.input.targets) + world_cases(targets_path=snakemake.input.targets)
 spec = {c.name: c for c in cases}[snakemake.wildcards.case]
-make_case(spec, load_contract(p.object, p.profile), load_particles(snakemake.input.particles),
+make_case(spec, load_contract(p.object, p.profile, n_grid=p.n_grid), load_particles(snakemake.input.particles),
           measured_dir=Path(out.calib).parent, truth_dir=Path(out.truth).parent, device=p.device,
           deterministic=p.deterministic)

@@ -12,4 +12,4 @@ p = snakemake.params
 inp = snakemake.input
 run_files(p.object, p.profile, inp.measured, Path(snakemake.output.report).parent, particles=inp.particles, probe=p.probe,
           heldout_probes=[p.heldout_probe], heldout_measured={p.heldout_probe: inp.heldout}, library_rollouts=list(p.library),
-          device=p.device, deterministic=p.deterministic, progress=lambda msg: print(msg, file=log, flush=True))
+          device=p.device, deterministic=p.deterministic, n_grid=p.n_grid, progress=lambda msg: print(msg, file=log, flush=True))

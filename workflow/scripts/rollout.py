@@ -21,7 +21,7 @@ folder = Path(snakemake.output.folder) if "folder" in snakemake.output.keys() el
 F_folder = Path(snakemake.output.F_folder) if "F_folder" in snakemake.output.keys() else folder
 check_files_in([run["rollout"] for run in p.runs], [folder], source="rollout job")
 check_files_in([run["F"] for run in p.runs], [F_folder], source="rollout job")
-contract = load_contract(p.object, p.profile)
+contract = load_contract(p.object, p.profile, n_grid=getattr(p, "n_grid", None))
 particles = load_particles(snakemake.input.particles)
 passive = None
 if "protocol" in snakemake.input.keys():
