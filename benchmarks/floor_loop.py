@@ -39,7 +39,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -50,6 +49,8 @@ import pandas as pd
 import yaml
 
 from knockgs_core.io import write_json, write_npz, write_text
+
+from _world_loop import run_and_score
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -177,7 +178,6 @@ def _case_files(args, contract, name, effect, theta, strength, folder: Path) -> 
 
 def _loop_run(job):
     from knockgs_core.assets import build_asset
-    from knockgs_core.discrepancy import evaluate_case, read_measured, run_discrepancy, world_acceptance, write_result
     from knockgs_core.experiments import at_resolution
 
     args, name, level, case_dir = job
@@ -189,23 +189,8 @@ def _loop_run(job):
     particles = build_asset(c).particles
     if not (Path(case_dir) / "truth.json").is_file():  # a finer-grid world, made at twice the level
         _finer_case(c, particles, name, Path(case_dir), args.device)
-    truth = json.loads((Path(case_dir) / "truth.json").read_text())
-    m = read_measured(truth["measured_files"]["calib"])
-    held = {truth["heldout_probe"]: read_measured(truth["measured_files"]["heldout"])}
-    seconds = math.nan
-    if not ((out / "result.json").is_file() and (out / "predictions.npz").is_file()):  # a run killed after it wrote them
-        t0 = time.perf_counter()
-        result = run_discrepancy(m, c, particles, probe=truth["calibration_probe"], heldout_probes=[truth["heldout_probe"]],
-                                 heldout_measured=held, device=args.device)
-        seconds = time.perf_counter() - t0
-        out.mkdir(parents=True, exist_ok=True)
-        write_result(result, out)
-    result = json.loads((out / "result.json").read_text())
-    with np.load(out / "predictions.npz") as z:  # the predictions as the run's files hold them ({probe}/{stage})
-        row = evaluate_case(result, dict(z), case_dir)
-    ok, why = world_acceptance(row)
-    row.update({"level": level, "accepted": ok, "why": why, "seconds": seconds,
-                "floor_statement": result.get("floor_statement") or ""})
+    row, result = run_and_score(case_dir, out, c, particles, device=args.device)
+    row.update({"level": level, "floor_statement": result.get("floor_statement") or ""})
     write_json(out / "row.json", row)
     return row
 
