@@ -4,12 +4,12 @@
    ``d(c) = sum_i o_i exp(-1/2 (c - mu_i)^T (Sigma_i + (h/2)^2 I)^-1 (c - mu_i))`` at cell
    centres ``c``. Each Gaussian is widened by half a cell so that thin surface Gaussians
    register in every cell their surface crosses (an axis-aligned row of cells always has
-   a centre within h/2 of a crossing surface), and at least by the surface's sampling
-   spacing ``s`` (the 90th percentile of the centres' nearest-neighbour distances), so that
-   on a grid finer than the Gaussians sample the surface the shell has no hole between
-   neighbours (through which step 3's rays would leave the body: the Pillow's 3,530
-   Gaussians lost 7 % of its volume at n = 192 and 12 % at 256). A grid coarser than the
-   sampling (h/2 >= s) is unchanged. Work is bounded: each Gaussian touches a fixed stencil
+   a centre within h/2 of a crossing surface). On a grid whose cells are smaller than the
+   surface's sampling spacing ``s`` (the 90th percentile of the centres' nearest-neighbour
+   distances), which sees the gaps between neighbouring Gaussians, each is widened by ``s``
+   instead, so that the shell has no hole through which step 3's rays would leave the body
+   (the Pillow's 3,530 Gaussians lost 7 % of its volume at n = 192 and 12 % at 256). A grid of
+   cells at least ``s`` is unchanged. Work is bounded: each Gaussian touches a fixed stencil
    of at most 7^3 cells, or of 3 widening lengths where the widening is wider.
 2. Cells with ``d > density_threshold`` form the shell.
 3. A non-shell cell is interior when rays from it along +x, -x, +y, -y, +z and -z all
@@ -103,7 +103,9 @@ def density_grid(gs: GaussianSet, *, lo, hi, resolution: int) -> np.ndarray:
     flat = np.zeros(n ** 3, dtype=np.float64)
     if len(gs) == 0:
         return flat.reshape(n, n, n)
-    widen = np.maximum(_SMOOTH_CELLS * h, sampling_spacing(gs.means))
+    spacing = sampling_spacing(gs.means)
+    # cells smaller than the samples' spacing see the gaps between them: widen to the spacing
+    widen = np.where(h < spacing, spacing, _SMOOTH_CELLS * h)
     covs = gs.covariances().astype(np.float64) + np.diag(widen ** 2)[None]
     # stencil radius from the widest Gaussian along any axis (99.9th percentile), capped at
     # _MAX_RADIUS or at three widening lengths
