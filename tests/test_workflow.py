@@ -539,6 +539,7 @@ def test_discrepancy_cases_run_at_their_configured_resolution(tmp_path):
     assert bad.returncode != 0 and "huge" in bad.stdout + bad.stderr
 
 
+@pytest.mark.slow
 def test_the_loop_runs_on_the_grid_its_config_names(tmp_path):
     """discrepancy.n_grid: the cases, their asset and library at that grid (the fill refined with
     it), in a folder of their own; the asset job builds the contract at that grid (its hash is
