@@ -256,3 +256,23 @@ def test_a_model_error_shaped_like_a_grid_placements_change_is_covered_by_the_fl
         v = _theta_interval(problem, spec, me, settings, shows_error=False, noise_floor=sigma**2)
         assert v["floor_share_log"] == [0.0, 0.0]
         assert not all(lo <= x <= hi for (lo, hi), x in zip(v["interval"], np.exp(truth)))
+
+
+def test_the_refinements_ratio_follows_the_term_the_model_was_last_recorded_at():
+    """``ModelError.theta_per_misfit``: the floor's ratios, then the refinement's, |theta shift|
+    over the norm of the recorded term; when the final model (with an effect) records its own
+    term, the refinement's ratio is that model's, not the base model's."""
+    from knockgs_core.discrepancy._model_error import ModelError
+
+    me = ModelError(refined=None, factor=1.5, c_max=6.0, length=0.01)
+    assert me.theta_per_misfit is None
+    term = np.zeros((4, 3, 3))
+    term[1:] = 0.002
+    me.record(None, term, term, np.array([0.03, -0.01]))
+    me.floor_ratios = np.array([[5.0, 1.0]])
+    norm = np.linalg.norm(term)
+    np.testing.assert_allclose(me.theta_per_misfit, [[5.0, 1.0], [0.03 / norm, 0.01 / norm]])
+    me.record(None, 2 * term, 2 * term, np.array([0.01, 0.02]))  # the final model's term
+    np.testing.assert_allclose(me.theta_per_misfit[-1], [0.01 / (2 * norm), 0.02 / (2 * norm)])
+    me.record(None, 0 * term, 0 * term, np.array([0.01, 0.02]))  # no term: no refinement row
+    np.testing.assert_allclose(me.theta_per_misfit, [[5.0, 1.0]])

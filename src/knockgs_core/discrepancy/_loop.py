@@ -249,10 +249,7 @@ def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loop
     flat = D[1:].reshape(-1)
     me.record(spec, D, term, shift)
     out = problem.with_term(term, me.c_max)
-    me.leftover_share = None
-    # the refinement's change: its theta part is ``shift``, its misfit the term (no second least squares)
-    misfit = float(np.linalg.norm(term[1:]))
-    me.theta_per_misfit = np.abs(shift)[None, :] / misfit if misfit > 0 else np.zeros((0, 2))
+    me.leftover_share, me.floor_ratios = None, None
     # the floor's shapes are needed only where the data show the term: at the model's own
     # resolution (c below half the ramp's start) the floor's weight is 0, and neither the
     # placements nor the second refinement are simulated
@@ -267,8 +264,8 @@ def _with_term(problem: Problem, me: ModelError, spec: ModelSpec, settings: Loop
             changes = [me.difference(fw, spec, problem.probe, points, level=2)[problem.frames][1:].reshape(-1)]
         ratios, shapes = theta_per_misfit(np.column_stack([J, flat]), changes)
         out.floor_shape = shapes
-        # the placements' ratios first, the refinement's (computed above) last
-        me.theta_per_misfit = np.vstack([ratios] + ([] if me.theta_per_misfit is None else [me.theta_per_misfit]))
+        # the placements' ratios (the refinement's follows the recorded term: ModelError.theta_per_misfit)
+        me.floor_ratios = ratios
         me.leftover_share = float(np.sum(shapes * shapes)) / max(float(sum(Dk @ Dk for Dk in changes)), 1e-300)
     return out
 

@@ -137,10 +137,11 @@ class ModelError:
     ``placements``: the model at the grid placements :data:`FLOOR_SHIFTS` (``shifts``);
     ``leftover_share``: the energy of the parts of their changes that theta and the term cannot
     represent (the floor's shapes, held by the problem), as a share of those changes';
-    ``theta_per_misfit`` [K, 2]: for each of the floor's changes (and the refinement's), the
-    change of log theta it asks of the fit per unit of the misfit it leaves (|theta part| /
-    norm of the part theta and the term cannot represent, 1/m): the bias in theta that a model
-    error of that shape leaves behind a post-fit misfit of a given size."""
+    ``floor_ratios`` [K, 2]: for each of the floor's changes, the change of log theta it asks of
+    the fit per unit of the misfit it leaves (|theta part| / norm of the part theta and the term
+    cannot represent, 1/m): the bias in theta that a model error of that shape leaves behind a
+    post-fit misfit of a given size; :attr:`theta_per_misfit` adds the recorded term's own
+    (|theta_shift| / norm of the term), so it follows the model the term was last recorded at."""
 
     refined: ForwardModel
     factor: float
@@ -154,11 +155,22 @@ class ModelError:
     change: np.ndarray | None = None
     theta_shift: np.ndarray | None = None
     leftover_share: float | None = None
-    theta_per_misfit: np.ndarray | None = None
+    floor_ratios: np.ndarray | None = None
 
     @property
     def richardson(self) -> float:
         return self.factor / (self.factor - 1.0)
+
+    @property
+    def theta_per_misfit(self) -> np.ndarray | None:
+        """[K, 2] 1/m: the floor's ratios (``floor_ratios``), then the refinement's at the
+        recorded term: its theta part ``theta_shift`` over its misfit, the term (none where the
+        term is zero). None before a term is recorded."""
+        if self.term is None:
+            return None
+        misfit = float(np.linalg.norm(self.term))
+        own = np.abs(np.asarray(self.theta_shift, dtype=np.float64))[None, :] / misfit if misfit > 0 else np.zeros((0, 2))
+        return own if self.floor_ratios is None else np.vstack([self.floor_ratios, own])
 
     def record(self, spec: ModelSpec, change: np.ndarray, term: np.ndarray, theta_shift: np.ndarray) -> None:
         """Keep the term computed at ``spec`` (``change`` D and ``term`` [T, M, 3], the theta
