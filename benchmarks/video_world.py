@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -30,7 +29,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from knockgs_core.io import write_json, write_text
+from knockgs_core.io import write_json, write_npz, write_text
 
 from _world_loop import run_and_score
 
@@ -83,9 +82,7 @@ def video_case(args, tracks: Path) -> Path:
     world = build_asset(wc)
     H = c.probes[truth["calibration_probe"]].export.horizon
     planted = truth["planted_effect"]
-    # the searched strength: the search's evaluation that gave the case its held-out change
-    strength = None if planted == "none" else next(e["strength"] for e in truth["strength_search"]
-                                                   if e.get("change") == truth["heldout_change"])
+    strength = truth["strength"]  # the searched strength (None: no effect)
     effects = () if planted == "none" else (PLANTED_EFFECTS[planted][0](strength, world.particles, H),)
     p = with_effects(wc.sim, *effects)
     width, height = (int(v) for v in args.size.split("x"))
@@ -105,7 +102,8 @@ def video_case(args, tracks: Path) -> Path:
         from knockgs_core.discrepancy import read_measured
 
         errors[role] = read_measured(out).meta.get("tracker_error_std")
-    shutil.copyfile(tracks / "clean.npz", folder / "clean.npz")
+    with np.load(tracks / "clean.npz") as z:  # the truth's motion, written atomically as every file here
+        write_npz(folder / "clean.npz", **{k: z[k] for k in z.files})
     write_json(folder / "truth.json", {**truth, "observation": f"video {args.size}, knockgs observe tracks",
                                        "measured_files": files, "tracker_error_std": errors})
     return folder

@@ -146,6 +146,7 @@ def test_a_fem_case_is_observed_without_identity_and_its_truth_kept_apart(pillow
     with np.load(tdir / "clean.npz") as z:
         assert z["calib"].shape == (m.n_frames, particles.n_gs, 3) and z["heldout"].shape[1] == particles.n_gs
     assert truth["world"] == "fem" and truth["world_description"]["cells"] > 100
+    assert truth["strength"] is None and truth["planted_parameter"] is None  # a null world: nothing planted
     assert not list(mdir.glob("truth*")) and (tdir / "truth.json").exists()
 
 

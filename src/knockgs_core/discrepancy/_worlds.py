@@ -215,6 +215,7 @@ def make_world_case(spec: CaseSpec, contract, particles, *, measured_dir, truth_
         "in_catalogue": in_catalogue,
         "level": spec.level,
         "planted_parameter": param,
+        "strength": strength,
         "heldout_change": achieved,
         "strength_search": search,
         "theta_true": list(spec.theta),
