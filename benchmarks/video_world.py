@@ -66,11 +66,9 @@ def video_case(args, tracks: Path) -> Path:
 
     from knockgs_core.assets import build_asset
     from knockgs_core.cli import main as cli_main
-    from knockgs_core.discrepancy import PLANTED_EFFECTS, world_contract
+    from knockgs_core.discrepancy import finer_world_rollout, world_contract
     from knockgs_core.observe import render_rgbd, write_rgbd
     from knockgs_core.render import camera_from_contract
-    from knockgs_core.rollout import run_rollout
-    from knockgs_core.sim import with_effects
 
     folder = args.out / "video"
     if (folder / "truth.json").is_file():
@@ -81,16 +79,13 @@ def video_case(args, tracks: Path) -> Path:
     wc = world_contract(c)
     world = build_asset(wc)
     H = c.probes[truth["calibration_probe"]].export.horizon
-    planted = truth["planted_effect"]
-    strength = truth["strength"]  # the searched strength (None: no effect)
-    effects = () if planted == "none" else (PLANTED_EFFECTS[planted][0](strength, world.particles, H),)
-    p = with_effects(wc.sim, *effects)
     width, height = (int(v) for v in args.size.split("x"))
     cam = camera_from_contract(c.camera, width=width, height=height)
     files, errors = {}, {}
     for role, probe in (("calib", truth["calibration_probe"]), ("heldout", truth["heldout_probe"])):
-        ro = run_rollout(wc, tuple(truth["theta_true"]), probe, particles=world.particles, device=args.device, export_F=True,
-                         sim_overrides={"effects": p.effects, "boundaries": p.boundaries})
+        # the searched strength (None: no effect)
+        ro = finer_world_rollout(wc, world.particles, tuple(truth["theta_true"]), probe, planted=truth["planted_effect"],
+                                 strength=truth["strength"], horizon=H, device=args.device, export_F=True)
         video = folder / f"{role}.rgbd.npz"
         write_rgbd(video, render_rgbd(world.gaussians, np.asarray(world.static_mask), np.asarray(world.particles.gaussian_index),
                                       np.asarray(ro.positions), np.asarray(ro.F), cam, frame_dt=wc.probes[probe].export.frame_dt))

@@ -35,7 +35,8 @@ _LAZY = {
     "._scoring": ("acceptance", "evaluate_case", "world_acceptance"),
     "._tables": ("case_table", "table_figure", "write_case_table"),
     "._views": ("residual_views", "view_summary"),
-    "._worlds": ("FEM_EFFECTS", "FINER_EFFECTS", "make_world_case", "observe_world", "world_cases", "world_contract"),
+    "._worlds": ("FEM_EFFECTS", "FINER_EFFECTS", "finer_world_rollout", "make_world_case", "observe_world", "world_cases",
+                 "world_contract"),
 }
 __getattr__, __dir__ = lazy_names(__name__, globals(), _LAZY)
 
@@ -66,6 +67,7 @@ __all__ = [
     "make_case",
     "world_cases",
     "world_contract",
+    "finer_world_rollout",
     "make_world_case",
     "observe_world",
     "planted_change",

@@ -32,7 +32,8 @@ from ..errors import InputError
 from ._measured import Measurement, write_measured
 from ._planted import LEVELS, PLANTED_EFFECTS, CaseSpec, planted_change, search_strength
 
-__all__ = ["FEM_EFFECTS", "FINER_EFFECTS", "world_cases", "world_contract", "make_world_case", "observe_world"]
+__all__ = ["FEM_EFFECTS", "FINER_EFFECTS", "world_cases", "world_contract", "finer_world_rollout", "make_world_case",
+           "observe_world"]
 
 #: the neighbouring finer profile whose Gaussians the worlds' surfaces are sampled from
 _FINER_PROFILE = {"ci": "default", "default": "paper", "paper": "paper"}
@@ -81,6 +82,23 @@ def world_contract(contract, *, profile: str | None = None):
     return dataclasses.replace(out, sim=dataclasses.replace(out.sim, dt=float(out.cfl_dt())))
 
 
+def finer_world_rollout(world_contract, world_particles, theta, probe: str, *, planted: str = "none", strength=None,
+                        horizon: float, device=None, deterministic: bool = False, export_F: bool = False):
+    """One rollout of the finer world: ``world_contract`` (:func:`world_contract`) on its
+    particles at ``theta`` under ``probe``, with the planted effect ``planted`` of
+    :data:`PLANTED_EFFECTS` at ``strength`` (none when ``planted`` is ``"none"`` or ``strength``
+    is None; ``horizon`` [s] is the record the effect's strength is stated over). Returns the
+    :func:`knockgs_core.rollout.run_rollout` result (positions [T, N, 3] m; deformation
+    gradients [T, N, 3, 3] with ``export_F``, for rendering)."""
+    from ..rollout import run_rollout
+    from ..sim import with_effects
+
+    effects = () if planted == "none" or strength is None else (PLANTED_EFFECTS[planted][0](strength, world_particles, horizon),)
+    p = with_effects(world_contract.sim, *effects)
+    return run_rollout(world_contract, theta, probe, particles=world_particles, device=device, deterministic=deterministic,
+                       export_F=export_F, sim_overrides={"effects": p.effects, "boundaries": p.boundaries})
+
+
 def _surface_points(contract) -> np.ndarray:
     """Rest positions of the Gaussian particles of the neighbouring finer profile [P, 3]."""
     from ..assets import build_asset
@@ -127,14 +145,10 @@ class _World:
     def run(self, theta, probe, strength=None):
         planted = self.spec.planted
         if self.spec.world == "finer":
-            from ..rollout import run_rollout
-            from ..sim import with_effects
             from ._model_error import displacement_at
 
-            effects = () if strength is None else (PLANTED_EFFECTS[planted][0](strength, self.wp, self.H),)
-            p = with_effects(self.wc.sim, *effects)
-            ro = run_rollout(self.wc, theta, probe, particles=self.wp, device=self.device, deterministic=self.deterministic,
-                             sim_overrides={"effects": p.effects, "boundaries": p.boundaries})
+            ro = finer_world_rollout(self.wc, self.wp, theta, probe, planted=planted, strength=strength, horizon=self.H,
+                                     device=self.device, deterministic=self.deterministic)
             X = np.asarray(ro.positions, np.float64)
             U = X - X[0]
             length = self.wc.sim.grid_lim / self.wc.sim.n_grid
