@@ -52,6 +52,13 @@ def test_the_finer_world_has_twice_the_grid_the_next_profiles_gaussians_and_the_
     assert world_contract(solid).fill.volumes == "enclosed"
     own = world_contract(solid, profile=contract.profile)
     assert own.asset == contract.asset and own.sim.n_grid == 2 * contract.sim.n_grid and own.fill.volumes == "enclosed"
+    # a shell stated as a solid (the Vasedeck's contracts fill nothing) stays a solid in its world
+    from knockgs_core.contract import load_contract
+
+    vase = with_body(load_contract("vasedeck", "ci"), solid=True)
+    w = world_contract(vase)
+    assert not world_contract(load_contract("vasedeck", "ci")).fill.enabled
+    assert w.fill == dataclasses.replace(vase.fill, resolution=2 * vase.fill.resolution) and w.fill.enabled
 
 
 @pytest.fixture(scope="module")

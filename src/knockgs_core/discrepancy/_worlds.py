@@ -70,14 +70,15 @@ def world_cases(targets: list[tuple[float, float]] | None = None, *, targets_pat
 def world_contract(contract, *, profile: str | None = None):
     """The finer world's contract: ``contract``'s object at ``profile`` (its Gaussians; None:
     the neighbouring finer profile), with grid and fill at twice ``contract``'s n_grid and fill resolution,
-    ``contract``'s particle-volume rule (the same body, sampled more finely) and the contracts'
-    time-step rule."""
+    ``contract``'s fill otherwise (its volume rule, and its inside filled or not: the same body,
+    sampled more finely) and the contracts' time-step rule."""
     from ..contract import load_contract
 
     finer = load_contract(contract.source, profile or _FINER_PROFILE.get(contract.profile, contract.profile))
     n = 2 * contract.sim.n_grid
-    fill = dataclasses.replace(finer.fill, resolution=2 * contract.fill.resolution, volumes=contract.fill.volumes,
-                               wall_thickness=contract.fill.wall_thickness)
+    # the loop contract's fill (whether and where the inside is filled, its volume rule: the
+    # same body, e.g. a solid one of ``with_body``), on a grid twice as fine
+    fill = dataclasses.replace(contract.fill, resolution=2 * contract.fill.resolution)
     out = dataclasses.replace(finer, sim=dataclasses.replace(finer.sim, n_grid=n), fill=fill)
     return dataclasses.replace(out, sim=dataclasses.replace(out.sim, dt=float(out.cfl_dt())))
 
