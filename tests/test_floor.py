@@ -181,18 +181,30 @@ def test_enclosed_empty_cells_counts_a_hollow_boxs_void_and_nothing_in_a_solid_o
     assert enclosed_empty_cells((g[cup] + 0.5) * dx, dx) == 0                 # open at the top: no ray closes
 
 
-@pytest.mark.slow
-def test_the_pillows_gap_to_the_fem_reference_falls_under_refinement(tmp_path):
-    """The ci Pillow at n_grid 16 and 24 against a reference at 24 (its check at 16): the
-    trajectory RMSE falls from the coarser level to the finer, the body's mass with it, and one
-    Gauss-Newton step of the theta fit lowers the residual. ~25 s on two shared cores (two FEM
-    runs and six MPM rollouts: the smallest grids that give two levels and a check)."""
+@pytest.fixture(scope="module")
+def pillow_floor(tmp_path_factory):
+    """The ci Pillow's floor table at n_grid 16 and 24 against a reference at 24 (its check at
+    16), written as the workflow writes it: (table, its CSV, the reference cache). ~25 s on two
+    shared cores (two FEM runs and six MPM rollouts: the smallest grids that give two levels and
+    a check)."""
     from knockgs_core.contract import load_contract
+    from knockgs_core.reporting import write_table
 
-    contract = load_contract("pillow", "ci")
-    table = floor_study(contract, FloorSettings(n_grid=(16, 24), fem_n_grid=24, fem_check_n_grid=16, fit_steps=1,
-                                                record_factor=1), reference_cache=tmp_path)
-    assert sorted(p.name.split("_")[1] for p in tmp_path.glob("fem_*.npz")) == ["n16", "n24"]  # both FEM runs kept
+    root = tmp_path_factory.mktemp("floor")
+    table = floor_study(load_contract("pillow", "ci"), FloorSettings(n_grid=(16, 24), fem_n_grid=24, fem_check_n_grid=16,
+                                                                     fit_steps=1, record_factor=1),
+                        reference_cache=root / "fem")
+    write_table(table, root / "floor_pillow.csv")
+    return table, root / "floor_pillow.csv", root / "fem"
+
+
+@pytest.mark.slow
+def test_the_pillows_gap_to_the_fem_reference_falls_under_refinement(pillow_floor):
+    """The ci Pillow at n_grid 16 and 24 against a reference at 24: the trajectory RMSE falls
+    from the coarser level to the finer, the body's mass with it, and one Gauss-Newton step of
+    the theta fit lowers the residual."""
+    table, _, cache = pillow_floor
+    assert sorted(p.name.split("_")[1] for p in cache.glob("fem_*.npz")) == ["n16", "n24"]  # both FEM runs kept
     mpm = table[table.model == "mpm"].reset_index()
     assert list(table.model) == ["mpm", "mpm", "fem (check)", "fem (reference)"]
     assert mpm.rmse_pct[1] < 0.75 * mpm.rmse_pct[0]
@@ -265,3 +277,87 @@ def test_a_floor_object_the_reference_cannot_hold_is_one_line_at_config_read(tmp
     text = (out.stdout + out.stderr).strip()
     assert out.returncode != 0 and "Traceback" not in text
     assert text.splitlines()[-1].startswith("knockgs workflow: config error: config floor.objects: 'ficus'"), text[-500:]
+
+
+@pytest.mark.slow
+def test_the_loop_runs_at_the_coarsest_level_whose_floor_is_under_half_the_effect(pillow_floor):
+    """``choose_resolution``: the coarsest MPM level of a floor table whose RMSE against the
+    reference is at most half the smallest effect to name; where none is, the finest, with the
+    statement that effects below about twice its floor cannot be named. The table is refused
+    (one line naming the file and the field) for another body: another particle count at that
+    grid, or the same particles of another mass."""
+    from knockgs_core.assets import build_asset
+    from knockgs_core.contract import load_contract, with_body
+    from knockgs_core.discrepancy._resolution import check_floor_body, choose_resolution, read_floor_table
+
+    _, csv, _ = pillow_floor
+    table = read_floor_table(csv)
+    e16, e24 = (float(table[(table.model == "mpm") & (table.n_grid == n)].rmse_pct.iloc[0]) for n in (16, 24))
+    assert e24 < e16
+    between = (e24 + e16) / 100.0        # an effect twice the mean of the two floors: only 24 is under its half
+    c = choose_resolution(table, smallest_effect=between, source=csv)
+    assert (c["n_grid"], c["within"], c["rmse_pct"]) == (24, True, e24) and "n_grid 24" in c["statement"]
+    assert choose_resolution(table, smallest_effect=min(1.0, 2.2 * e16 / 100.0), source=csv)["n_grid"] == 16
+    low = choose_resolution(table, smallest_effect=e24 / 100.0, source=csv)   # the effect is the floor's size
+    assert (low["n_grid"], low["within"]) == (24, False)
+    assert "cannot be named" in low["statement"] and f"{2 * e24:.0f} %" in low["statement"]
+    ci = load_contract("pillow", "ci")
+    at24 = at_resolution(ci, 24)
+    check_floor_body(c, at24, build_asset(at24).particles)                       # the table's own body
+    heavier = dataclasses.replace(at24, materials={"base": dataclasses.replace(at24.materials["base"],
+                                                                               rho=1.1 * at24.materials["base"].rho)})
+    with pytest.raises(InputError, match="mass_kg"):                             # the same particles, 10 % heavier
+        check_floor_body(c, heavier, build_asset(at24).particles)
+    with pytest.raises(InputError, match="particles"):                           # another fill
+        enclosed = at_resolution(with_body(ci, volumes="enclosed"), 24)
+        check_floor_body(c, enclosed, build_asset(enclosed).particles)
+    vase = at_resolution(load_contract("vasedeck", "ci"), 24)
+    with pytest.raises(InputError, match="particles"):
+        check_floor_body(c, vase, build_asset(vase).particles)
+
+
+@pytest.mark.slow
+def test_a_floor_table_that_is_not_one_is_one_line_naming_its_field(pillow_floor, tmp_path, rng, monkeypatch, capsys):
+    """``knockgs discrepancy run --floor-table``: the loop's model is the contract at the level the
+    table allows (the loop itself replaced by a recorder); a table lacking a column, with a
+    level whose RMSE is not a number, or no table at all is refused in one line, exit 2; and
+    ``--n-grid`` with ``--floor-table`` is a usage error."""
+    import pandas as pd
+
+    import knockgs_core.discrepancy._files as files
+    from knockgs_core.cli import main
+    from knockgs_core.contract import load_contract
+    from knockgs_core.discrepancy import Measurement, write_measured
+
+    table, csv, _ = pillow_floor
+    ci = load_contract("pillow", "ci")
+    T, M = ci.probes["standard_x"].export.n_frames, 20
+    write_measured(tmp_path / "m.parquet", Measurement(points=rng.normal(scale=0.01, size=(T, M, 3)) + 1.0,
+                                                       frames=np.arange(T), times=None, particle=None, track=np.arange(M),
+                                                       meta={"object": "pillow", "probe": "standard_x"}, source="test"))
+    seen = {}
+
+    def recorder(measured, contract, particles, **kw):
+        seen.update(contract=contract)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(files, "run_discrepancy", recorder)
+    run = ["discrepancy", "run", "--object", "pillow", "--profile", "ci", "--measured", str(tmp_path / "m.parquet"), "--quiet"]
+    e24 = float(table[(table.model == "mpm") & (table.n_grid == 24)].rmse_pct.iloc[0])
+    with pytest.raises(SystemExit):
+        main(run + ["--floor-table", str(csv), "--smallest-effect", f"{min(1.0, 2.05 * e24 / 100):.6f}", "-o",
+                    str(tmp_path / "out")])
+    assert seen["contract"].hash == at_resolution(ci, 24).hash
+    bad = {"no_rmse.csv": table.drop(columns=["rmse_pct"]), "nan.csv": table.assign(rmse_pct=np.nan)}
+    for name, df in bad.items():
+        df.to_csv(tmp_path / name, index=False)
+    for name, field in (("no_rmse.csv", "rmse_pct"), ("nan.csv", "rmse_pct"), ("absent.csv", "--floor-table")):
+        capsys.readouterr()
+        code = main(run + ["--floor-table", str(tmp_path / name), "-o", str(tmp_path / f"out_{name}")])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and len(err.splitlines()) == 1 and name in err and field in err, err
+    assert not any(tmp_path.glob("out_*"))
+    with pytest.raises(SystemExit) as exc:
+        main(run + ["--floor-table", str(csv), "--n-grid", "24", "-o", str(tmp_path / "o")])
+    assert exc.value.code == 2
+    assert isinstance(pd.read_csv(csv), pd.DataFrame)     # the table is read, never written

@@ -42,6 +42,17 @@ def _level(text: str):
     return value
 
 
+def _fraction(text: str) -> float:
+    """A finite fraction in (0, 1]."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and 0 < value <= 1):
+        raise argparse.ArgumentTypeError(f"expected a fraction in (0, 1], got '{text}'")
+    return value
+
+
 def _common(p) -> None:
     p.add_argument("--object", required=True, help="object name (config/objects/NAME.yaml) or a contract path")
     p.add_argument("--profile", default="default", help="resolution profile: ci, default or paper")
@@ -70,10 +81,16 @@ def register(subparsers) -> argparse.ArgumentParser:
                         "local ridge instead of Gauss-Newton from (1, 1)")
     p.add_argument("--catalogue", help="comma-separated catalogue keys to consider (default: all that apply)")
     p.add_argument("--max-effects", type=nonnegative_int, default=2, help="most effects to add (default 2)")
-    p.add_argument("--n-grid", type=positive_int, metavar="N",
-                   help="simulate the loop's model on a grid of N cells per axis, fill refined with it (default: the "
-                        "profile's grid; choose it where the floor table, docs/floor.md, puts the model's error under "
-                        "the effects to name; a GPU --device for fine grids)")
+    grid = p.add_mutually_exclusive_group()
+    grid.add_argument("--n-grid", type=positive_int, metavar="N",
+                      help="simulate the loop's model on a grid of N cells per axis, fill refined with it (default: the "
+                           "profile's grid; choose it where the floor table, docs/floor.md, puts the model's error under "
+                           "the effects to name; a GPU --device for fine grids)")
+    grid.add_argument("--floor-table", metavar="FILE",
+                      help="the object's floor table (floor_{object}.csv): run at its coarsest level whose distance to the "
+                           "finite-element reference is at most half of --smallest-effect, else at its finest, and say so")
+    p.add_argument("--smallest-effect", type=_fraction, default=0.2, metavar="F",
+                   help="with --floor-table: the smallest effect to name, as a fraction of the response (default 0.2)")
     p.add_argument("-o", "--output", required=True, metavar="DIR",
                    help="report folder (report.md, result.json, predictions.npz, figures)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -144,13 +161,15 @@ def _run(args) -> int:
             raise InputError("command line", "--heldout-measured", f"probe '{name}' is given twice")
         held[name] = path
     _common_inputs(args, **{"--measured": args.measured, "--heldout-measured": list(held.values()),
-                            "--library-rollout": list(args.library_rollout)})
+                            "--library-rollout": list(args.library_rollout), "--floor-table": args.floor_table})
     settings = LoopSettings(max_effects=args.max_effects, catalogue=tuple(args.catalogue.split(",")) if args.catalogue else None)
     say = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     result = run_files(args.object, args.profile, args.measured, args.output, particles=args.particles, probe=args.probe,
                        heldout_probes=args.heldout_probe, heldout_measured=held, library_rollouts=args.library_rollout,
                        settings=settings, device=args.device, config_dir=args.config_dir, progress=say,
-                       n_grid=args.n_grid)
+                       n_grid=args.n_grid, floor_table=args.floor_table, smallest_effect=args.smallest_effect)
+    if result.resolution:
+        print(f"resolution: {result.resolution['statement']}", file=sys.stderr)
     print(f"{result.verdict} -> {args.output}/report.md", file=sys.stderr)
     return 0
 

@@ -89,6 +89,8 @@ def run_files(
     config_dir=None,
     progress: Callable[[str], None] | None = None,
     n_grid: int | None = None,
+    floor_table=None,
+    smallest_effect: float = 0.2,
 ) -> DiscrepancyResult:
     """Load the contract and particles (``particles``: a ``.npz`` from ``knockgs asset``,
     else the asset is built), read ``measured`` (and ``heldout_measured``: probe -> file),
@@ -96,17 +98,29 @@ def run_files(
     given; ``device`` and ``deterministic``: its rollouts') and write the report into
     ``out_dir``. Every file read is listed in ``result.inputs``. ``n_grid``: the model's grid, the
     contract at that resolution (:func:`~knockgs_core.contract.at_resolution`; particles and
-    library rollouts made at another grid are refused by its hash)."""
-    from ..io import check_outputs
+    library rollouts made at another grid are refused by its hash). ``floor_table``: a floor
+    study's CSV instead of ``n_grid``: the loop runs at its coarsest level within half of
+    ``smallest_effect`` (a fraction of the response) of the finite-element reference, else at
+    its finest, and says which and why (``result.resolution``, the report's "Resolution")."""
+    from ..io import check_input, check_outputs
     from ..contract import at_resolution, load_contract
     from ..rollout import check_rollout_meta, read_rollout_meta
 
     contract = load_contract(object_name, profile, config_dir=config_dir)
+    choice = None
+    if floor_table is not None:
+        from ._resolution import choose_resolution, read_floor_table
+
+        if n_grid is not None:
+            raise InputError(floor_table, "--floor-table", "give the model's grid (--n-grid) or a floor table, not both")
+        check_input(floor_table, "--floor-table")
+        choice = choose_resolution(read_floor_table(floor_table), smallest_effect=smallest_effect, source=floor_table)
+        n_grid = choice["n_grid"]
     if n_grid is not None:
         contract = at_resolution(contract, n_grid)
     held_files = dict(heldout_measured or {})
     check_outputs({"--output": out_dir},
-                  {"--object": contract.source, "--measured": measured, "--particles": particles,
+                  {"--object": contract.source, "--measured": measured, "--particles": particles, "--floor-table": floor_table,
                    "--heldout-measured": list(held_files.values()), "--library-rollout": list(library_rollouts)},
                   directories={"--output": ("report.md", "result.json", "predictions.npz", "residuals_*.png")})
     m = read_measured(measured)
@@ -123,7 +137,11 @@ def run_files(
         from ..assets import build_asset
 
         ps = build_asset(contract).particles
-    inputs = [str(measured)] + ([str(particles)] if particles else [])
+    if choice is not None:
+        from ._resolution import check_floor_body
+
+        check_floor_body(choice, contract, ps)
+    inputs = [str(measured)] + ([str(particles)] if particles else []) + ([str(floor_table)] if choice else [])
     inputs += [str(p) for p in held_files.values()]
     library_probe = probe or m.meta.get("probe") or contract.roles.get("calibration")
     for path in library_rollouts:
@@ -135,6 +153,7 @@ def run_files(
                              library=library, settings=settings, device=device,
                              deterministic=deterministic, progress=progress)
     result.inputs = inputs
+    result.resolution = choice
     write_report(result, out_dir)
     return result
 

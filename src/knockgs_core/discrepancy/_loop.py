@@ -110,6 +110,7 @@ class DiscrepancyResult:
     seconds: float
     settings: dict
     inputs: list[str] = field(default_factory=list)
+    resolution: dict | None = None
     predictions: dict = field(default_factory=dict, repr=False)
     views: dict = field(default_factory=dict, repr=False)
 

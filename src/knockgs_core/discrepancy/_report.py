@@ -113,6 +113,11 @@ def _calibration_lines(result: DiscrepancyResult) -> list[str]:
     """The verdict, the effects named and the calibration's summary."""
     L = [f"# Discrepancy report: {result.object} ({result.profile}), calibration probe {result.probe}", ""]
     L += [f"**Verdict:** {result.verdict}.", ""]
+    if result.resolution:
+        r = result.resolution
+        levels = ", ".join(f"{n}: {e:.1f} %" for n, e in r["levels"])
+        L += ["## Resolution", "", f"- {r['statement']}.",
+              f"- the floor table's levels (n_grid: trajectory RMSE against the reference): {levels}", ""]
     if result.effects:
         L += ["| effect | parameter | estimate | unit |", "|---|---|---|---|"]
         for e in result.effects:

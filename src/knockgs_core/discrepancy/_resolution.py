@@ -1,0 +1,118 @@
+"""The loop's resolution from a measured floor (private): the coarsest grid whose distance to a
+finite-element reference is below the effects the loop is asked to name.
+
+A floor table is the floor study's CSV (:func:`knockgs_core.experiments.floor_study`, written
+as ``results/{profile}/tables/floor_{object}.csv`` by the workflow or by
+``benchmarks/floor_levels.py``): one row per MPM level (``model`` = ``mpm``; ``n_grid``;
+``rmse_pct``, the Probe-A trajectory RMSE against the reference in % of the reference's RMS
+displacement; ``period_error_pct``; ``particles``, the level's particle count; ``mass_kg``, its
+body's mass at the base material), then the reference's check (``fem (check)``: how far the
+reference itself still moves) and the reference.
+
+The rule: a model whose floor is at least half the effect it must name cannot tell the effect
+from its own error (the loop's attribution compares the effect with the residual the floor
+leaves, and the two are of the same size), so the loop runs at the coarsest level whose RMSE is
+at most half the smallest effect to name. Where no level is, it runs at the finest and says
+plainly that effects below about twice that level's floor cannot be named there.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+__all__ = ["read_floor_table", "choose_resolution", "check_floor_body"]
+
+#: the columns a floor table must have
+FLOOR_COLUMNS = ("model", "n_grid", "rmse_pct", "period_error_pct", "particles", "mass_kg")
+#: the effect must be at least this many times the floor
+MARGIN = 2.0
+
+
+def read_floor_table(path):
+    """The floor table at ``path`` (CSV), checked: the columns of :data:`FLOOR_COLUMNS`, at least
+    one MPM level, each MPM row's ``n_grid`` a positive integer and its ``rmse_pct``, ``particles``
+    and ``mass_kg`` finite and positive. Returns a ``pandas.DataFrame``; a file that is not a
+    floor table raises :class:`~knockgs_core.errors.InputError` naming the file and the field."""
+    import pandas as pd
+
+    path = Path(path)
+    try:
+        table = pd.read_csv(path)
+    except (OSError, ValueError, pd.errors.ParserError) as exc:
+        raise InputError(path, "floor table", f"is not a readable CSV ({str(exc).splitlines()[0][:120]})") from None
+    missing = [c for c in FLOOR_COLUMNS if c not in table.columns]
+    if missing:
+        raise InputError(path, missing[0], "missing: not a floor table (`knockgs_core.experiments.floor_study`'s CSV)")
+    mpm = table[table["model"] == "mpm"]
+    if mpm.empty:
+        raise InputError(path, "model", "has no 'mpm' row: the table holds no MPM level")
+    for col in ("n_grid", "rmse_pct", "particles", "mass_kg"):
+        v = pd.to_numeric(mpm[col], errors="coerce").to_numpy(dtype=np.float64)
+        if not (np.all(np.isfinite(v)) and np.all(v > 0)):
+            raise InputError(path, col, "must be finite and positive in every 'mpm' row")
+    if not np.all(mpm["n_grid"].to_numpy(dtype=np.float64) % 1 == 0):
+        raise InputError(path, "n_grid", "must be a whole number of cells in every 'mpm' row")
+    return table
+
+
+def choose_resolution(table, *, smallest_effect: float, source="floor table") -> dict:
+    """The loop's grid from ``table`` (:func:`read_floor_table`): the coarsest MPM level whose
+    RMSE is at most ``smallest_effect`` (a fraction of the response, e.g. 0.2 for an effect that
+    changes the held-out response by 20 %) divided by :data:`MARGIN`, else the finest.
+
+    Returns a dict: ``n_grid``; ``within`` (whether that level's floor allows the effect);
+    ``rmse_pct``, ``period_error_pct``, ``particles``, ``mass_kg`` (its row); ``check_rmse_pct``
+    (the reference's check, NaN without one); ``smallest_effect``; ``levels`` (every MPM
+    level's ``n_grid`` and ``rmse_pct``); ``source`` (str); ``statement``, the choice in words."""
+    if not (math.isfinite(smallest_effect) and 0.0 < smallest_effect <= 1.0):
+        raise InputError(source, "smallest_effect", f"must be a fraction in (0, 1], got {smallest_effect}")
+    mpm = table[table["model"] == "mpm"].sort_values("n_grid")
+    limit = 100.0 * smallest_effect / MARGIN
+    allowed = mpm[mpm["rmse_pct"] <= limit]
+    within = not allowed.empty
+    row = (allowed if within else mpm).iloc[0 if within else -1]
+    check = table[table["model"] == "fem (check)"]
+    check_pct = float(check["rmse_pct"].iloc[0]) if len(check) and np.isfinite(check["rmse_pct"].iloc[0]) else math.nan
+    name = Path(str(source)).name
+    n, rmse, period = int(row["n_grid"]), float(row["rmse_pct"]), float(row["period_error_pct"])
+    moves = f"; the reference itself moves {check_pct:.1f} % on its check" if math.isfinite(check_pct) else ""
+    if within:
+        statement = (f"n_grid {n}, the coarsest level of {name} within half the smallest effect to name "
+                     f"({100 * smallest_effect:.0f} % of the response): the model there is {rmse:.1f} % from the "
+                     f"finite-element reference (first-mode period {period:+.1f} %){moves}")
+    else:
+        statement = (f"no level of {name} is within half the smallest effect to name ({100 * smallest_effect:.0f} % of the "
+                     f"response): the model at its finest, n_grid {n}, is {rmse:.1f} % from the finite-element reference "
+                     f"(first-mode period {period:+.1f} %){moves}; effects smaller than about {MARGIN * rmse:.0f} % of the "
+                     "response cannot be named at this resolution")
+    return {"n_grid": n, "within": within, "rmse_pct": rmse, "period_error_pct": period, "particles": int(row["particles"]),
+            "mass_kg": float(row["mass_kg"]), "check_rmse_pct": check_pct, "smallest_effect": float(smallest_effect),
+            "levels": [[int(a), float(b)] for a, b in zip(mpm["n_grid"], mpm["rmse_pct"])], "source": str(source),
+            "statement": statement}
+
+
+def check_floor_body(choice: dict, contract, particles) -> None:
+    """Refuse a floor table made for another body: the chosen level's particle count and mass
+    (``contract``'s base material, its particles' rest volumes or their cells' share) must be the
+    table's, ``contract`` being at the chosen grid."""
+    from ..sim import particle_volumes
+
+    source = choice["source"]
+    if len(particles.positions) != choice["particles"]:
+        raise InputError(source, "particles", f"n_grid {choice['n_grid']} has {choice['particles']} particles in the table "
+                         f"and {len(particles.positions)} in {contract.name} ({contract.profile}) at that grid: the table "
+                         "was made for another body")
+    if set(contract.region_names) != {"base"}:
+        raise InputError(contract.source, "regions", "a floor table's reference has one material region (base)")
+    dx = contract.sim.grid_lim / contract.sim.n_grid
+    vol = particles.volumes if particles.volumes is not None else particle_volumes(particles.positions, dx)
+    mass = float(np.sum(vol, dtype=np.float64)) * float(contract.materials["base"].rho)
+    if abs(mass - choice["mass_kg"]) > 1e-6 * max(abs(mass), 1e-30):
+        raise InputError(source, "mass_kg", f"n_grid {choice['n_grid']} weighs {choice['mass_kg']:.6g} kg in the table and "
+                         f"{mass:.6g} kg in {contract.name} ({contract.profile}): the table was made for another body "
+                         "(another particle-volume rule or fill)")
