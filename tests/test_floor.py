@@ -285,10 +285,11 @@ def test_the_loop_runs_at_the_coarsest_level_whose_floor_is_under_half_the_effec
     reference is at most half the smallest effect to name; where none is, the finest, with the
     statement that effects below about twice its floor cannot be named. The table is refused
     (one line naming the file and the field) for another body: another particle count at that
-    grid, or the same particles of another mass."""
+    grid, or the same particles of another mass. The level's calibration bias (its theta fit
+    to the reference) widens a theta interval on both sides."""
     from knockgs_core.assets import build_asset
     from knockgs_core.contract import load_contract, with_body
-    from knockgs_core.discrepancy._resolution import check_floor_body, choose_resolution, read_floor_table
+    from knockgs_core.discrepancy._resolution import check_floor_body, choose_resolution, read_floor_table, widen_by_floor_bias
 
     _, csv, _ = pillow_floor
     table = read_floor_table(csv)
@@ -301,6 +302,12 @@ def test_the_loop_runs_at_the_coarsest_level_whose_floor_is_under_half_the_effec
     low = choose_resolution(table, smallest_effect=e24 / 100.0, source=csv)   # the effect is the floor's size
     assert (low["n_grid"], low["within"]) == (24, False)
     assert "cannot be named" in low["statement"] and f"{2 * e24:.0f} %" in low["statement"]
+    # the level's calibration bias (the theta it needs to reproduce the reference) widens the interval
+    fit = [float(table[(table.model == "mpm") & (table.n_grid == 24)][k].iloc[0]) for k in ("s_E_fit", "s_rho_fit")]
+    assert c["theta_fit"] == fit and all(np.isfinite(fit)) and fit != [1.0, 1.0]
+    wide, w = widen_by_floor_bias([[0.5, 1.0], [0.0, float("inf")]], c)
+    assert w == pytest.approx([abs(np.log(f)) for f in fit])
+    assert wide[0] == pytest.approx([0.5 * np.exp(-w[0]), np.exp(w[0])]) and wide[1] == [0.0, float("inf")]
     ci = load_contract("pillow", "ci")
     at24 = at_resolution(ci, 24)
     check_floor_body(c, at24, build_asset(at24).particles)                       # the table's own body

@@ -153,6 +153,10 @@ def run_files(
                              library=library, settings=settings, device=device,
                              deterministic=deterministic, progress=progress)
     result.inputs = inputs
+    if choice is not None and result.theta_interval:
+        from ._resolution import widen_by_floor_bias
+
+        result.theta_interval, choice["theta_bias_log"] = widen_by_floor_bias(result.theta_interval, choice)
     result.resolution = choice
     write_report(result, out_dir)
     return result

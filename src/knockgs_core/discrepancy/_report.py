@@ -117,7 +117,16 @@ def _calibration_lines(result: DiscrepancyResult) -> list[str]:
         r = result.resolution
         levels = ", ".join(f"{n}: {e:.1f} %" for n, e in r["levels"])
         L += ["## Resolution", "", f"- {r['statement']}.",
-              f"- the floor table's levels (n_grid: trajectory RMSE against the reference): {levels}", ""]
+              f"- the floor table's levels (n_grid: trajectory RMSE against the reference): {levels}"]
+        w = r.get("theta_bias_log")
+        if w and any(w):
+            fit = r["theta_fit"]
+            L.append(f"- the theta interval below is widened on both sides by this level's calibration bias, the theta "
+                     f"it needs to reproduce the reference (s_E x {fit[0]:.3f}, s_rho x {fit[1]:.3f}): {w[0]:.3g} and "
+                     f"{w[1]:.3g} in log theta")
+        elif w is not None:
+            L.append("- the floor table has no theta fit at this level: the interval carries no calibration bias of it")
+        L.append("")
     if result.effects:
         L += ["| effect | parameter | estimate | unit |", "|---|---|---|---|"]
         for e in result.effects:

@@ -14,6 +14,11 @@ from its own error (the loop's attribution compares the effect with the residual
 leaves, and the two are of the same size), so the loop runs at the coarsest level whose RMSE is
 at most half the smallest effect to name. Where no level is, it runs at the finest and says
 plainly that effects below about twice that level's floor cannot be named there.
+
+The table also measures the level's calibration bias: ``s_E_fit``, ``s_rho_fit``, the theta the
+model at that level needs to reproduce the reference made at theta (1, 1). A theta calibrated
+at that level carries a bias of that size, which no statistic of the data shows; the loop's theta
+interval is widened by it on both sides (:func:`widen_by_floor_bias`).
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["read_floor_table", "choose_resolution", "check_floor_body"]
+__all__ = ["read_floor_table", "choose_resolution", "check_floor_body", "widen_by_floor_bias"]
 
 #: the columns a floor table must have
 FLOOR_COLUMNS = ("model", "n_grid", "rmse_pct", "period_error_pct", "particles", "mass_kg")
@@ -66,7 +71,8 @@ def choose_resolution(table, *, smallest_effect: float, source="floor table") ->
     changes the held-out response by 20 %) divided by :data:`MARGIN`, else the finest.
 
     Returns a dict: ``n_grid``; ``within`` (whether that level's floor allows the effect);
-    ``rmse_pct``, ``period_error_pct``, ``particles``, ``mass_kg`` (its row); ``check_rmse_pct``
+    ``rmse_pct``, ``period_error_pct``, ``particles``, ``mass_kg`` (its row); ``theta_fit`` (its
+    ``s_E_fit``, ``s_rho_fit``: the level's calibration bias; NaN where the table has none); ``check_rmse_pct``
     (the reference's check, NaN without one); ``smallest_effect``; ``levels`` (every MPM
     level's ``n_grid`` and ``rmse_pct``); ``source`` (str); ``statement``, the choice in words."""
     if not (math.isfinite(smallest_effect) and 0.0 < smallest_effect <= 1.0):
@@ -90,7 +96,10 @@ def choose_resolution(table, *, smallest_effect: float, source="floor table") ->
                      f"response): the model at its finest, n_grid {n}, is {rmse:.1f} % from the finite-element reference "
                      f"(first-mode period {period:+.1f} %){moves}; effects smaller than about {MARGIN * rmse:.0f} % of the "
                      "response cannot be named at this resolution")
-    return {"n_grid": n, "within": within, "rmse_pct": rmse, "period_error_pct": period, "particles": int(row["particles"]),
+    fit = [float(row[k]) if k in row.index and np.isfinite(row[k]) and row[k] > 0 else math.nan
+           for k in ("s_E_fit", "s_rho_fit")]
+    return {"n_grid": n, "within": within, "theta_fit": fit, "rmse_pct": rmse, "period_error_pct": period,
+            "particles": int(row["particles"]),
             "mass_kg": float(row["mass_kg"]), "check_rmse_pct": check_pct, "smallest_effect": float(smallest_effect),
             "levels": [[int(a), float(b)] for a, b in zip(mpm["n_grid"], mpm["rmse_pct"])], "source": str(source),
             "statement": statement}
@@ -116,3 +125,11 @@ def check_floor_body(choice: dict, contract, particles) -> None:
         raise InputError(source, "mass_kg", f"n_grid {choice['n_grid']} weighs {choice['mass_kg']:.6g} kg in the table and "
                          f"{mass:.6g} kg in {contract.name} ({contract.profile}): the table was made for another body "
                          "(another particle-volume rule or fill)")
+
+
+def widen_by_floor_bias(interval, choice: dict) -> tuple[list, list]:
+    """``interval`` ([[lo, hi], [lo, hi]] in (s_E, s_rho)) widened on both sides by the chosen
+    level's calibration bias: each bound scaled by ``exp(-+w)`` with ``w = |log theta_fit|``
+    per coordinate (0 where the table has no fit). Returns (the interval, w)."""
+    w = [abs(math.log(f)) if math.isfinite(f) else 0.0 for f in choice["theta_fit"]]
+    return [[float(lo) * math.exp(-wk), float(hi) * math.exp(wk)] for (lo, hi), wk in zip(interval, w)], w
