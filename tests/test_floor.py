@@ -286,10 +286,12 @@ def test_the_loop_runs_at_the_coarsest_level_whose_floor_is_under_half_the_effec
     statement that effects below about twice its floor cannot be named. The table is refused
     (one line naming the file and the field) for another body: another particle count at that
     grid, or the same particles of another mass. The level's calibration bias (its theta fit
-    to the reference) widens a theta interval on both sides."""
+    to the reference) widens a theta interval on both sides, and an effect named below the
+    floor is said to be so in the verdict."""
     from knockgs_core.assets import build_asset
     from knockgs_core.contract import load_contract, with_body
-    from knockgs_core.discrepancy._resolution import check_floor_body, choose_resolution, read_floor_table, widen_by_floor_bias
+    from knockgs_core.discrepancy._resolution import (check_floor_body, choose_resolution, qualify_verdict, read_floor_table,
+                                                      widen_by_floor_bias)
 
     _, csv, _ = pillow_floor
     table = read_floor_table(csv)
@@ -299,9 +301,18 @@ def test_the_loop_runs_at_the_coarsest_level_whose_floor_is_under_half_the_effec
     c = choose_resolution(table, smallest_effect=between, source=csv)
     assert (c["n_grid"], c["within"], c["rmse_pct"]) == (24, True, e24) and "n_grid 24" in c["statement"]
     assert choose_resolution(table, smallest_effect=min(1.0, 2.2 * e16 / 100.0), source=csv)["n_grid"] == 16
+    told = choose_resolution(table, smallest_effect=between, n_grid=16, source=csv)   # a grid the loop is told
+    assert (told["n_grid"], told["within"], told["rmse_pct"]) == (16, False, e16) and "as told" in told["statement"]
+    with pytest.raises(InputError, match="n_grid 20"):
+        choose_resolution(table, smallest_effect=between, n_grid=20, source=csv)
     low = choose_resolution(table, smallest_effect=e24 / 100.0, source=csv)   # the effect is the floor's size
     assert (low["n_grid"], low["within"]) == (24, False)
     assert "cannot be named" in low["statement"] and f"{2 * e24:.0f} %" in low["statement"]
+    # an effect named below the floor is said to be so; nothing named, or a floor that allows it: unchanged
+    said = qualify_verdict("added damping", ["damping"], low)
+    assert said.startswith("added damping; ") and "damping cannot be told from the model's own error" in said
+    assert qualify_verdict("added damping", ["damping"], c) == "added damping"
+    assert qualify_verdict("no effect", [], low) == "no effect"
     # the level's calibration bias (the theta it needs to reproduce the reference) widens the interval
     fit = [float(table[(table.model == "mpm") & (table.n_grid == 24)][k].iloc[0]) for k in ("s_E_fit", "s_rho_fit")]
     assert c["theta_fit"] == fit and all(np.isfinite(fit)) and fit != [1.0, 1.0]
@@ -327,8 +338,8 @@ def test_the_loop_runs_at_the_coarsest_level_whose_floor_is_under_half_the_effec
 def test_a_floor_table_that_is_not_one_is_one_line_naming_its_field(pillow_floor, tmp_path, rng, monkeypatch, capsys):
     """``knockgs discrepancy run --floor-table``: the loop's model is the contract at the level the
     table allows (the loop itself replaced by a recorder); a table lacking a column, with a
-    level whose RMSE is not a number, or no table at all is refused in one line, exit 2; and
-    ``--n-grid`` with ``--floor-table`` is a usage error."""
+    level whose RMSE is not a number, or no table at all is refused in one line, exit 2; with
+    ``--n-grid`` the loop runs at that grid, and a grid the table has no level of is refused."""
     import pandas as pd
 
     import knockgs_core.discrepancy._files as files
@@ -363,8 +374,12 @@ def test_a_floor_table_that_is_not_one_is_one_line_naming_its_field(pillow_floor
         code = main(run + ["--floor-table", str(tmp_path / name), "-o", str(tmp_path / f"out_{name}")])
         err = capsys.readouterr().err.strip()
         assert code == 2 and len(err.splitlines()) == 1 and name in err and field in err, err
+    with pytest.raises(SystemExit):           # told a grid, the table's level of it judges it
+        main(run + ["--floor-table", str(csv), "--n-grid", "16", "-o", str(tmp_path / "told")])
+    assert seen["contract"].hash == at_resolution(ci, 16).hash
+    capsys.readouterr()
+    code = main(run + ["--floor-table", str(csv), "--n-grid", "20", "-o", str(tmp_path / "out_20")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "n_grid 20" in err and "floor_pillow.csv" in err, err
     assert not any(tmp_path.glob("out_*"))
-    with pytest.raises(SystemExit) as exc:
-        main(run + ["--floor-table", str(csv), "--n-grid", "24", "-o", str(tmp_path / "o")])
-    assert exc.value.code == 2
     assert isinstance(pd.read_csv(csv), pd.DataFrame)     # the table is read, never written

@@ -81,14 +81,13 @@ def register(subparsers) -> argparse.ArgumentParser:
                         "local ridge instead of Gauss-Newton from (1, 1)")
     p.add_argument("--catalogue", help="comma-separated catalogue keys to consider (default: all that apply)")
     p.add_argument("--max-effects", type=nonnegative_int, default=2, help="most effects to add (default 2)")
-    grid = p.add_mutually_exclusive_group()
-    grid.add_argument("--n-grid", type=positive_int, metavar="N",
-                      help="simulate the loop's model on a grid of N cells per axis, fill refined with it (default: the "
-                           "profile's grid; choose it where the floor table, docs/floor.md, puts the model's error under "
-                           "the effects to name; a GPU --device for fine grids)")
-    grid.add_argument("--floor-table", metavar="FILE",
-                      help="the object's floor table (floor_{object}.csv): run at its coarsest level whose distance to the "
-                           "finite-element reference is at most half of --smallest-effect, else at its finest, and say so")
+    p.add_argument("--n-grid", type=positive_int, metavar="N",
+                   help="simulate the loop's model on a grid of N cells per axis, fill refined with it (default: the "
+                        "profile's grid, or the floor table's choice; a GPU --device for fine grids)")
+    p.add_argument("--floor-table", metavar="FILE",
+                   help="the object's floor table (floor_{object}.csv): without --n-grid, run at its coarsest level whose "
+                        "distance to the finite-element reference is at most half of --smallest-effect, else at its finest; "
+                        "with it, at that level; say which, and widen theta's interval by that level's calibration bias")
     p.add_argument("--smallest-effect", type=_fraction, default=0.2, metavar="F",
                    help="with --floor-table: the smallest effect to name, as a fraction of the response (default 0.2)")
     p.add_argument("-o", "--output", required=True, metavar="DIR",

@@ -99,9 +99,11 @@ def run_files(
     ``out_dir``. Every file read is listed in ``result.inputs``. ``n_grid``: the model's grid, the
     contract at that resolution (:func:`~knockgs_core.contract.at_resolution`; particles and
     library rollouts made at another grid are refused by its hash). ``floor_table``: a floor
-    study's CSV instead of ``n_grid``: the loop runs at its coarsest level within half of
+    study's CSV: without ``n_grid`` the loop runs at its coarsest level within half of
     ``smallest_effect`` (a fraction of the response) of the finite-element reference, else at
-    its finest, and says which and why (``result.resolution``, the report's "Resolution")."""
+    its finest; with ``n_grid``, at that level of the table (which must have it); either way it
+    says which and why (``result.resolution``, the report's "Resolution") and its theta interval
+    carries that level's calibration bias."""
     from ..io import check_input, check_outputs
     from ..contract import at_resolution, load_contract
     from ..rollout import check_rollout_meta, read_rollout_meta
@@ -111,10 +113,9 @@ def run_files(
     if floor_table is not None:
         from ._resolution import choose_resolution, read_floor_table
 
-        if n_grid is not None:
-            raise InputError(floor_table, "--floor-table", "give the model's grid (--n-grid) or a floor table, not both")
         check_input(floor_table, "--floor-table")
-        choice = choose_resolution(read_floor_table(floor_table), smallest_effect=smallest_effect, source=floor_table)
+        choice = choose_resolution(read_floor_table(floor_table), smallest_effect=smallest_effect, n_grid=n_grid,
+                                   source=floor_table)
         n_grid = choice["n_grid"]
     if n_grid is not None:
         contract = at_resolution(contract, n_grid)
@@ -157,6 +158,10 @@ def run_files(
         from ._resolution import widen_by_floor_bias
 
         result.theta_interval, choice["theta_bias_log"] = widen_by_floor_bias(result.theta_interval, choice)
+    if choice is not None:
+        from ._resolution import qualify_verdict
+
+        result.verdict = qualify_verdict(result.verdict, result.identified, choice)
     result.resolution = choice
     write_report(result, out_dir)
     return result

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["read_floor_table", "choose_resolution", "check_floor_body", "widen_by_floor_bias"]
+__all__ = ["read_floor_table", "choose_resolution", "check_floor_body", "widen_by_floor_bias", "qualify_verdict"]
 
 #: the columns a floor table must have
 FLOOR_COLUMNS = ("model", "n_grid", "rmse_pct", "period_error_pct", "particles", "mass_kg")
@@ -65,10 +65,11 @@ def read_floor_table(path):
     return table
 
 
-def choose_resolution(table, *, smallest_effect: float, source="floor table") -> dict:
+def choose_resolution(table, *, smallest_effect: float, n_grid: int | None = None, source="floor table") -> dict:
     """The loop's grid from ``table`` (:func:`read_floor_table`): the coarsest MPM level whose
     RMSE is at most ``smallest_effect`` (a fraction of the response, e.g. 0.2 for an effect that
-    changes the held-out response by 20 %) divided by :data:`MARGIN`, else the finest.
+    changes the held-out response by 20 %) divided by :data:`MARGIN`, else the finest. With
+    ``n_grid`` (a grid the loop is told), that level of the table, judged by the same rule.
 
     Returns a dict: ``n_grid``; ``within`` (whether that level's floor allows the effect);
     ``rmse_pct``, ``period_error_pct``, ``particles``, ``mass_kg`` (its row); ``theta_fit`` (its
@@ -80,14 +81,27 @@ def choose_resolution(table, *, smallest_effect: float, source="floor table") ->
     mpm = table[table["model"] == "mpm"].sort_values("n_grid")
     limit = 100.0 * smallest_effect / MARGIN
     allowed = mpm[mpm["rmse_pct"] <= limit]
-    within = not allowed.empty
-    row = (allowed if within else mpm).iloc[0 if within else -1]
+    if n_grid is None:
+        within = not allowed.empty
+        row = (allowed if within else mpm).iloc[0 if within else -1]
+    else:
+        at = mpm[mpm["n_grid"] == int(n_grid)]
+        if at.empty:
+            raise InputError(source, "n_grid", f"has no MPM level at n_grid {n_grid} (its levels: "
+                             f"{', '.join(str(int(v)) for v in mpm['n_grid'])}): the floor of that grid is not measured")
+        row = at.iloc[0]
+        within = bool(row["rmse_pct"] <= limit)
     check = table[table["model"] == "fem (check)"]
     check_pct = float(check["rmse_pct"].iloc[0]) if len(check) and np.isfinite(check["rmse_pct"].iloc[0]) else math.nan
     name = Path(str(source)).name
     n, rmse, period = int(row["n_grid"]), float(row["rmse_pct"]), float(row["period_error_pct"])
     moves = f"; the reference itself moves {check_pct:.1f} % on its check" if math.isfinite(check_pct) else ""
-    if within:
+    if n_grid is not None:
+        verdict = (f"within half the smallest effect to name ({100 * smallest_effect:.0f} % of the response)" if within
+                   else f"effects smaller than about {MARGIN * rmse:.0f} % of the response cannot be named at this resolution")
+        statement = (f"n_grid {n}, as told: the model there is {rmse:.1f} % from the finite-element reference of {name} "
+                     f"(first-mode period {period:+.1f} %){moves}; {verdict}")
+    elif within:
         statement = (f"n_grid {n}, the coarsest level of {name} within half the smallest effect to name "
                      f"({100 * smallest_effect:.0f} % of the response): the model there is {rmse:.1f} % from the "
                      f"finite-element reference (first-mode period {period:+.1f} %){moves}")
@@ -133,3 +147,14 @@ def widen_by_floor_bias(interval, choice: dict) -> tuple[list, list]:
     per coordinate (0 where the table has no fit). Returns (the interval, w)."""
     w = [abs(math.log(f)) if math.isfinite(f) else 0.0 for f in choice["theta_fit"]]
     return [[float(lo) * math.exp(-wk), float(hi) * math.exp(wk)] for (lo, hi), wk in zip(interval, w)], w
+
+
+def qualify_verdict(verdict: str, identified, choice: dict) -> str:
+    """``verdict`` as the floor table qualifies it: where the chosen level's floor is not within
+    half the smallest effect to name (``choice["within"]`` false) and the loop named effects
+    (``identified``: their keys), the verdict says that they lie below what the model at this
+    resolution can tell from its own error; else unchanged."""
+    if choice["within"] or not identified:
+        return verdict
+    return (f"{verdict}; but the model at n_grid {choice['n_grid']} is {choice['rmse_pct']:.1f} % from the finite-element "
+            f"reference, so {', '.join(identified)} cannot be told from the model's own error at this resolution")
