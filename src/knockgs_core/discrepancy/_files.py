@@ -13,6 +13,7 @@ from ..errors import InputError
 from ._loop import DiscrepancyResult, LibrarySource, LoopSettings, run_discrepancy
 from ._measured import MEASUREMENT_META_FIELDS, MEASUREMENT_META_KEY, read_measured
 from ._report import write_report
+from ._resolution import check_floor_body, choose_resolution, qualify_verdict, read_floor_table, widen_by_floor_bias
 
 __all__ = ["run_files", "evaluate_files", "audit_truth_separation"]
 
@@ -111,8 +112,6 @@ def run_files(
     contract = load_contract(object_name, profile, config_dir=config_dir)
     choice = None
     if floor_table is not None:
-        from ._resolution import choose_resolution, read_floor_table
-
         check_input(floor_table, "--floor-table")
         choice = choose_resolution(read_floor_table(floor_table), smallest_effect=smallest_effect, n_grid=n_grid,
                                    source=floor_table)
@@ -139,8 +138,6 @@ def run_files(
 
         ps = build_asset(contract).particles
     if choice is not None:
-        from ._resolution import check_floor_body
-
         check_floor_body(choice, contract, ps)
     inputs = [str(measured)] + ([str(particles)] if particles else []) + ([str(floor_table)] if choice else [])
     inputs += [str(p) for p in held_files.values()]
@@ -154,13 +151,9 @@ def run_files(
                              library=library, settings=settings, device=device,
                              deterministic=deterministic, progress=progress)
     result.inputs = inputs
-    if choice is not None and result.theta_interval:
-        from ._resolution import widen_by_floor_bias
-
-        result.theta_interval, choice["theta_bias_log"] = widen_by_floor_bias(result.theta_interval, choice)
     if choice is not None:
-        from ._resolution import qualify_verdict
-
+        if result.theta_interval:
+            result.theta_interval, choice["theta_bias_log"] = widen_by_floor_bias(result.theta_interval, choice)
         result.verdict = qualify_verdict(result.verdict, result.identified, choice)
     result.resolution = choice
     write_report(result, out_dir)

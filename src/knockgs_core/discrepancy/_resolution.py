@@ -123,7 +123,7 @@ def check_floor_body(choice: dict, contract, particles) -> None:
     """Refuse a floor table made for another body: the chosen level's particle count and mass
     (``contract``'s base material, its particles' rest volumes or their cells' share) must be the
     table's, ``contract`` being at the chosen grid."""
-    from ..sim import particle_volumes
+    from ..sim import body_volume
 
     source = choice["source"]
     if len(particles.positions) != choice["particles"]:
@@ -132,9 +132,7 @@ def check_floor_body(choice: dict, contract, particles) -> None:
                          "was made for another body")
     if set(contract.region_names) != {"base"}:
         raise InputError(contract.source, "regions", "a floor table's reference has one material region (base)")
-    dx = contract.sim.grid_lim / contract.sim.n_grid
-    vol = particles.volumes if particles.volumes is not None else particle_volumes(particles.positions, dx)
-    mass = float(np.sum(vol, dtype=np.float64)) * float(contract.materials["base"].rho)
+    mass = body_volume(particles, contract.sim.grid_lim / contract.sim.n_grid) * float(contract.materials["base"].rho)
     if abs(mass - choice["mass_kg"]) > 1e-6 * max(abs(mass), 1e-30):
         raise InputError(source, "mass_kg", f"n_grid {choice['n_grid']} weighs {choice['mass_kg']:.6g} kg in the table and "
                          f"{mass:.6g} kg in {contract.name} ({contract.profile}): the table was made for another body "

@@ -58,6 +58,7 @@ import numpy as np
 import pandas as pd
 
 from ..contract import at_resolution  # re-exported: the studies and benchmarks import it from here
+from ..sim import body_volume  # re-exported, as at_resolution
 from ..errors import InputError
 
 __all__ = ["FloorSettings", "at_resolution", "cells_through", "enclosed_empty_cells", "body_volume", "probe_period",
@@ -149,15 +150,6 @@ def enclosed_empty_cells(positions: np.ndarray, dx: float) -> int:
     occ = np.zeros(tuple(idx.max(axis=0) - lo + 1), dtype=bool)
     occ[tuple((idx - lo).T)] = True
     return int(interior_cells(occ).sum())
-
-
-def body_volume(particles, dx: float) -> float:
-    """The volume [m^3] the simulator gives ``particles`` on a grid of cell ``dx`` [m]: their
-    own rest volumes, or ``dx^3 / (particles in the cell)`` each (occupied cells x dx^3)."""
-    from ..sim import particle_volumes
-
-    vol = particles.volumes if particles.volumes is not None else particle_volumes(particles.positions, dx)
-    return float(np.sum(vol, dtype=np.float64))
 
 
 def probe_period(times: np.ndarray, u: np.ndarray, direction) -> float:

@@ -36,8 +36,8 @@ _LAZY = {
     "._effects": ("BodyForcePulse", "Gravity", "HiddenMass", "PoissonShift", "StiffnessGradient", "MaterialViscosity",
                   "SupportFriction", "SupportSlip", "VelocityDamping", "VonMisesPlasticity", "effect_examples",
                   "viscous_stability_limit", "with_effects"),
-    "._model": ("GPU_STORAGE", "Model", "State", "build_model", "cell_crowding", "default_device", "device_storage",
-                "make_state", "particle_volumes"),
+    "._model": ("GPU_STORAGE", "Model", "State", "body_volume", "build_model", "cell_crowding", "default_device",
+                "device_storage", "make_state", "particle_volumes"),
     "._simulate": ("SimResult", "simulate", "simulate_many"),
     "._solver": ("MPMSolver",),
 }
@@ -67,6 +67,7 @@ __all__ = [
     "default_device",
     "make_state",
     "particle_volumes",
+    "body_volume",
     "cell_crowding",
     "simulate",
     "simulate_many",

@@ -50,6 +50,13 @@ def particle_volumes(positions: np.ndarray, dx: float) -> np.ndarray:
     return (dx**3 / _sharing(cells)).astype(np.float32)
 
 
+def body_volume(particles, dx: float) -> float:
+    """The volume [m^3] the simulator gives ``particles`` on a grid of cell ``dx`` [m]: their
+    own rest volumes, or ``dx^3 / (particles in the cell)`` each (occupied cells x dx^3)."""
+    vol = particles.volumes if particles.volumes is not None else particle_volumes(particles.positions, dx)
+    return float(np.sum(vol, dtype=np.float64))
+
+
 def cell_crowding(positions: np.ndarray, dx: float) -> float:
     """How crowded the particles' stencil base cells (``floor(x / dx - 0.5)``) are: the number
     of particles that share a particle's base cell, averaged over the particles [-]. A thin
