@@ -3,8 +3,8 @@ part 3): does the loop's theta hold, and does its interval contain the truth, on
 runs at a resolution whose measured floor is small?
 
 The worlds are the floor study's finite-element reference (``experiments.floor_study``): the
-object's particle set at ``--fem-n-grid`` voxelized on that grid, P2 tetrahedra, Newmark, E and
-rho scaled so the voxel body carries the particles' volume (``fem_scale``), at a held-out
+object's particle set at ``--fem-n-grid`` voxelized on that grid, P2 tetrahedra, Newmark, each
+cell carrying its particles' volume (``knockgs_core.fem.fem_world_rollout``), at a held-out
 target's theta, with no effect or a planted Rayleigh damping. They are observed as the
 discrepancy suite's world cases are (``discrepancy._worlds``): tracks without identity of a
 random 60 % of the neighbouring finer profile's Gaussians (at most ``--surface-points`` of
@@ -117,7 +117,7 @@ def _fem_run(job):
     """One finite-element run of a world, kept as ``path`` (float32 positions [T, n + P, 3])."""
     from knockgs_core.assets import build_asset
     from knockgs_core.discrepancy import FEM_EFFECTS
-    from knockgs_core.experiments import at_resolution, body_volume
+    from knockgs_core.experiments import at_resolution
     from knockgs_core.fem import FemWorld, fem_world_mesh, fem_world_rollout
 
     args, key, (theta, effect, strength, probe), path = job
@@ -134,9 +134,8 @@ def _fem_run(job):
     if effect != "none":
         world = dataclasses.replace(world, **FEM_EFFECTS[effect][0](strength, H))
     geo = fem_world_mesh(ref, particles, world=world)
-    scale = 1.0 if particles.volumes is None else body_volume(particles, geo["dx"]) / geo["volume"]
-    Y = fem_world_rollout(ref, particles, (theta[0] * scale, theta[1] * scale), probe,
-                          np.concatenate([loop_points, surface]), world=world)
+    scale = float(np.sum(geo["share"])) * geo["dx"] ** 3 / geo["volume"]   # the particles' volume over the voxels'
+    Y = fem_world_rollout(ref, particles, theta, probe, np.concatenate([loop_points, surface]), world=world)
     write_npz(path, Y=Y.astype(np.float32), scale=scale, cost=time.perf_counter() - t0)
     return key, path, time.perf_counter() - t0
 

@@ -176,6 +176,12 @@ def test_world_acceptance_rule():
     assert world_acceptance({**fem, "identified_effect": "damping+viscosity"})[0]
     assert not world_acceptance({**fem, "identified_effect": "gravity"})[0]
     assert not world_acceptance({**base, "planted_effect": "damping", "world": "finer", "identified_effect": "viscosity"})[0]
+    # a grid whose floor table puts its floor above half the effect says so: judged by its interval
+    floored = {**base, "planted_effect": "damping", "identified_effect": "none", "heldout_improvement": 1.0,
+               "floor_within": False, "floor_pct": 39.0}
+    assert world_acceptance(floored)[0] and "said so" in world_acceptance(floored)[1]
+    assert not world_acceptance({**floored, "theta_in_interval": False})[0]
+    assert not world_acceptance({**floored, "floor_within": True})[0]       # within: an effect must be named
 
 
 @pytest.mark.slow
@@ -188,6 +194,15 @@ def test_the_worlds_target_plans_every_world_case_and_stays_out_of_all(tmp_path)
     for c in world_cases():
         assert f"case={c.name}" in out.stdout
     assert "discrepancy_worlds_table" in out.stdout and "audit_discrepancy_worlds_truth" in out.stdout
+    # the world cases stand for measured data: their runs read the floor table of the loop's body
+    runs = [block.split("output:")[0] for block in out.stdout.split("rule discrepancy_run:")[1:]]
+    assert len(runs) == len(world_cases()) and all("discrepancy/ci/floor_pillow.csv" in r for r in runs)
+    assert out.stdout.count("rule discrepancy_floor:") == 1
+    from knockgs_core.discrepancy import default_cases
+
+    own = snakemake(work, "-n", f"results/ci/discrepancy/reports/{default_cases()[0].name}/report.md",
+                    "--configfile=config/ci.yaml")
+    assert own.returncode == 0 and "rule discrepancy_run:" in own.stdout and "floor_pillow" not in own.stdout
     sub = snakemake(work, "-n", "discrepancy_worlds", "--configfile=config/ci.yaml", "--config",
                     "discrepancy={worlds: [fem_null]}")
     assert sub.returncode == 0, sub.stderr[-3000:]

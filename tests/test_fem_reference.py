@@ -248,6 +248,39 @@ def test_nafems_fv32_tapered_membrane_in_plane_frequencies_within_half_a_percent
         assert abs(err) < 5e-3, f"FV32 mode {mode}: {got:.3f} Hz against {want} Hz ({100 * err:+.3f} %)"
 
 
+def test_partly_filled_cells_carry_their_particles_mass_and_follow_the_conforming_body():
+    """The FEM world's voxel body (``fem_world_system``) of particles that carry their own rest
+    volumes: a cantilever 0.6 x 0.2 x 0.225 m whose thickness is 2.25 and 4.5 cells of the two
+    grids, sampled by particles of its exact volume. Each cell carrying its particles' volume, the
+    body weighs what they weigh, and its two lowest frequencies lie closer to those of a mesh that
+    conforms to the body than those of whole cells (measured: within 3.5 % and 2.1 %, whole cells
+    6.6 % and 7.3 % off)."""
+    from knockgs_core.assets import ParticleSet
+    from knockgs_core.contract import load_contract
+    from knockgs_core.fem import FemWorld, fem_world_system
+
+    contract = load_contract("pillow", "ci")                  # its grid (2 m) and material
+    m = contract.materials["base"]
+    lo, size, h = np.array([0.5, 0.5, 0.5]), np.array([0.6, 0.2, 0.225]), 0.0125
+    axes = [lo[k] + h * (np.arange(round(size[k] / h)) + 0.5) for k in range(3)]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    clamp = Region(tuple(lo - 1e-3), (lo[0] + 1e-6, *(lo[1:] + size[1:] + 1e-3)))   # the face x = 0.5
+    body = assemble_elasticity(box_mesh(lo, lo + size, (12, 4, 4)), E=m.E, nu=m.nu, rho=m.rho, degree=2)
+    f_body = natural_frequencies(body, support_dofs(body, clamp), n_modes=2)
+
+    def error(n_grid, volumes):
+        ps = ParticleSet(positions=points, volumes=np.full(len(points), h**3, np.float32) if volumes else None,
+                         n_gs=len(points), gaussian_index=np.arange(len(points)), region=np.zeros(len(points), np.int32))
+        s, geo = fem_world_system(contract, ps, (1.0, 1.0), world=FemWorld(n_grid=n_grid))
+        mass = m.rho * (h**3 * len(points) if volumes else geo["volume"])
+        assert s.M.sum() / 3 == pytest.approx(mass, rel=1e-6)   # the particles' mass, or the whole cells'
+        return np.abs(natural_frequencies(s, support_dofs(s, clamp), n_modes=2) / f_body - 1).max()
+
+    for n_grid in (20, 40):                                     # dx 0.1 and 0.05 m
+        share, whole = error(n_grid, True), error(n_grid, False)
+        assert share < 0.045 and share < 0.6 * whole, (n_grid, share, whole)
+
+
 def test_natural_frequencies_of_a_free_body_start_with_six_rigid_motions():
     s = _beam((6, 2, 2))
     f = natural_frequencies(s, [], n_modes=8)

@@ -16,6 +16,15 @@
 #   P/tables/discrepancy_worlds.csv|md, P/figures/discrepancy_worlds.png,
 #   P/audits/discrepancy_worlds_truth.json                 the world cases (finer grid, FEM): target
 #                                                          `discrepancy_worlds`, not in `all`
+#   D/{res}/floor_{object}.csv|md|png                      the loop's grid against the finite-element
+#                                                          reference of the profile's `floor` block: the
+#                                                          world cases' runs judge their grid by it
+#
+# The world cases stand for measured data: with discrepancy.floor (default) their runs read the
+# floor table of the loop's own body, as `knockgs discrepancy run --floor-table` does, and where
+# that grid's floor is above half discrepancy.smallest_effect they say that effects below about
+# twice it cannot be named there; their theta intervals carry the grid's calibration bias. The
+# standard cases are data the loop's own model made, and run without it.
 #
 # The cases run at config discrepancy.resolution, on discrepancy.n_grid cells per axis where it
 # is set (the fill refined with it: knockgs_core.contract.at_resolution). At the profile's own
@@ -48,9 +57,12 @@ DISCREPANCY_LIBRARY_ROOT = (library_root(DISCREPANCY_OBJECT) if _DISCREPANCY_SHA
                             else f"{D}/{DISCREPANCY_RES}/library/{DISCREPANCY_OBJECT}")
 # the loop's library base, in candidates.csv order
 DISCREPANCY_LIBRARY = [library_rollout(DISCREPANCY_LIBRARY_ROOT, case) for case in CANDIDATES.case_name]
+# the floor table the world cases' runs read (none with discrepancy.floor false)
+DISCREPANCY_FLOOR = [f"{D}/{DISCREPANCY_RES}/floor_{DISCREPANCY_OBJECT}.csv"] if DISCREPANCY.get("floor", True) else []
 # the files each run job reads (and the truth audit checks)
 DISCREPANCY_RUN_READS = {
-    case: [f"{D}/cases/{case}/measured_calib.parquet", f"{D}/cases/{case}/measured_heldout.parquet", DISCREPANCY_PARTICLES, *DISCREPANCY_LIBRARY]
+    case: [f"{D}/cases/{case}/measured_calib.parquet", f"{D}/cases/{case}/measured_heldout.parquet", DISCREPANCY_PARTICLES,
+           *DISCREPANCY_LIBRARY, *(DISCREPANCY_FLOOR if case in DISCREPANCY_WORLD_CASES else [])]
     for case in DISCREPANCY_CASES + DISCREPANCY_WORLD_CASES
 }
 
@@ -122,6 +134,39 @@ rule discrepancy_library:
         "../scripts/rollout.py"
 
 
+rule discrepancy_floor:
+    """The loop's own body at its grid against the finite-element reference of the profile's
+    `floor` block (the floor study, knockgs_core.experiments.floor_study, with one MPM level):
+    the table the world cases' runs judge their grid by."""
+    conda:
+        "../envs/knockgs.yaml"
+    output:
+        csv=f"{D}/{{res}}/floor_{{object}}.csv",
+        md=f"{D}/{{res}}/floor_{{object}}.md",
+        png=f"{D}/{{res}}/floor_{{object}}.png",
+    log:
+        f"logs/{PROFILE}/discrepancy/{{res}}/floor_{{object}}.log",
+    benchmark:
+        f"{P}/benchmarks/discrepancy/{{res}}/floor_{{object}}.tsv"
+    wildcard_constraints:
+        res=re.escape(DISCREPANCY_RES),
+        object=re.escape(DISCREPANCY_OBJECT),
+    params:
+        profile=DISCREPANCY_PROFILE,
+        n_grid=DISCREPANCY_N_GRID,
+        settings={**{k: v for k, v in config["floor"].items() if k not in ("enabled", "objects")},
+                  "n_grid": [_DISCREPANCY_CONTRACT.sim.n_grid]},
+        device=DEVICE,
+        deterministic=DETERMINISTIC,
+    resources:
+        mem_mb=16000 if PROFILE == "paper" else 4000,
+        runtime=120 if PROFILE == "paper" else 20,
+        gpu=1 if ON_GPU else 0,
+    threads: 1
+    script:
+        "../scripts/floor_table.py"
+
+
 rule discrepancy_case:
     """Truth side: plant the case's effect at its magnitude, write measured files and truth apart."""
     conda:
@@ -159,6 +204,7 @@ rule discrepancy_run:
         heldout=f"{D}/cases/{{case}}/measured_heldout.parquet",
         particles=DISCREPANCY_PARTICLES,
         library=folders(DISCREPANCY_LIBRARY),
+        floor=lambda wc: DISCREPANCY_FLOOR if wc.case in DISCREPANCY_WORLD_CASES else [],
     output:
         report=report(f"{D}/reports/{{case}}/report.md", category="Discrepancy", subcategory="{case}"),
         result=f"{D}/reports/{{case}}/result.json",
@@ -176,6 +222,8 @@ rule discrepancy_run:
         probe=_DISCREPANCY_CONTRACT.roles["calibration"],
         heldout_probe=_DISCREPANCY_CONTRACT.roles["heldout"][0],
         library=DISCREPANCY_LIBRARY,
+        loop_n_grid=_DISCREPANCY_CONTRACT.sim.n_grid,  # the grid the floor table judges
+        smallest_effect=float(DISCREPANCY.get("smallest_effect", 0.2)),
     resources:
         gpu=1 if ON_GPU else 0,
     threads: 1

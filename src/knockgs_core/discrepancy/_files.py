@@ -116,7 +116,7 @@ def run_files(
         choice = choose_resolution(read_floor_table(floor_table), smallest_effect=smallest_effect, n_grid=n_grid,
                                    source=floor_table)
         n_grid = choice["n_grid"]
-    if n_grid is not None:
+    if n_grid is not None and int(n_grid) != contract.sim.n_grid:   # at its own grid the contract is itself
         contract = at_resolution(contract, n_grid)
     held_files = dict(heldout_measured or {})
     check_outputs({"--output": out_dir},

@@ -18,7 +18,7 @@ TABLE_COLUMNS = [
     "heldout_traj_rmse_refit", "calib_traj_rmse_refit", "heldout_improvement", "planted_rank", "unexplained",
     "residual_excess_pct", "parameter", "planted_value", "estimated_value", "heldout_change", "theta_true", "theta_before",
     "theta_after", "observation", "n_simulations", "world", "verdict_kind", "theta_interval", "theta_in_interval",
-    "model_error_coefficient", "approximation", "accepted", "note",
+    "model_error_coefficient", "approximation", "floor_pct", "floor_within", "accepted", "note",
 ]
 
 
@@ -60,6 +60,8 @@ def write_case_table(df, csv_path, md_path, *, title="Discrepancy loop: planted 
     if "world" in df and (df["world"] != "same").any():
         columns[-1:-1] = ["world", "verdict_kind", "model_error_coefficient", "theta_interval", "theta_in_interval",
                           "approximation"]
+        if "floor_within" in df and df["floor_within"].isin([True, False]).any():  # judged by a floor table
+            columns[-1:-1] = ["floor_pct", "floor_within"]
     lines.append("| " + " | ".join(columns) + " |")
     lines.append("|" + "---|" * len(columns))
     for _, r in df.iterrows():

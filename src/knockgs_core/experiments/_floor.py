@@ -37,10 +37,11 @@ all meet occupied cells (a void inside the body: the fill's hollow layer, a shel
 The body's mass is the particles' (their rest volumes x rho): under the contract's
 ``fill.volumes: cell_share`` the occupied cells x dx^3 x rho, under ``enclosed`` or ``wall`` the
 volume the particle set carries, the same at every grid. The reference's voxel body then has
-another volume than the particles' body; it carries the particles' (``fem_scale`` = particles'
-volume / voxel volume multiplies E and rho of the FEM, so its mass and its stiffness per unit
-of the body's volume are the particles' and its wave speeds unchanged). Under ``cell_share`` the
-reference is the voxel body itself (``fem_scale`` 1).
+another volume than the particles' body; each of its cells carries the volume of the particles
+in it (E and rho scaled by that volume over dx^3: :mod:`knockgs_core.fem._world`), so its mass
+and the mass's distribution over the cells are the particles'. ``fem_scale`` reports the
+particles' volume over the voxel body's (1 under ``cell_share``, where the reference is the voxel
+body itself).
 """
 
 from __future__ import annotations
@@ -217,7 +218,8 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
     ``order_period`` (to the previous level), ``s_E_fit``, ``s_rho_fit`` and
     ``fit_residual_pct`` (the theta fit; NaN without one), ``cost_s`` (wall seconds of the
     level's rollouts and fit, or of the FEM run), ``enclosed_empty`` (:func:`enclosed_empty_cells`
-    on the row's grid), ``fem_scale`` (the FEM's factor on E and rho; NaN for the MPM). ``theta``: the material compared;
+    on the row's grid), ``fem_scale`` (the particles' volume over the FEM's voxel body's; NaN for
+    the MPM). ``theta``: the material compared;
     ``device``, ``deterministic``: the MPM rollouts'. ``reference_cache``: a folder where each
     finite-element run (the reference and its check) is kept once computed and read back by a
     later study with the same inputs (:func:`_fem_run`): the reference depends on the fill, the
@@ -371,8 +373,8 @@ def _fem_key(contract, particles, points, world, theta, probe) -> str:
 def _fem_run(contract, particles, points, world, theta, probe, *, cache=None) -> dict:
     """One finite-element run of the floor study: the displacement ``u`` [T, M, 3] m of
     ``points`` (the Gaussians' rest positions) from frame 0, the mesh's ``cells``, ``dofs`` and
-    voxel ``volume`` [m^3], the factor ``scale`` on E and rho (the voxel body carries the
-    particles' own volume where they have one, module docstring), its ``cost`` [s] and whether
+    voxel ``volume`` [m^3], ``scale``, the particles' volume over the voxels' (each cell carries
+    its particles' own volume where they have one, module docstring), its ``cost`` [s] and whether
     it was read from ``cache`` (a folder, or None). A kept run is named by a SHA-256 of all it
     depends on: the finite-element package's source, the contract (its record's length
     included; not where its files lie, :func:`_placeless`), the world's settings, theta, the
@@ -389,8 +391,8 @@ def _fem_run(contract, particles, points, world, theta, probe, *, cache=None) ->
                         "cached": True}
     t0 = time.perf_counter()
     geo = fem_world_mesh(contract, particles, world=world)
-    scale = 1.0 if particles.volumes is None else body_volume(particles, geo["dx"]) / geo["volume"]
-    Y = fem_world_rollout(contract, particles, (theta[0] * scale, theta[1] * scale), probe, points, world=world)
+    scale = float(np.sum(geo["share"])) * geo["dx"] ** 3 / geo["volume"]   # the particles' volume over the voxels'
+    Y = fem_world_rollout(contract, particles, theta, probe, points, world=world)
     mesh = geo["mesh"]
     run = {"u": Y - Y[0], "n_grid": int(world.n_grid), "cells": len(geo["cells"]),
            "dofs": 3 * (len(mesh.p.T) + (len(mesh.edges.T) if world.degree == 2 else 0)),
@@ -420,7 +422,8 @@ def floor_note(table: pd.DataFrame, contract, settings: FloorSettings, *, theta=
             f"particles: the FEM rows' DOFs. cells_through: median shortest axis run of occupied cells; "
             f"enclosed_empty: empty cells enclosed by occupied ones. Volume rule: fill.volumes {contract.fill.volumes}"
             + ("." if contract.fill.volumes == "cell_share"
-               else " (the FEM's voxel body carries the particles' volume: its E and rho x fem_scale)."))
+               else " (each FEM cell carries its particles' volume: E and rho x that over dx^3; fem_scale: the body's "
+                    "volume over the voxels')."))
 
 
 def plot_floor(table: pd.DataFrame, path, *, title: str = "") -> None:

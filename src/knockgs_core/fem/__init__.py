@@ -27,7 +27,7 @@ from ._elasticity import (
 )
 from ._mesh import Region, box_mesh, mesh_size, tapered_plate_mesh, tensor_mesh
 from ._newmark import DIRECT_MAX_DOFS, SOLVERS, ForcePulse, NewmarkResult, RayleighDamping, newmark
-from ._world import FemWorld, fem_world_mesh, fem_world_rollout, held_dofs
+from ._world import FemWorld, fem_world_mesh, fem_world_rollout, fem_world_system, held_dofs
 from ._verification import (
     BLOCK,
     MATERIAL,
@@ -51,6 +51,7 @@ __all__ = [
     "FemWorld",
     "fem_world_mesh",
     "fem_world_rollout",
+    "fem_world_system",
     "held_dofs",
     "Region",
     "tensor_mesh",

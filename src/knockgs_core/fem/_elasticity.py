@@ -42,7 +42,8 @@ class ElasticSystem:
     shape (n_dofs, n_dofs); ``basis`` the scikit-fem vector basis (DOF numbering and
     locations, ``basis.doflocs`` shape (3, n_dofs) [m]). ``mass`` says whether ``M`` is the
     consistent mass or its row-sum lumped diagonal. ``E`` [Pa], ``nu`` [-], ``rho``
-    [kg/m^3] are uniform."""
+    [kg/m^3]: the material's (uniform unless a field of :func:`assemble_elasticity` scales
+    them)."""
 
     mesh: skfem.MeshTet
     basis: skfem.Basis
@@ -61,13 +62,14 @@ class ElasticSystem:
 
     @property
     def volume(self) -> float:
-        """Volume of the meshed body [m^3]."""
+        """Volume of the meshed body [m^3] (its mass over ``rho``: a mass field's share)."""
         return float(self.M.sum() / (3.0 * self.rho))
 
 
 def assemble_elasticity(mesh: skfem.MeshTet, *, E: float, nu: float, rho: float, degree: int = 1,
                         mass: Literal["consistent", "lumped"] = "consistent",
-                        stiffness_field: Callable[[np.ndarray], np.ndarray] | None = None) -> ElasticSystem:
+                        stiffness_field: Callable[[np.ndarray], np.ndarray] | None = None,
+                        mass_field: Callable[[np.ndarray], np.ndarray] | None = None) -> ElasticSystem:
     """Assemble stiffness and mass of an isotropic body on ``mesh``.
 
     ``degree`` 1: linear tetrahedra (P1, the reference); 2: quadratic (P2, a cross-check of
@@ -75,7 +77,9 @@ def assemble_elasticity(mesh: skfem.MeshTet, *, E: float, nu: float, rho: float,
     ``"lumped"`` (row sums on the diagonal; P1 only, where they are positive).
     ``stiffness_field``: the modulus varies in space, ``E(x) = E * stiffness_field(x)``, a
     positive factor of the coordinates ``x`` [3, ...] m (evaluated at the quadrature points);
-    None: a uniform body. ``nu`` and ``rho`` stay uniform."""
+    None: a uniform body. ``mass_field``: the density varies likewise, ``rho(x) = rho *
+    mass_field(x)`` (a body whose cells are partly filled: :mod:`._world`); None: uniform.
+    ``nu`` stays uniform."""
     if mass not in MASS_KINDS:
         raise ValueError(f"mass must be one of {', '.join(MASS_KINDS)}, got {mass!r}")
     if degree not in (1, 2):
@@ -97,12 +101,14 @@ def assemble_elasticity(mesh: skfem.MeshTet, *, E: float, nu: float, rho: float,
 
     @skfem.BilinearForm
     def inertia(u, v, w):
-        return rho * dot(u, v)
+        f = 1.0 if mass_field is None else mass_field(np.asarray(w.x))
+        return f * rho * dot(u, v)
 
-    if stiffness_field is not None:
-        f = np.asarray(stiffness_field(np.asarray(basis.global_coordinates())), dtype=np.float64)
-        if not (np.all(np.isfinite(f)) and np.all(f > 0)):
-            raise InputError("fem.assemble_elasticity", "stiffness_field", "must be a finite positive factor everywhere")
+    for name, fn in (("stiffness_field", stiffness_field), ("mass_field", mass_field)):
+        if fn is not None:
+            f = np.asarray(fn(np.asarray(basis.global_coordinates())), dtype=np.float64)
+            if not (np.all(np.isfinite(f)) and np.all(f > 0)):
+                raise InputError("fem.assemble_elasticity", name, "must be a finite positive factor everywhere")
     K = stiffness.assemble(basis).tocsr()
     M = inertia.assemble(basis).tocsr()
     if mass == "lumped":

@@ -36,7 +36,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 from ..errors import InputError
-from ._elasticity import ElasticSystem, _free, body_force_load
+from ._elasticity import ElasticSystem, _dof_components, _free, body_force_load
 from ._mesh import Region
 
 __all__ = ["SOLVERS", "DIRECT_MAX_DOFS", "ForcePulse", "RayleighDamping", "NewmarkResult", "newmark"]
@@ -205,7 +205,8 @@ def newmark(
     v = np.zeros(len(free)) if v0 is None else np.asarray(v0, dtype=np.float64)[free].copy()
     g_load = None
     if gravity is not None and np.any(np.asarray(gravity, dtype=float) != 0):
-        g_load = body_force_load(system, system.rho * np.asarray(gravity, dtype=float))[free]
+        # the mass times the acceleration: the consistent load of a uniform field, whatever the density
+        g_load = (system.M @ np.asarray(gravity, dtype=float)[_dof_components(system)])[free]
 
     # distributed pulses (duration >= dt): their impulse per step; short ones: velocity jumps
     long_pulses, jumps = [], {}

@@ -2,8 +2,13 @@
 MPM model cannot match exactly (private).
 
 The body is the object's particle set voxelized on the contract's grid: every grid cell that
-holds a particle becomes a hexahedron (six tetrahedra), so the meshed volume is the MPM's
-(which gives each occupied cell the volume dx^3) and so is the mass. The still sticky
+holds a particle becomes a hexahedron (six tetrahedra). Where the particles carry no rest volumes
+(``fill.volumes: cell_share``) each occupied cell is whole, as the MPM gives each occupied cell
+the volume dx^3, and so is the mass. Where they carry their own (``enclosed``, ``wall``), a cell
+carries the volume of its particles: its E and rho are scaled by that volume over dx^3 (the
+finite-cell method's share of a cell the body fills in part), so the body's mass and its
+distribution over the cells are the particles', and a surface cell the body half fills is half
+as heavy and half as stiff instead of whole. The still sticky
 supports (the contract's ``fixed_cuboid`` boxes) hold the mesh vertices inside them, the grid
 nodes the MPM holds, and what those vertices span (:func:`held_dofs`). The probe
 acts as the MPM's does: the same force on every selected particle, so the force density of a
@@ -28,7 +33,7 @@ from ._elasticity import ElasticSystem, assemble_elasticity, interpolate
 from ._mesh import Region
 from ._newmark import RayleighDamping, newmark
 
-__all__ = ["FemWorld", "fem_world_mesh", "fem_world_rollout", "held_dofs"]
+__all__ = ["FemWorld", "fem_world_mesh", "fem_world_rollout", "fem_world_system", "held_dofs"]
 
 
 @dataclass(frozen=True)
@@ -78,9 +83,16 @@ def _cells(positions: np.ndarray, dx: float) -> tuple[np.ndarray, np.ndarray]:
 def fem_world_mesh(contract, particles, *, world: FemWorld = FemWorld()) -> dict:
     """The voxel mesh of ``particles`` on ``contract``'s grid (or ``world.n_grid``'s): ``mesh``
     (scikit-fem MeshTet), ``dx`` [m], ``cells`` [K, 3] occupied cell indices, ``counts`` [K]
-    particles per cell, ``volume`` [m^3] (= K dx^3, the MPM's on its own grid)."""
+    particles per cell, ``volume`` [m^3] (= K dx^3, the MPM's on its own grid), ``share`` [K]
+    each cell's share of the body: its particles' rest volume over dx^3, or 1 where the
+    particles carry none (module docstring)."""
     dx = contract.sim.grid_lim / (contract.sim.n_grid if world.n_grid is None else int(world.n_grid))
     cells, counts = _cells(particles.positions, dx)
+    share = np.ones(len(cells))
+    if particles.volumes is not None:
+        idx = np.floor(np.asarray(particles.positions, dtype=np.float64) / dx).astype(np.int64)
+        _, inverse = np.unique(idx, axis=0, return_inverse=True)      # the order of ``cells``
+        share = np.bincount(inverse.ravel(), weights=np.asarray(particles.volumes, np.float64), minlength=len(cells)) / dx**3
     lo = cells.min(axis=0)
     shape = cells.max(axis=0) - lo + 1
     axes = [dx * (lo[k] + np.arange(shape[k] + 1)) for k in range(3)]
@@ -93,7 +105,41 @@ def fem_world_mesh(contract, particles, *, world: FemWorld = FemWorld()) -> dict
     t = full.t[:, keep]
     used, inv = np.unique(t, return_inverse=True)
     mesh = skfem.MeshTet(np.ascontiguousarray(full.p[:, used]), np.ascontiguousarray(inv.reshape(t.shape)))
-    return {"mesh": mesh, "dx": dx, "cells": cells, "counts": counts, "volume": float(len(cells) * dx**3)}
+    return {"mesh": mesh, "dx": dx, "cells": cells, "counts": counts, "volume": float(len(cells) * dx**3), "share": share}
+
+
+def _cell_field(cells: np.ndarray, values: np.ndarray, dx: float):
+    """A function of points ``x`` [3, ...] m: ``values`` [K] of the cell of ``cells`` [K, 3]
+    each point lies in (the elements' quadrature points lie inside their voxel)."""
+    lo = cells.min(axis=0)
+    grid = np.zeros(tuple(cells.max(axis=0) - lo + 1))
+    grid[tuple((cells - lo).T)] = values
+
+    def field(x):
+        j = [np.clip(np.floor(x[k] / dx).astype(np.int64) - lo[k], 0, grid.shape[k] - 1) for k in range(3)]
+        return grid[j[0], j[1], j[2]]
+
+    return field
+
+
+def fem_world_system(contract, particles, theta, *, world: FemWorld = FemWorld()) -> tuple[ElasticSystem, dict]:
+    """The assembled body of ``particles`` (a :class:`~knockgs_core.assets.ParticleSet`) on its
+    voxel mesh (:func:`fem_world_mesh`), of ``contract``'s base material at theta = (s_E, s_rho):
+    each cell's E and rho scaled by its share of the body (module docstring), the modulus graded
+    by ``world.stiffness_slope``. Returns (the :class:`ElasticSystem`, the mesh's dict)."""
+    m = contract.materials["base"]
+    geo = fem_world_mesh(contract, particles, world=world)
+    share = None if particles.volumes is None else _cell_field(geo["cells"], geo["share"], geo["dx"])
+    field = share
+    if world.stiffness_slope:
+        from ..sim import StiffnessGradient
+
+        grad = StiffnessGradient(slope=float(world.stiffness_slope), axis=2)
+        z = np.asarray(particles.positions, dtype=np.float64)[:, 2]
+        field = lambda x: grad.factor(x[2], float(z.min()), float(z.max())) * (1.0 if share is None else share(x))  # noqa: E731
+    system = assemble_elasticity(geo["mesh"], E=m.E * float(theta[0]), nu=m.nu, rho=m.rho * float(theta[1]),
+                                 degree=world.degree, stiffness_field=field, mass_field=share)
+    return system, geo
 
 
 def held_dofs(system: ElasticSystem, region: Region) -> np.ndarray:
@@ -164,17 +210,7 @@ def fem_world_rollout(contract, particles, theta, probe: str, points, *, world: 
     dt = export.frame_dt / int(world.steps_per_frame)
     if pr.start_time != 0.0 or pr.duration >= dt:
         raise InputError(contract.source, f"probes.{probe}", "the FEM world applies a probe shorter than its step at t = 0 only")
-    m = contract.materials["base"]
-    geo = fem_world_mesh(contract, particles, world=world)
-    field = None
-    if world.stiffness_slope:
-        from ..sim import StiffnessGradient
-
-        grad = StiffnessGradient(slope=float(world.stiffness_slope), axis=2)
-        z = np.asarray(particles.positions, dtype=np.float64)[:, 2]
-        field = lambda x: grad.factor(x[2], float(z.min()), float(z.max()))  # noqa: E731
-    system = assemble_elasticity(geo["mesh"], E=m.E * float(theta[0]), nu=m.nu, rho=m.rho * float(theta[1]), degree=world.degree,
-                                 stiffness_field=field)
+    system, geo = fem_world_system(contract, particles, theta, world=world)
     fixed = []
     for bc in contract.sim.boundaries:
         box = getattr(bc, "box", None)
