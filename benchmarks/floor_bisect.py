@@ -38,21 +38,6 @@ def particle_set(positions: np.ndarray, volumes: np.ndarray | None, n_gs: int):
                        gaussian_index=np.arange(int(n_gs)), region=np.zeros(n, np.int32))
 
 
-def cell_fraction(particles, dx: float):
-    """Each occupied cell's share of the particles' volume, ``sum V_p / dx^3`` (a field of x [3, ...])."""
-    idx = np.floor(np.asarray(particles.positions, np.float64) / dx).astype(np.int64)
-    cells, inv = np.unique(idx, axis=0, return_inverse=True)
-    frac = np.bincount(inv.ravel(), weights=np.asarray(particles.volumes, np.float64)) / dx**3
-    lo = cells.min(axis=0)
-    grid = np.zeros(tuple(cells.max(axis=0) - lo + 1))
-    grid[tuple((cells - lo).T)] = frac
-
-    def field(x):
-        j = [np.clip(np.floor(x[k] / dx).astype(np.int64) - lo[k], 0, grid.shape[k] - 1) for k in range(3)]
-        return np.maximum(grid[j[0], j[1], j[2]], 1e-6)
-    return field
-
-
 def relattice(ps, dx: float, *, skin: bool, fill: bool):
     """``ps`` (volumes given) with a 2^3 lattice added to the cells (of size ``dx``) that hold only
     Gaussian particles (``skin``) and the fill particles of the other cells replaced by a 2^3
@@ -85,22 +70,14 @@ def fem_modes(contract, particles, n_grid: int, *, scale: float | str = 1.0, n_m
     ``scale``, or x each cell's volume fraction where ``scale`` is "cell"), each mode's share of a
     uniform x load's modal mass, and the voxel volume."""
     import scipy.sparse.linalg as spla
-    import skfem
-    from skfem.helpers import dot
 
-    from knockgs_core.fem import FemWorld, Region, assemble_elasticity, fem_world_mesh, held_dofs, support_dofs
+    from knockgs_core.fem import FemWorld, Region, assemble_elasticity, fem_world_mesh, fem_world_system, held_dofs, support_dofs
 
     world = FemWorld(degree=degree, n_grid=int(n_grid))
     geo = fem_world_mesh(contract, particles, world=world)
     m = contract.materials["base"]
-    if scale == "cell":
-        field = cell_fraction(particles, geo["dx"])
-        s = assemble_elasticity(geo["mesh"], E=m.E, nu=m.nu, rho=m.rho, degree=degree, stiffness_field=field)
-
-        @skfem.BilinearForm
-        def inertia(u, v, w):
-            return m.rho * field(np.asarray(w.x)) * dot(u, v)
-        s = dataclasses.replace(s, M=inertia.assemble(s.basis).tocsr())
+    if scale == "cell":                                      # the FEM world's own body: each cell its particles' volume
+        s, geo = fem_world_system(contract, particles, (1.0, 1.0), world=world)
     else:
         s = assemble_elasticity(geo["mesh"], E=m.E * scale, nu=m.nu, rho=m.rho * scale, degree=degree)
     fixed = []

@@ -246,7 +246,7 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
     for name, (ref_contract, ref_particles, world) in _reference_runs(contract, settings).items():
         fem[name] = _fem_run(ref_contract, ref_particles, points, world, theta, probe, cache=reference_cache)
         f = fem[name]
-        say(f"{name}: n_grid {world.n_grid}, {f['cells']} cells, E and rho x {f['scale']:.4f}, {f['cost']:.1f} s"
+        say(f"{name}: n_grid {world.n_grid}, {f['cells']} cells, the body fills {f['scale']:.4f} of them, {f['cost']:.1f} s"
             + (" (kept from an earlier study)" if f["cached"] else ""))
     u_ref = fem["fem (reference)"]["u"]
     p_ref = probe_period(times, u_ref, direction)
