@@ -268,6 +268,31 @@ def test_the_kept_files_a_study_would_read_are_named_before_it_runs(tmp_path):
     assert all(kept for _, kept in after.values())
 
 
+def test_the_references_check_is_the_same_construction_one_grid_coarser():
+    """The check row's body is the particle set built at the check's grid and voxelized there, as
+    the reference's is at its own: each finite-element cell carries the volume of the particles in
+    it, and a set binned on a grid its fill was not built on gives the cells sampling shares (the
+    solid ci Vasedeck built at 24 and binned at 16: no cell whole). About 1 s."""
+    from knockgs_core.assets import build_asset
+    from knockgs_core.contract import at_resolution, load_contract, with_body
+    from knockgs_core.experiments._floor import _reference_runs
+    from knockgs_core.fem import fem_world_mesh
+
+    contract = with_body(load_contract("vasedeck", "ci"), solid=True)
+    settings = FloorSettings(n_grid=(16,), fem_n_grid=24, fem_check_n_grid=16, fem_degree=1, fem_steps_per_frame=1,
+                             record_factor=1, fit_steps=0)
+    bodies = _reference_runs(contract, settings)
+    for name, n in (("fem (reference)", 24), ("fem (check)", 16)):
+        c, ps, world = bodies[name]
+        assert world.n_grid == n and c.sim.n_grid == n
+        np.testing.assert_array_equal(ps.positions, build_asset(at_resolution(contract, n)).particles.positions)
+        share = fem_world_mesh(c, ps, world=world)["share"]
+        assert np.quantile(share, 0.95) == pytest.approx(1.0)       # the body's inside: whole cells
+    c, _, world = bodies["fem (check)"]
+    binned = fem_world_mesh(c, bodies["fem (reference)"][1], world=world)["share"]
+    assert np.quantile(binned, 0.95) < 0.9
+
+
 def test_a_floor_object_the_reference_cannot_hold_is_one_line_at_config_read(tmp_path):
     # the Ficus has two material regions; the FEM reference holds one
     from _workflow import scratch_copy, snakemake

@@ -11,9 +11,14 @@ For one object contract, its calibration probe (Probe A) and one theta (the base
 - *The reference*: the object's particle set built at ``fem_n_grid`` (fill refined likewise)
   and voxelized on that grid, P2 tetrahedra, Newmark (``FemWorld(n_grid=fem_n_grid)``). Its
   mesh depends on ``fem_n_grid`` only, never on the MPM level judged, so the comparison is not
-  circular. Its own discretization is shown by the same particle set voxelized on the coarser
-  ``fem_check_n_grid`` (the *check*): the check's gap to the reference bounds what the
-  reference itself still changes (geometry staircase and mesh together).
+  circular. Its own discretization is shown by the same construction on the coarser
+  ``fem_check_n_grid`` (the *check*: the particle set built there, voxelized there): the check's
+  gap to the reference bounds what the reference itself still changes (body, geometry
+  staircase and mesh together). The check's body is built at its own grid because a cell
+  carries the volume of the particles in it: a particle set binned on a grid its fill was not
+  built on gives each cell a sampling share of its fill cells (the Vasedeck's particles built at
+  96 and binned at 64: cell shares of 0.7-1.9 inside the body, and a response 43 % from the
+  same body built at 64).
 - *Compared* at the Gaussian-associated particles' rest positions (the same points at every
   level; the FEM is evaluated there), displacements ``u = x(t) - x(0)`` [m]:
   the trajectory RMSE over the Probe-A record (the frames a calibration sees) as a percentage
@@ -243,7 +248,8 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
 
     # the reference: one particle set, voxelized on fem_n_grid (and on the coarser check grid)
     fem = {}
-    for name, (ref_contract, ref_particles, world) in _reference_runs(contract, settings).items():
+    bodies = _reference_runs(contract, settings)
+    for name, (ref_contract, ref_particles, world) in bodies.items():
         fem[name] = _fem_run(ref_contract, ref_particles, points, world, theta, probe, cache=reference_cache)
         f = fem[name]
         say(f"{name}: n_grid {world.n_grid}, {f['cells']} cells, the body fills {f['scale']:.4f} of them, {f['cost']:.1f} s"
@@ -295,6 +301,7 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
                                if prev else float("nan"))
     for name in ("fem (check)", "fem (reference)"):
         f = fem[name]
+        ref_particles = bodies[name][1]
         dx = contract.sim.grid_lim / f["n_grid"]
         period = probe_period(times, f["u"], direction)
         rows.append({"model": name, "n_grid": f["n_grid"], "dx_m": dx,
@@ -325,18 +332,19 @@ def _placeless(contract):
 
 def _reference_runs(contract, settings: FloorSettings) -> dict:
     """{name: (contract, particles, world)} of the reference and its check: the particle set built
-    at ``fem_n_grid``, with the calibration probe's record ``record_factor`` times longer, voxelized
-    on ``fem_n_grid`` and on ``fem_check_n_grid``."""
+    at ``fem_n_grid`` (at ``fem_check_n_grid``), with the calibration probe's record
+    ``record_factor`` times longer, voxelized on ``fem_n_grid`` (on ``fem_check_n_grid``)."""
     from ..assets import build_asset
     from ..fem import FemWorld
 
     probe = contract.roles["calibration"]
     n_long = (int(contract.probes[probe].export.n_frames) - 1) * int(settings.record_factor) + 1
-    ref_contract = _with_record(at_resolution(contract, settings.fem_n_grid), probe, n_long)
-    ref_particles = build_asset(at_resolution(contract, settings.fem_n_grid)).particles
-    return {name: (ref_contract, ref_particles, FemWorld(degree=settings.fem_degree, steps_per_frame=settings.fem_steps_per_frame,
-                                                          n_grid=int(n)))
-            for name, n in (("fem (reference)", settings.fem_n_grid), ("fem (check)", settings.fem_check_n_grid))}
+    out = {}
+    for name, n in (("fem (reference)", settings.fem_n_grid), ("fem (check)", settings.fem_check_n_grid)):
+        c = at_resolution(contract, n)
+        out[name] = (_with_record(c, probe, n_long), build_asset(c).particles,
+                     FemWorld(degree=settings.fem_degree, steps_per_frame=settings.fem_steps_per_frame, n_grid=int(n)))
+    return out
 
 
 def kept_reference_files(contract, settings: FloorSettings = FloorSettings(), *, theta=(1.0, 1.0), reference_cache) -> dict:
@@ -413,7 +421,7 @@ def floor_note(table: pd.DataFrame, contract, settings: FloorSettings, *, theta=
     return (f"{contract.name} ({contract.profile} contract), Probe A ({probe}), theta ({theta[0]:g}, {theta[1]:g}). "
             f"MPM levels: grid and fill refined together, dt by the contracts' rule. Reference: the particle set at "
             f"n_grid {settings.fem_n_grid} voxelized on that grid, P{settings.fem_degree} tetrahedra, Newmark, "
-            f"{settings.fem_steps_per_frame} steps per frame; its check (the same particles on n_grid "
+            f"{settings.fem_steps_per_frame} steps per frame; its check (the same construction on n_grid "
             f"{settings.fem_check_n_grid}) is {check.rmse_pct:.1f} % and {check.period_error_pct:+.2f} % (period) from it. "
             f"rmse_pct: trajectory RMSE of the Gaussian particles over the Probe-A record ({pr.export.n_frames} frames), "
             f"% of the reference's RMS displacement; periods: mean displacement along the force over "
