@@ -410,6 +410,16 @@ def test_a_floor_table_that_is_not_one_is_one_line_naming_its_field(pillow_floor
     with pytest.raises(SystemExit):           # told a grid, the table's level of it judges it
         main(run + ["--floor-table", str(csv), "--n-grid", "16", "-o", str(tmp_path / "told")])
     assert seen["contract"].hash == at_resolution(ci, 16).hash
+    # told its own grid, a contract stays itself (the default Vasedeck's substep is not the rule's)
+    vase = load_contract("vasedeck", "default")
+    assert at_resolution(vase, vase.sim.n_grid).sim.dt != vase.sim.dt
+    write_measured(tmp_path / "v.parquet", Measurement(points=rng.normal(scale=0.01, size=(T, M, 3)) + 1.0,
+                                                       frames=np.arange(T), times=None, particle=None, track=np.arange(M),
+                                                       meta={"object": "vasedeck", "probe": "standard_x"}, source="test"))
+    with pytest.raises(SystemExit):
+        main(["discrepancy", "run", "--object", "vasedeck", "--profile", "default", "--measured", str(tmp_path / "v.parquet"),
+              "--quiet", "--n-grid", str(vase.sim.n_grid), "-o", str(tmp_path / "own")])
+    assert seen["contract"].hash == vase.hash
     capsys.readouterr()
     code = main(run + ["--floor-table", str(csv), "--n-grid", "20", "-o", str(tmp_path / "out_20")])
     err = capsys.readouterr().err.strip()
