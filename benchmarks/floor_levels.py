@@ -4,7 +4,7 @@ machine's CPU. Writes the table as CSV and Markdown under ``--out``.
 
     python3 benchmarks/floor_levels.py --object pillow --profile config --volumes enclosed \
         --levels 32 48 64 96 128 --fem-n-grid 48 --fem-check-n-grid 32 --device cuda:0 --out floor_out \
-        --reference-cache floor_fem
+        --reference-cache floor_fem --fem-body level_set
 
 ``--volumes``: the particles' rest-volume rule (``fill.volumes`` of the contract: cell_share,
 enclosed, wall; the contract's own when left out); ``--solid``: the closed surface's inside
@@ -43,6 +43,8 @@ def main() -> None:
     ap.add_argument("--fem-n-grid", type=int, required=True)
     ap.add_argument("--fem-check-n-grid", type=int, required=True)
     ap.add_argument("--fit-steps", type=int, default=None)
+    ap.add_argument("--fem-body", default=None, choices=("voxel", "level_set"),
+                    help="the reference's body (the profile's floor block's when left out)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--reference-cache", type=Path, default=None)
@@ -57,6 +59,8 @@ def main() -> None:
     changes = {"n_grid": tuple(args.levels), "fem_n_grid": args.fem_n_grid, "fem_check_n_grid": args.fem_check_n_grid}
     if args.fit_steps is not None:
         changes["fit_steps"] = args.fit_steps
+    if args.fem_body is not None:
+        changes["fem_body"] = args.fem_body
     settings = dataclasses.replace(settings, **changes)
     contract = load_contract(args.object, profile)
     contract = with_body(contract, volumes=args.volumes, solid=args.solid)
@@ -69,7 +73,7 @@ def main() -> None:
     table = floor_study(contract, settings, device=args.device, log=lambda m: print(m, flush=True),
                         reference_cache=args.reference_cache)
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = f"floor_{args.object}_{contract.fill.volumes}{'_solid' if args.solid else ''}"
+    stem = f"floor_{args.object}_{contract.fill.volumes}{'_solid' if args.solid else ''}_{settings.fem_body}"
     write_text(args.out / f"{stem}.csv", table.to_csv(index=False))  # atomic: a stopped run leaves the old file
     write_text(args.out / f"{stem}.md", floor_note(table, contract, settings))
     print(f"{stem}: {time.perf_counter() - t0:.0f} s on {args.device}")

@@ -8,9 +8,9 @@ deviations, unit wxyz quaternions, opacities in (0, 1)); positions of
 extent 1 and centre (1, 1, 1); Gaussian-associated particles come first, fill after.
 """
 
-from ._build import BuiltAsset, build_asset, load_source_gaussians
+from ._build import BuiltAsset, body_level_set, build_asset, load_source_gaussians
 from ._figure import asset_figure
-from ._fill import FillGrid, FillResult, body_fraction, density_grid, fill_grid, fill_interior, interior_cells
+from ._fill import FillGrid, FillResult, body_distance, body_fraction, density_grid, fill_grid, fill_interior, interior_cells
 from ._gaussians import SH_C0, GaussianSet, matrix_to_quat, quat_multiply, quat_to_matrix
 from ._particles import ParticleSet, load_particles, save_particles
 from ._ply import SplatFile, SplatRepairs, read_ply, read_splat, write_ply
@@ -51,6 +51,8 @@ __all__ = [
     "FillGrid",
     "fill_grid",
     "body_fraction",
+    "body_distance",
+    "body_level_set",
     "VOLUME_RULES",
     "enclosed_volumes",
     "wall_volumes",

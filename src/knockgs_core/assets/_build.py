@@ -9,7 +9,7 @@ import numpy as np
 
 from knockgs_core.errors import InputError
 
-from ._fill import fill_grid, fill_interior
+from ._fill import body_distance, fill_grid, fill_interior
 from ._gaussians import GaussianSet, _readonly
 from ._particles import ParticleSet
 from ._ply import read_ply
@@ -17,7 +17,7 @@ from ._procedural import make_procedural
 from ._transform import Normalization, preprocess
 from ._volumes import enclosed_volumes, wall_volumes
 
-__all__ = ["BuiltAsset", "build_asset", "load_source_gaussians"]
+__all__ = ["BuiltAsset", "body_level_set", "build_asset", "load_source_gaussians"]
 
 _CACHE: "OrderedDict[str, BuiltAsset]" = OrderedDict()
 _CACHE_SIZE = 4
@@ -158,3 +158,34 @@ def build_asset(contract) -> BuiltAsset:
         while len(_CACHE) > _CACHE_SIZE:
             _CACHE.popitem(last=False)
     return built
+
+
+def body_level_set(contract, *, resolution: int | None = None):
+    """The body that ``contract``'s fill encloses, as a function: points [P, 3] m (normalized
+    domain) -> signed distance [P] m from its surface, positive inside.
+
+    It is :func:`~._fill.body_distance` on the fill grid of the simulated Gaussians (the grid of
+    ``fill.resolution`` cells, or ``resolution``'s: a finer grid gives the same surface more
+    finely), interpolated trilinearly between cell centres (points beyond the grid take its
+    edge's value). Its zero level set bounds the volume the ``enclosed`` rule gives the
+    particles. Needs ``fill.enabled`` (else :class:`~knockgs_core.errors.InputError`)."""
+    from scipy import ndimage
+
+    f = contract.fill
+    if not f.enabled:
+        raise InputError(contract.source, "fill.enabled", "the body's level set is measured on the fill grid: needs true")
+    built = build_asset(contract)
+    sim_gs = built.gaussians.subset(np.asarray(built.particles.gaussian_index))
+    grid = fill_grid(sim_gs, fill_box=f.box, resolution=f.resolution if resolution is None else int(resolution),
+                     density_threshold=f.density_threshold, source=contract.source, field_prefix="fill.")
+    try:
+        dist = body_distance(grid, sim_gs.means)
+    except ValueError as exc:
+        raise InputError(contract.source, "fill", f"no body to bound: {exc}") from None
+    lo, h = np.asarray(grid.lo, np.float64), np.asarray(grid.h, np.float64)
+
+    def distance(points: np.ndarray) -> np.ndarray:
+        q = (np.asarray(points, np.float64) - lo) / h - 0.5
+        return ndimage.map_coordinates(dist, q.T, order=1, mode="nearest")
+
+    return distance

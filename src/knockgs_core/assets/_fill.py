@@ -35,7 +35,8 @@ from knockgs_core.errors import InputError
 
 from ._gaussians import GaussianSet
 
-__all__ = ["FillResult", "FillGrid", "fill_interior", "fill_grid", "density_grid", "interior_cells", "body_fraction"]
+__all__ = ["FillResult", "FillGrid", "fill_interior", "fill_grid", "density_grid", "interior_cells", "body_fraction",
+           "body_distance"]
 
 #: widening of every Gaussian, in cells (standard deviation)
 _SMOOTH_CELLS = 0.5
@@ -159,6 +160,51 @@ def fill_grid(gs: GaussianSet, *, fill_box, resolution: int, density_threshold: 
     return FillGrid(lo, (hi - lo) / n, shell, interior_cells(shell))
 
 
+def _surface_depth(grid: FillGrid, surface_points: np.ndarray):
+    """The border cells' tree (outside cells touching the shell; ``cKDTree`` of their centres)
+    and the surface's depth ``w`` [m] below them: the median depth of ``surface_points`` that lie
+    in shell cells (None where none does). Needs shell and outside cells."""
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    shell = grid.shell
+    border = ~shell & ~grid.interior & ndimage.binary_dilation(shell)
+    tree = cKDTree(grid.centres(np.argwhere(border)))
+    pts = np.asarray(surface_points, np.float64)
+    cells = grid.cell_of(pts)
+    n = shell.shape[0]
+    ok = np.all((cells >= 0) & (cells < n), axis=1)
+    ok[ok] = shell[tuple(cells[ok].T)]
+    if not ok.any():
+        return tree, None
+    return tree, float(np.median(tree.query(pts[ok])[0]))
+
+
+def body_distance(grid: FillGrid, surface_points: np.ndarray) -> np.ndarray:
+    """Signed distance [m] of every cell centre from the surface of the body that
+    :func:`body_fraction` measures, positive inside [n, n, n] float64.
+
+    A centre's depth is its distance to the nearest border cell (an outside cell touching the
+    shell), counted negative outside the shell and the interior; the surface lies at depth
+    ``w`` (:func:`body_fraction`), so the distance is ``depth - w``. Its zero level set is the
+    surface where a shell cell's share is 1/2, so the volume it encloses is the volume the
+    shares sum to, and it is a distance (slope 1) on both sides: a body's level set to mesh
+    (:func:`knockgs_core.fem.level_set_mesh`). Raises ValueError where there is no body to bound
+    (no shell, no outside cell, or no surface point in the shell)."""
+    from scipy import ndimage
+
+    shell, interior = grid.shell, grid.interior
+    outside = ~shell & ~interior
+    if not shell.any() or not outside.any():
+        raise ValueError("the fill grid has no shell between inside and outside cells")
+    tree, w = _surface_depth(grid, surface_points)
+    if w is None:
+        raise ValueError("no surface point lies in a shell cell")
+    border = outside & ndimage.binary_dilation(shell)
+    depth = ndimage.distance_transform_edt(~border, sampling=np.asarray(grid.h, np.float64))
+    return np.where(outside, -depth, depth) - w
+
+
 def body_fraction(grid: FillGrid, surface_points: np.ndarray) -> np.ndarray:
     """Each cell's share of the body enclosed by the surface [n, n, n] float64 in [0, 1].
 
@@ -171,9 +217,6 @@ def body_fraction(grid: FillGrid, surface_points: np.ndarray) -> np.ndarray:
     cells sum to the volume below the surface whatever the band's width (on average over the
     surface's orientations; curvature enters at second order in ``h``). A shell with no
     outside cell (the box is all shell) counts whole."""
-    from scipy import ndimage
-    from scipy.spatial import cKDTree
-
     shell, interior = grid.shell, grid.interior
     frac = interior.astype(np.float64)
     outside = ~shell & ~interior
@@ -182,17 +225,10 @@ def body_fraction(grid: FillGrid, surface_points: np.ndarray) -> np.ndarray:
     if not outside.any():
         frac[shell] = 1.0
         return frac
-    border = outside & ndimage.binary_dilation(shell)               # outside cells touching the shell
-    tree = cKDTree(grid.centres(np.argwhere(border)))
-    pts = np.asarray(surface_points, np.float64)
-    cells = grid.cell_of(pts)
-    n = shell.shape[0]
-    ok = np.all((cells >= 0) & (cells < n), axis=1)
-    ok[ok] = shell[tuple(cells[ok].T)]
-    if not ok.any():
+    tree, w = _surface_depth(grid, surface_points)
+    if w is None:
         frac[shell] = 1.0
         return frac
-    w = float(np.median(tree.query(pts[ok])[0]))
     sc = np.argwhere(shell)
     d = tree.query(grid.centres(sc))[0]
     hm = float(np.prod(grid.h)) ** (1.0 / 3.0)

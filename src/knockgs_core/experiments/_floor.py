@@ -80,7 +80,9 @@ class FloorSettings:
     ``n_grid``: the MPM levels, increasing; ``fem_n_grid``: the grid the reference's body is
     voxelized and meshed on; ``fem_check_n_grid``: the coarser grid of the reference's own
     check (< ``fem_n_grid``); ``fem_degree``: 1 (P1) or 2 (P2) tetrahedra;
-    ``fem_steps_per_frame``: Newmark steps per exported frame; ``record_factor``: the record
+    ``fem_steps_per_frame``: Newmark steps per exported frame; ``fem_body``: the reference's
+    body, ``voxel`` (the occupied cells) or ``level_set`` (the fill's surface, meshed to it:
+    :class:`~knockgs_core.fem.FemWorld`); ``record_factor``: the record
     simulated, in Probe-A records (for the period); ``fit_steps``: Gauss-Newton steps of the
     theta fit (0: no fit); ``fit_step``: the finite-difference step in log theta."""
 
@@ -89,6 +91,7 @@ class FloorSettings:
     fem_check_n_grid: int = 32
     fem_degree: int = 2
     fem_steps_per_frame: int = 2
+    fem_body: str = "voxel"
     record_factor: int = 4
     fit_steps: int = 2
     fit_step: float = 0.05
@@ -100,6 +103,10 @@ class FloorSettings:
         if not (8 <= int(self.fem_check_n_grid) < int(self.fem_n_grid)):
             raise InputError(_SOURCE, "fem_check_n_grid",
                              f"must be >= 8 and below fem_n_grid ({self.fem_n_grid}), got {self.fem_check_n_grid}")
+        from ..fem import BODIES
+
+        if self.fem_body not in BODIES:
+            raise InputError(_SOURCE, "fem_body", f"must be one of {', '.join(BODIES)}, got {self.fem_body!r}")
         if self.fem_degree not in (1, 2):
             raise InputError(_SOURCE, "fem_degree", f"must be 1 or 2, got {self.fem_degree}")
         for name in ("fem_steps_per_frame", "record_factor"):
@@ -333,7 +340,8 @@ def _placeless(contract):
 def _reference_runs(contract, settings: FloorSettings) -> dict:
     """{name: (contract, particles, world)} of the reference and its check: the particle set built
     at ``fem_n_grid`` (at ``fem_check_n_grid``), with the calibration probe's record
-    ``record_factor`` times longer, voxelized on ``fem_n_grid`` (on ``fem_check_n_grid``)."""
+    ``record_factor`` times longer, meshed on ``fem_n_grid`` (on ``fem_check_n_grid``): its
+    voxels, or its fill's surface (``fem_body``)."""
     from ..assets import build_asset
     from ..fem import FemWorld
 
@@ -343,7 +351,8 @@ def _reference_runs(contract, settings: FloorSettings) -> dict:
     for name, n in (("fem (reference)", settings.fem_n_grid), ("fem (check)", settings.fem_check_n_grid)):
         c = at_resolution(contract, n)
         out[name] = (_with_record(c, probe, n_long), build_asset(c).particles,
-                     FemWorld(degree=settings.fem_degree, steps_per_frame=settings.fem_steps_per_frame, n_grid=int(n)))
+                     FemWorld(degree=settings.fem_degree, steps_per_frame=settings.fem_steps_per_frame, n_grid=int(n),
+                              body=settings.fem_body))
     return out
 
 
@@ -367,10 +376,11 @@ def kept_reference_files(contract, settings: FloorSettings = FloorSettings(), *,
 def _fem_key(contract, particles, points, world, theta, probe) -> str:
     """The name of a kept finite-element run (:func:`_fem_run`): 24 hex digits of a SHA-256."""
     from .. import fem as fem_package
+    from ..assets import _fill
 
     h = hashlib.sha256()
-    for source in sorted(Path(fem_package.__file__).parent.rglob("*.py")):
-        h.update(source.read_bytes())
+    for source in [*sorted(Path(fem_package.__file__).parent.rglob("*.py")), Path(_fill.__file__)]:
+        h.update(source.read_bytes())           # the solver, and the fill's surface that a level-set body meshes
     with np.printoptions(threshold=sys.maxsize, precision=17):
         h.update(repr((_placeless(contract), world, tuple(float(t) for t in theta), probe)).encode())
     for a in (particles.positions, particles.volumes, points):
@@ -381,8 +391,8 @@ def _fem_key(contract, particles, points, world, theta, probe) -> str:
 def _fem_run(contract, particles, points, world, theta, probe, *, cache=None) -> dict:
     """One finite-element run of the floor study: the displacement ``u`` [T, M, 3] m of
     ``points`` (the Gaussians' rest positions) from frame 0, the mesh's ``cells``, ``dofs`` and
-    voxel ``volume`` [m^3], ``scale``, the particles' volume over the voxels' (each cell carries
-    its particles' own volume where they have one, module docstring), its ``cost`` [s] and whether
+    meshed body's ``volume`` [m^3], ``scale``, the particles' volume over the body's (a voxel
+    cell carries its particles' own volume where they have one, module docstring), its ``cost`` [s] and whether
     it was read from ``cache`` (a folder, or None). A kept run is named by a SHA-256 of all it
     depends on: the finite-element package's source, the contract (its record's length
     included; not where its files lie, :func:`_placeless`), the world's settings, theta, the
@@ -399,7 +409,8 @@ def _fem_run(contract, particles, points, world, theta, probe, *, cache=None) ->
                         "cached": True}
     t0 = time.perf_counter()
     geo = fem_world_mesh(contract, particles, world=world)
-    scale = float(np.sum(geo["share"])) * geo["dx"] ** 3 / geo["volume"]   # the particles' volume over the voxels'
+    carried = float(np.sum(particles.volumes)) if particles.volumes is not None else len(geo["cells"]) * geo["dx"] ** 3
+    scale = carried / geo["volume"]                  # the particles' volume over the meshed body's
     Y = fem_world_rollout(contract, particles, theta, probe, points, world=world)
     mesh = geo["mesh"]
     run = {"u": Y - Y[0], "n_grid": int(world.n_grid), "cells": len(geo["cells"]),

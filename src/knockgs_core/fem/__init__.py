@@ -25,9 +25,9 @@ from ._elasticity import (
     static_solve,
     support_dofs,
 )
-from ._mesh import Region, box_mesh, mesh_size, tapered_plate_mesh, tensor_mesh
+from ._mesh import Region, box_mesh, level_set_mesh, mesh_size, tapered_plate_mesh, tensor_mesh
 from ._newmark import DIRECT_MAX_DOFS, SOLVERS, ForcePulse, NewmarkResult, RayleighDamping, newmark
-from ._world import FemWorld, fem_world_mesh, fem_world_rollout, fem_world_system, held_dofs
+from ._world import BODIES, FemWorld, fem_world_mesh, fem_world_rollout, fem_world_system, held_dofs
 from ._verification import (
     BLOCK,
     MATERIAL,
@@ -48,6 +48,7 @@ from ._verification import (
 )
 
 __all__ = [
+    "BODIES",
     "FemWorld",
     "fem_world_mesh",
     "fem_world_rollout",
@@ -58,6 +59,7 @@ __all__ = [
     "box_mesh",
     "mesh_size",
     "tapered_plate_mesh",
+    "level_set_mesh",
     "MASS_KINDS",
     "ElasticSystem",
     "assemble_elasticity",

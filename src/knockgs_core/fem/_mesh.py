@@ -11,14 +11,14 @@ y coordinates scaled per x (:func:`tapered_plate_mesh`).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import skfem
 
 from ..errors import InputError
 
-__all__ = ["Region", "tensor_mesh", "box_mesh", "mesh_size", "tapered_plate_mesh"]
+__all__ = ["Region", "tensor_mesh", "box_mesh", "mesh_size", "tapered_plate_mesh", "level_set_mesh"]
 
 Vec3 = tuple[float, float, float]
 
@@ -101,3 +101,112 @@ def tapered_plate_mesh(length: float, root_width: float, tip_width: float, thick
     p = grid.p.copy()
     p[1] *= root_width + (tip_width - root_width) * p[0] / length
     return skfem.MeshTet(p, grid.t)
+
+
+#: The prism's symmetries that bring each of its six vertices to position 0 (bottom triangle
+#: 0 1 2, top 3 4 5, vertical edges 0-3, 1-4, 2-5)
+_PRISM_TURNS = np.array([[0, 1, 2, 3, 4, 5], [1, 2, 0, 4, 5, 3], [2, 0, 1, 5, 3, 4],
+                         [3, 5, 4, 0, 2, 1], [4, 3, 5, 1, 0, 2], [5, 4, 3, 2, 1, 0]])
+
+
+def _split_prisms(g: np.ndarray) -> np.ndarray:
+    """Three tetrahedra [3 K, 4] of each prism of global vertex indices ``g`` [K, 6], cut so that
+    each quadrilateral face's diagonal runs through its smallest index: two prisms (or a prism
+    and a neighbour cut the same way) that share a face cut it alike, so the mesh conforms
+    (Dompierre et al. 1999, "How to subdivide pyramids, prisms and hexahedra into tetrahedra")."""
+    q = np.take_along_axis(g, _PRISM_TURNS[np.argmin(g, axis=1)], axis=1)
+    first = np.minimum(q[:, 1], q[:, 5]) < np.minimum(q[:, 2], q[:, 4])
+    a = np.where(first[:, None], q[:, [0, 1, 2, 5]], q[:, [0, 1, 2, 4]])
+    b = np.where(first[:, None], q[:, [0, 1, 5, 4]], q[:, [0, 4, 2, 5]])
+    c = q[:, [0, 4, 5, 3]]
+    return np.concatenate([a, b, c])
+
+
+def level_set_mesh(distance: Callable[[np.ndarray], np.ndarray], lo: Sequence[float], hi: Sequence[float], h: float,
+                   *, snap: float = 0.3) -> skfem.MeshTet:
+    """Tetrahedral mesh of the body ``{x : distance(x) > 0}`` inside the box ``[lo, hi]`` [m],
+    its boundary following the level set (marching tetrahedra with snapped vertices).
+
+    ``distance``: points [P, 3] m -> [P] signed distance from the body's surface [m], positive
+    inside (a distance, slope about 1, so that its linear interpolation along an edge places
+    the surface to second order in ``h``). The box is cut into cubes of edge at most ``h``, six
+    tetrahedra each (:func:`tensor_mesh`). A vertex closer to the surface than ``snap * h`` is
+    moved onto it (one Newton step along the distance's gradient), so that no cut falls close
+    to a vertex and no element is a sliver; a tetrahedron's vertex moves by less than the
+    tetrahedron's smallest height (``h / sqrt(2)``) even where all four move, for ``snap`` < 0.35,
+    so none turns over.
+    A tetrahedron with every vertex inside or on the surface is kept, one with none inside
+    dropped, and a cut one keeps its inside part: a tetrahedron (one vertex inside) or a prism
+    (two or three), cut into three tetrahedra by :func:`_split_prisms` (a prism with a vertex
+    on the surface loses the tetrahedra it makes flat). The surface meets each cut edge where
+    the distance interpolated along it is zero, at a point shared by every element around the
+    edge, so the mesh conforms."""
+    lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+    n = mesh_size(lo, hi, h)
+    if not 0.0 <= snap < 0.35:
+        raise InputError("fem.level_set_mesh", "snap", f"must lie in [0, 0.35), got {snap!r}")
+    grid = tensor_mesh(*(np.linspace(a, b, k + 1) for a, b, k in zip(lo, hi, n)))
+    p, t = grid.p.copy(), grid.t.T                                # [3, N], [T, 4]
+
+    def field(x):
+        out = np.asarray(distance(np.ascontiguousarray(x.T)), dtype=np.float64)
+        if out.shape != (x.shape[1],) or not np.all(np.isfinite(out)):
+            raise InputError("fem.level_set_mesh", "distance", "must return one finite value a point")
+        return out
+
+    f = field(p)
+    step = float(np.min((hi - lo) / np.asarray(n)))
+    near = np.flatnonzero(np.abs(f) < snap * step)
+    if near.size:                        # onto the surface: x - f grad f / |grad f|^2
+        d = 1e-3 * step
+        grad = np.stack([(field(p[:, near] + d * e[:, None]) - field(p[:, near] - d * e[:, None])) / (2 * d)
+                         for e in np.eye(3)])
+        g2 = np.sum(grad**2, axis=0)
+        ok = g2 > 0.25                   # a distance's slope is 1: a flat spot keeps its vertex
+        move = near[ok]
+        p[:, move] -= f[move] * grad[:, ok] / g2[ok]
+        f[move] = 0.0
+    inside = f >= 0
+    k = inside[t].sum(axis=1)
+    whole = t[k == 4]
+    mixed = (k > 0) & (k < 4)
+    # each cut tetrahedron's vertices, inside ones first (a stable sort keeps the order otherwise)
+    v = np.take_along_axis(t[mixed], np.argsort(~inside[t[mixed]], axis=1, kind="stable"), axis=1)
+    kc = k[mixed]
+    # the surface's points: one on each edge from a vertex inside to one outside, after the grid's
+    pairs = np.concatenate([v[:, [i, j]] for i in range(4) for j in range(i + 1, 4)])
+    pairs = np.sort(pairs[(f[pairs[:, 0]] > 0) != (f[pairs[:, 1]] > 0)], axis=1)
+    pairs = pairs[(f[pairs[:, 0]] != 0) & (f[pairs[:, 1]] != 0)]
+    edges = np.unique(pairs, axis=0).reshape(-1, 2)
+    a, b = edges[:, 0], edges[:, 1]
+    s = f[a] / (f[a] - f[b])
+    new_p = p[:, a] + s * (p[:, b] - p[:, a])
+    n_pts = p.shape[1]
+    key = a.astype(np.int64) * n_pts + b
+
+    def on(i, j):
+        """The surface point on the edge from inside vertices ``i`` to outside ``j`` [K]:
+        ``i`` itself where it lies on the surface."""
+        kk = np.minimum(i, j).astype(np.int64) * n_pts + np.maximum(i, j)
+        pos = np.clip(np.searchsorted(key, kk), 0, max(len(key) - 1, 0))
+        return np.where(f[i] == 0, i, n_pts + pos)
+
+    parts = [whole]
+    one, two, three = v[kc == 1], v[kc == 2], v[kc == 3]
+    if len(one):
+        parts.append(np.stack([one[:, 0], on(one[:, 0], one[:, 1]), on(one[:, 0], one[:, 2]),
+                               on(one[:, 0], one[:, 3])], axis=1))
+    if len(two):                         # inside a, b; the prism (a, ac, ad) - (b, bc, bd)
+        a2, b2, c2, d2 = two.T
+        parts.append(_split_prisms(np.stack([a2, on(a2, c2), on(a2, d2), b2, on(b2, c2), on(b2, d2)], axis=1)))
+    if len(three):                       # inside a, b, c; the prism (a, b, c) - (ad, bd, cd)
+        a3, b3, c3, d3 = three.T
+        parts.append(_split_prisms(np.stack([a3, b3, c3, on(a3, d3), on(b3, d3), on(c3, d3)], axis=1)))
+    tets = np.concatenate(parts)
+    srt = np.sort(tets, axis=1)
+    tets = tets[np.all(srt[:, 1:] != srt[:, :-1], axis=1)]        # the flat ones a surface vertex makes
+    if not len(tets):
+        raise InputError("fem.level_set_mesh", "distance", "no point of the box lies inside the body")
+    pts = np.concatenate([p, new_p], axis=1)
+    used, inv = np.unique(tets, return_inverse=True)
+    return skfem.MeshTet(np.ascontiguousarray(pts[:, used]), np.ascontiguousarray(inv.reshape(tets.shape).T))

@@ -30,10 +30,13 @@ import skfem
 
 from ..errors import InputError
 from ._elasticity import ElasticSystem, assemble_elasticity, interpolate
-from ._mesh import Region
+from ._mesh import Region, level_set_mesh
 from ._newmark import RayleighDamping, newmark
 
-__all__ = ["FemWorld", "fem_world_mesh", "fem_world_rollout", "fem_world_system", "held_dofs"]
+#: the FEM world's bodies (:class:`FemWorld`'s ``body``)
+BODIES = ("voxel", "level_set")
+
+__all__ = ["BODIES", "FemWorld", "fem_world_mesh", "fem_world_rollout", "fem_world_system", "held_dofs"]
 
 
 @dataclass(frozen=True)
@@ -49,7 +52,12 @@ class FemWorld:
     over the particles' extent along z, so the modulus ratio top/bottom is ``exp(slope)``);
     ``n_grid``: the grid the body is voxelized on (cell ``grid_lim / n_grid``); None: the
     contract's own, the MPM's cells. A fixed ``n_grid`` gives a mesh that does not change with
-    the contract's resolution (the floor study, :mod:`knockgs_core.experiments._floor`)."""
+    the contract's resolution (the floor study, :mod:`knockgs_core.experiments._floor`);
+    ``body``: ``voxel``, the grid cells that hold a particle (each carrying its particles' share
+    where they have rest volumes), or ``level_set``, the body the contract's fill encloses
+    (:func:`~knockgs_core.assets.body_level_set`) meshed to its surface
+    (:func:`~._mesh.level_set_mesh`) with cubes of that cell: a mesh whose boundary converges
+    at second order in the cell, where the voxels' staircase converges at first."""
 
     degree: int = 2
     steps_per_frame: int = 2
@@ -58,8 +66,11 @@ class FemWorld:
     gravity: float = 0.0
     stiffness_slope: float = 0.0
     n_grid: int | None = None
+    body: str = "voxel"
 
     def __post_init__(self):
+        if self.body not in BODIES:
+            raise InputError("FemWorld", "body", f"must be one of {', '.join(BODIES)}, got {self.body!r}")
         if self.degree not in (1, 2):
             raise InputError("FemWorld", "degree", f"must be 1 or 2, got {self.degree!r}")
         if int(self.steps_per_frame) < 1:
@@ -85,10 +96,19 @@ def fem_world_mesh(contract, particles, *, world: FemWorld = FemWorld()) -> dict
     (scikit-fem MeshTet), ``dx`` [m], ``cells`` [K, 3] occupied cell indices, ``counts`` [K]
     particles per cell, ``volume`` [m^3] (= K dx^3, the MPM's on its own grid), ``share`` [K]
     each cell's share of the body: its particles' rest volume over dx^3, or 1 where the
-    particles carry none (module docstring)."""
+    particles carry none (module docstring). For ``world.body == "level_set"`` the mesh
+    follows the fill's surface, ``volume`` is the mesh's and ``share`` is 1 (the material is
+    whole wherever the mesh is)."""
     dx = contract.sim.grid_lim / (contract.sim.n_grid if world.n_grid is None else int(world.n_grid))
     cells, counts = _cells(particles.positions, dx)
     share = np.ones(len(cells))
+    if world.body == "level_set":
+        from ..assets import body_level_set
+
+        pos = np.asarray(particles.positions, dtype=np.float64)
+        lo, hi = (np.floor(pos.min(axis=0) / dx) - 2) * dx, (np.ceil(pos.max(axis=0) / dx) + 2) * dx   # on the grid's planes
+        mesh = level_set_mesh(body_level_set(contract), lo, hi, dx)
+        return {"mesh": mesh, "dx": dx, "cells": cells, "counts": counts, "volume": _mesh_volume(mesh), "share": share}
     if particles.volumes is not None:
         idx = np.floor(np.asarray(particles.positions, dtype=np.float64) / dx).astype(np.int64)
         _, inverse = np.unique(idx, axis=0, return_inverse=True)      # the order of ``cells``
@@ -106,6 +126,13 @@ def fem_world_mesh(contract, particles, *, world: FemWorld = FemWorld()) -> dict
     used, inv = np.unique(t, return_inverse=True)
     mesh = skfem.MeshTet(np.ascontiguousarray(full.p[:, used]), np.ascontiguousarray(inv.reshape(t.shape)))
     return {"mesh": mesh, "dx": dx, "cells": cells, "counts": counts, "volume": float(len(cells) * dx**3), "share": share}
+
+
+def _mesh_volume(mesh: skfem.MeshTet) -> float:
+    """The volume [m^3] of a tetrahedral mesh."""
+    corners = mesh.p[:, mesh.t]                                      # [3, 4, n_tet]
+    edges = np.transpose(corners[:, 1:] - corners[:, :1], (2, 0, 1))
+    return float(np.abs(np.linalg.det(edges)).sum() / 6.0)
 
 
 def _cell_field(cells: np.ndarray, values: np.ndarray, dx: float):
@@ -129,7 +156,8 @@ def fem_world_system(contract, particles, theta, *, world: FemWorld = FemWorld()
     by ``world.stiffness_slope``. Returns (the :class:`ElasticSystem`, the mesh's dict)."""
     m = contract.materials["base"]
     geo = fem_world_mesh(contract, particles, world=world)
-    share = None if particles.volumes is None else _cell_field(geo["cells"], geo["share"], geo["dx"])
+    uniform = particles.volumes is None or world.body == "level_set"
+    share = None if uniform else _cell_field(geo["cells"], geo["share"], geo["dx"])
     field = share
     if world.stiffness_slope:
         from ..sim import StiffnessGradient
@@ -177,6 +205,35 @@ def _probe_load(system: ElasticSystem, cells: np.ndarray, counts: np.ndarray, dx
     return load.assemble(system.basis)
 
 
+def _into_mesh(mesh: skfem.MeshTet, points: np.ndarray, *, candidates: int = 16) -> np.ndarray:
+    """``points`` [P, 3] moved into ``mesh`` where they lie outside it: onto the closest point
+    of one of the ``candidates`` elements whose centroids are nearest (each candidate's closest
+    point approximated by clipping the point's barycentric coordinates to the element)."""
+    from scipy.spatial import cKDTree
+
+    from ._elasticity import find_elements
+
+    p = np.asarray(points, dtype=np.float64)
+    out = np.flatnonzero(find_elements(mesh, p) < 0)
+    if not out.size:
+        return p
+    corners = mesh.p[:, mesh.t].transpose(2, 1, 0)                 # [n_tet, 4, 3]
+    k = min(int(candidates), len(corners))
+    _, cand = cKDTree(corners.mean(axis=1)).query(p[out], k=k)
+    cand = cand.reshape(len(out), k)
+    c = corners[cand]                                                # [n_out, k, 4, 3]
+    T = np.stack([c[..., 1, :] - c[..., 0, :], c[..., 2, :] - c[..., 0, :], c[..., 3, :] - c[..., 0, :]], axis=-1)
+    lam = np.linalg.solve(T, (p[out, None, :] - c[..., 0, :])[..., None])[..., 0]
+    bary = np.clip(np.concatenate([1.0 - lam.sum(axis=-1, keepdims=True), lam], axis=-1), 0.0, None)
+    bary /= bary.sum(axis=-1, keepdims=True)
+    q = np.einsum("okv,okvd->okd", bary, c)
+    best = np.argmin(np.linalg.norm(q - p[out, None, :], axis=-1), axis=1)
+    shrink = 1e-9 * (q[np.arange(len(out)), best] - c[np.arange(len(out)), best].mean(axis=1))
+    res = p.copy()
+    res[out] = q[np.arange(len(out)), best] - shrink                # just inside its element
+    return res
+
+
 def _inside(points: np.ndarray, cells: np.ndarray, dx: float) -> np.ndarray:
     """``points`` [P, 3] moved into the voxel body where they lie outside it: onto the closest
     point of the nearest occupied cell."""
@@ -199,7 +256,7 @@ def fem_world_rollout(contract, particles, theta, probe: str, points, *, world: 
     """Positions [T, P, 3] (float64, normalized domain [m]) of material points with rest
     positions ``points`` [P, 3] under ``probe`` at its export frames (T = export.n_frames, frame
     0 = rest), for the object of ``contract`` (one base material at theta = (s_E, s_rho)) on
-    ``particles`` (a :class:`~knockgs_core.assets.ParticleSet`). Points outside the voxel body
+    ``particles`` (a :class:`~knockgs_core.assets.ParticleSet`). Points outside the meshed body
     move with its closest point."""
     if probe not in contract.probes:
         raise InputError(f"object {contract.name}", "probe", f"unknown probe '{probe}'")
@@ -222,6 +279,11 @@ def fem_world_rollout(contract, particles, theta, probe: str, points, *, world: 
     scale = float(contract.probe_reference_particles) / len(particles.positions) if contract.probe_reference_particles else 1.0
     force = np.asarray(pr.force, dtype=np.float64) * scale
     J = _probe_load(system, cells, counts, geo["dx"], force) * pr.duration
+    if world.body == "level_set":
+        # the mesh's surface cuts the particles' cells: the cells' load inside it is scaled to
+        # the particles' total, the contract's impulse
+        inside = _probe_load(system, cells, counts, geo["dx"], np.array([1.0, 0.0, 0.0])).sum()
+        J *= float(counts.sum()) / float(inside)
     free = np.setdiff1d(np.arange(system.n_dofs), fixed)
     v0 = np.zeros(system.n_dofs)
     v0[free] = spla.splu(system.M[free][:, free].tocsc()).solve(J[free])
@@ -230,5 +292,6 @@ def fem_world_rollout(contract, particles, theta, probe: str, points, *, world: 
     res = newmark(system, dt=dt, frame_dt=export.frame_dt, n_frames=export.n_frames, fixed=fixed, v0=v0,
                   damping=damping, gravity=gravity)
     x = np.asarray(points, dtype=np.float64)
-    u = interpolate(system, res.u, _inside(x, geo["cells"], geo["dx"]))
+    inside = _into_mesh(system.mesh, x) if world.body == "level_set" else _inside(x, geo["cells"], geo["dx"])
+    u = interpolate(system, res.u, inside)
     return x[None] + u
