@@ -4,7 +4,8 @@ runs at a resolution whose measured floor is small?
 
 The worlds are the floor study's finite-element reference (``experiments.floor_study``): the
 object's particle set at ``--fem-n-grid`` voxelized on that grid, P2 tetrahedra, Newmark, each
-cell carrying its particles' volume (``knockgs_core.fem.fem_world_rollout``), at a held-out
+cell carrying its particles' volume (``knockgs_core.fem.fem_world_rollout``), or with
+``--fem-body level_set`` the surface its fill encloses meshed to it on that grid, at a held-out
 target's theta, with no effect or a planted Rayleigh damping. They are observed as the
 discrepancy suite's world cases are (``discrepancy._worlds``): tracks without identity of a
 random 60 % of the neighbouring finer profile's Gaussians (at most ``--surface-points`` of
@@ -130,11 +131,12 @@ def _fem_run(job):
     loop_points, surface = _points(contract, args)
     H = contract.probes[contract.roles["calibration"]].export.horizon
     world = FemWorld(degree=int(block["fem_degree"]), steps_per_frame=int(block["fem_steps_per_frame"]),
-                     n_grid=int(args.fem_n_grid))
+                     n_grid=int(args.fem_n_grid), body=args.fem_body)
     if effect != "none":
         world = dataclasses.replace(world, **FEM_EFFECTS[effect][0](strength, H))
     geo = fem_world_mesh(ref, particles, world=world)
-    scale = float(np.sum(geo["share"])) * geo["dx"] ** 3 / geo["volume"]   # the particles' volume over the voxels'
+    carried = float(np.sum(particles.volumes)) if particles.volumes is not None else len(geo["cells"]) * geo["dx"] ** 3
+    scale = carried / geo["volume"]                  # the particles' volume over the meshed body's
     Y = fem_world_rollout(ref, particles, theta, probe, np.concatenate([loop_points, surface]), world=world)
     write_npz(path, Y=Y.astype(np.float32), scale=scale, cost=time.perf_counter() - t0)
     return key, path, time.perf_counter() - t0
@@ -250,6 +252,8 @@ def main() -> None:
     ap.add_argument("--volumes", default=None, choices=("cell_share", "enclosed", "wall"))
     ap.add_argument("--solid", action="store_true", help="fill the closed surface's inside (contract.with_body)")
     ap.add_argument("--fem-n-grid", type=int, required=True)
+    ap.add_argument("--fem-body", default="voxel", choices=("voxel", "level_set"),
+                    help="the worlds' body: the voxels, or the fill's surface meshed (knockgs_core.fem.FemWorld)")
     ap.add_argument("--surface-points", type=int, default=10000)
     ap.add_argument("--worlds", type=Path, required=True, help="folder of the finite-element runs (kept)")
     ap.add_argument("--levels", type=int, nargs="+", default=None)
