@@ -43,6 +43,8 @@ def main() -> None:
     ap.add_argument("--fem-n-grid", type=int, required=True)
     ap.add_argument("--fem-check-n-grid", type=int, required=True)
     ap.add_argument("--fit-steps", type=int, default=None)
+    ap.add_argument("--body-resolution", type=int, default=None,
+                    help="the fill grid a level-set body is measured on (the floor block's when left out)")
     ap.add_argument("--fem-body", default=None, choices=("voxel", "level_set"),
                     help="the reference's body (the profile's floor block's when left out)")
     ap.add_argument("--device", default="cpu")
@@ -61,6 +63,8 @@ def main() -> None:
         changes["fit_steps"] = args.fit_steps
     if args.fem_body is not None:
         changes["fem_body"] = args.fem_body
+    if args.body_resolution is not None:
+        changes["fem_body_resolution"] = args.body_resolution
     settings = dataclasses.replace(settings, **changes)
     contract = load_contract(args.object, profile)
     contract = with_body(contract, volumes=args.volumes, solid=args.solid)

@@ -55,7 +55,7 @@ def _level(args, n):
 
     settings, body, particles, points, probe = _setup(args)
     world = FemWorld(degree=settings.fem_degree, steps_per_frame=settings.fem_steps_per_frame, n_grid=int(n),
-                     body=args.fem_body)
+                     body=args.fem_body, body_resolution=args.body_resolution, solver=args.solver)
     return _fem_run(body, particles, points, world, (1.0, 1.0), probe, cache=args.cache)
 
 
@@ -71,6 +71,10 @@ def main() -> None:
     ap.add_argument("--body-n-grid", type=int, required=True)
     ap.add_argument("--levels", type=int, nargs="+", required=True, help="mesh grids, increasing")
     ap.add_argument("--fem-body", default="level_set", choices=("voxel", "level_set"))
+    ap.add_argument("--solver", default="auto", choices=("auto", "direct", "cg"),
+                    help="Newmark's linear solver (direct: a factorization at every size, memory allowing)")
+    ap.add_argument("--body-resolution", type=int, default=None,
+                    help="the fill grid the level-set body is measured on (default: the construction's fill)")
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--cache", type=Path, default=None)
     ap.add_argument("--out", type=Path, required=True)
@@ -106,7 +110,7 @@ def main() -> None:
     import pandas as pd
 
     table = pd.DataFrame(rows)
-    stem = f"reference_{args.object}_{args.fem_body}"
+    stem = f"reference_{args.object}_{args.fem_body}" + (f"_b{args.body_resolution}" if args.body_resolution else "")
     args.out.mkdir(parents=True, exist_ok=True)
     write_text(args.out / f"{stem}.csv", table.to_csv(index=False))
     note = (f"{args.object} ({args.profile}{', solid' if args.solid else ''}), body built at n_grid {args.body_n_grid}, "

@@ -298,7 +298,7 @@ def test_a_level_set_mesh_conforms_and_encloses_a_sphere_at_second_order():
     boundary facet lies on the sphere to second order (its vertices are surface points), every
     inner facet has two elements (the mesh conforms), no element is a sliver, and the volume
     converges at second order (measured: -11.0 %, -3.2 %, -0.80 %, orders 1.8 and 2.0; a voxel staircase converges
-    at first)."""
+    at first). A plane given to it (a support box's face) becomes a face of the mesh."""
     errors = []
     for h in (0.2, 0.1, 0.05):
         mesh = level_set_mesh(_sphere(0.4), (-0.5, -0.5, -0.5), (0.5, 0.5, 0.5), h)
@@ -313,6 +313,13 @@ def test_a_level_set_mesh_conforms_and_encloses_a_sphere_at_second_order():
         assert edge < 2 * h
     order = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
     assert np.all(order > 1.7), (errors, order)
+    # a plane off the grid (a support box's face): the mesh has a face there, no element crosses it
+    mesh = level_set_mesh(_sphere(0.4), (-0.5, -0.5, -0.5), (0.5, 0.5, 0.5), 0.1, planes=[(2, 0.137), (0, -0.261)])
+    for axis, c in ((2, 0.137), (0, -0.261)):
+        x = mesh.p[axis, mesh.t]
+        assert np.all((x.max(axis=0) <= c + 1e-12) | (x.min(axis=0) >= c - 1e-12))
+        assert np.isclose(mesh.p[axis], c).sum() > 20
+    assert _volume(mesh) / (4 / 3 * math.pi * 0.4**3) - 1 == pytest.approx(errors[1], abs=0.01)
 
 
 def test_a_free_sphere_meshed_to_its_level_set_rings_at_lambs_torsional_frequency():

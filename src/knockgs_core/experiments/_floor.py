@@ -82,7 +82,9 @@ class FloorSettings:
     check (< ``fem_n_grid``); ``fem_degree``: 1 (P1) or 2 (P2) tetrahedra;
     ``fem_steps_per_frame``: Newmark steps per exported frame; ``fem_body``: the reference's
     body, ``voxel`` (the occupied cells) or ``level_set`` (the fill's surface, meshed to it:
-    :class:`~knockgs_core.fem.FemWorld`); ``record_factor``: the record
+    :class:`~knockgs_core.fem.FemWorld`); ``fem_body_resolution``: the fill grid a
+    ``level_set`` body is measured on (None: each construction's own fill; a fixed, fine grid
+    gives the reference and its check one body); ``record_factor``: the record
     simulated, in Probe-A records (for the period); ``fit_steps``: Gauss-Newton steps of the
     theta fit (0: no fit); ``fit_step``: the finite-difference step in log theta."""
 
@@ -92,6 +94,7 @@ class FloorSettings:
     fem_degree: int = 2
     fem_steps_per_frame: int = 2
     fem_body: str = "voxel"
+    fem_body_resolution: int | None = None
     record_factor: int = 4
     fit_steps: int = 2
     fit_step: float = 0.05
@@ -352,7 +355,7 @@ def _reference_runs(contract, settings: FloorSettings) -> dict:
         c = at_resolution(contract, n)
         out[name] = (_with_record(c, probe, n_long), build_asset(c).particles,
                      FemWorld(degree=settings.fem_degree, steps_per_frame=settings.fem_steps_per_frame, n_grid=int(n),
-                              body=settings.fem_body))
+                              body=settings.fem_body, body_resolution=settings.fem_body_resolution))
     return out
 
 

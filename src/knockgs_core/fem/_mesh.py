@@ -123,7 +123,7 @@ def _split_prisms(g: np.ndarray) -> np.ndarray:
 
 
 def level_set_mesh(distance: Callable[[np.ndarray], np.ndarray], lo: Sequence[float], hi: Sequence[float], h: float,
-                   *, snap: float = 0.3) -> skfem.MeshTet:
+                   *, snap: float = 0.3, planes: Sequence[tuple[int, float]] = ()) -> skfem.MeshTet:
     """Tetrahedral mesh of the body ``{x : distance(x) > 0}`` inside the box ``[lo, hi]`` [m],
     its boundary following the level set (marching tetrahedra with snapped vertices).
 
@@ -140,13 +140,26 @@ def level_set_mesh(distance: Callable[[np.ndarray], np.ndarray], lo: Sequence[fl
     (two or three), cut into three tetrahedra by :func:`_split_prisms` (a prism with a vertex
     on the surface loses the tetrahedra it makes flat). The surface meets each cut edge where
     the distance interpolated along it is zero, at a point shared by every element around the
-    edge, so the mesh conforms."""
+    edge, so the mesh conforms. ``planes``: (axis, coordinate [m]) pairs, e.g. a support box's
+    faces: the grid line nearest each is moved onto it (cells of 0.5-1.5 ``h`` beside it) and its
+    vertices are snapped within it, so that the mesh has a face there and what lies on one side
+    of it is meshed exactly."""
     lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
     n = mesh_size(lo, hi, h)
     if not 0.0 <= snap < 0.35:
         raise InputError("fem.level_set_mesh", "snap", f"must lie in [0, 0.35), got {snap!r}")
-    grid = tensor_mesh(*(np.linspace(a, b, k + 1) for a, b, k in zip(lo, hi, n)))
+    axes = [np.linspace(a, b, k + 1) for a, b, k in zip(lo, hi, n)]
+    moved = [set() for _ in range(3)]
+    for axis, coord in planes:
+        a = axes[int(axis)]
+        if a[0] < coord < a[-1]:
+            i = int(np.argmin(np.abs(a - coord)))
+            if i not in moved[int(axis)] and 0 < i < len(a) - 1:
+                a[i] = float(coord)
+                moved[int(axis)].add(i)
+    grid = tensor_mesh(*axes)
     p, t = grid.p.copy(), grid.t.T                                # [3, N], [T, 4]
+    grid_index = [np.searchsorted(axes[k], p[k]).clip(0, len(axes[k]) - 1) for k in range(3)]
 
     def field(x):
         out = np.asarray(distance(np.ascontiguousarray(x.T)), dtype=np.float64)
@@ -161,6 +174,9 @@ def level_set_mesh(distance: Callable[[np.ndarray], np.ndarray], lo: Sequence[fl
         d = 1e-3 * step
         grad = np.stack([(field(p[:, near] + d * e[:, None]) - field(p[:, near] - d * e[:, None])) / (2 * d)
                          for e in np.eye(3)])
+        for axis in range(3):            # a vertex on a moved plane moves within it
+            on_plane = np.isin(np.arange(len(axes[axis])), sorted(moved[axis]))
+            grad[axis, on_plane[grid_index[axis][near]]] = 0.0
         g2 = np.sum(grad**2, axis=0)
         ok = g2 > 0.25                   # a distance's slope is 1: a flat spot keeps its vertex
         move = near[ok]

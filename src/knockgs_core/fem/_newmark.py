@@ -42,8 +42,10 @@ from ._mesh import Region
 __all__ = ["SOLVERS", "DIRECT_MAX_DOFS", "ForcePulse", "RayleighDamping", "NewmarkResult", "newmark"]
 
 SOLVERS = ("auto", "direct", "cg")
-DIRECT_MAX_DOFS = 20_000
-"""``solver="auto"`` factorizes systems up to this many free DOFs and iterates above."""
+DIRECT_MAX_DOFS = 150_000
+"""``solver="auto"`` factorizes systems up to this many free DOFs and iterates above. (The solid
+Vasedeck's level-set body at n_grid 64, 38,721 DOFs of P2 and 242 steps: factorized, 124 s and
+1.6 GB; Jacobi-preconditioned CG, about 7 min.)"""
 CG_RTOL = 1e-12
 CG_MAX_ITER = 2000
 

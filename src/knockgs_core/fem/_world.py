@@ -8,7 +8,11 @@ the volume dx^3, and so is the mass. Where they carry their own (``enclosed``, `
 carries the volume of its particles: its E and rho are scaled by that volume over dx^3 (the
 finite-cell method's share of a cell the body fills in part), so the body's mass and its
 distribution over the cells are the particles', and a surface cell the body half fills is half
-as heavy and half as stiff instead of whole. The still sticky
+as heavy and half as stiff instead of whole. Or (``FemWorld(body="level_set")``) the body is the
+surface the contract's fill encloses (:func:`~knockgs_core.assets.body_level_set`), meshed to
+it on the same grid (:func:`~._mesh.level_set_mesh`): whole material wherever the mesh is, a
+boundary that converges at second order in the cell where the staircase converges at first;
+the probe's load is then scaled to the particles' total, as the cut cells lose part of it. The still sticky
 supports (the contract's ``fixed_cuboid`` boxes) hold the mesh vertices inside them, the grid
 nodes the MPM holds, and what those vertices span (:func:`held_dofs`). The probe
 acts as the MPM's does: the same force on every selected particle, so the force density of a
@@ -31,7 +35,7 @@ import skfem
 from ..errors import InputError
 from ._elasticity import ElasticSystem, assemble_elasticity, interpolate
 from ._mesh import Region, level_set_mesh
-from ._newmark import RayleighDamping, newmark
+from ._newmark import SOLVERS, RayleighDamping, newmark
 
 #: the FEM world's bodies (:class:`FemWorld`'s ``body``)
 BODIES = ("voxel", "level_set")
@@ -57,7 +61,12 @@ class FemWorld:
     where they have rest volumes), or ``level_set``, the body the contract's fill encloses
     (:func:`~knockgs_core.assets.body_level_set`) meshed to its surface
     (:func:`~._mesh.level_set_mesh`) with cubes of that cell: a mesh whose boundary converges
-    at second order in the cell, where the voxels' staircase converges at first."""
+    at second order in the cell, where the voxels' staircase converges at first;
+    ``body_resolution``: the fill grid the level set is measured on (None: the contract's
+    ``fill.resolution``; a fixed, fine one gives one body whatever the particles' construction);
+    ``solver``:
+    Newmark's linear solver (:func:`~._newmark.newmark`: ``auto`` factorizes up to
+    :data:`~._newmark.DIRECT_MAX_DOFS` free DOFs; ``direct`` always, where memory allows)."""
 
     degree: int = 2
     steps_per_frame: int = 2
@@ -67,8 +76,15 @@ class FemWorld:
     stiffness_slope: float = 0.0
     n_grid: int | None = None
     body: str = "voxel"
+    body_resolution: int | None = None
+    solver: str = "auto"
 
     def __post_init__(self):
+        if self.solver not in SOLVERS:
+            raise InputError("FemWorld", "solver", f"must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
+        r = self.body_resolution
+        if r is not None and (isinstance(r, bool) or int(r) != r or not 2 <= r <= 1024):
+            raise InputError("FemWorld", "body_resolution", f"must be an integer in [2, 1024] or None, got {r!r}")
         if self.body not in BODIES:
             raise InputError("FemWorld", "body", f"must be one of {', '.join(BODIES)}, got {self.body!r}")
         if self.degree not in (1, 2):
@@ -107,7 +123,9 @@ def fem_world_mesh(contract, particles, *, world: FemWorld = FemWorld()) -> dict
 
         pos = np.asarray(particles.positions, dtype=np.float64)
         lo, hi = (np.floor(pos.min(axis=0) / dx) - 2) * dx, (np.ceil(pos.max(axis=0) / dx) + 2) * dx   # on the grid's planes
-        mesh = level_set_mesh(body_level_set(contract), lo, hi, dx)
+        planes = [(k, float(c)) for box in _support_boxes(contract)
+                  for k in range(3) for c in (box.center[k] - box.half_size[k], box.center[k] + box.half_size[k])]
+        mesh = level_set_mesh(body_level_set(contract, resolution=world.body_resolution), lo, hi, dx, planes=planes)
         return {"mesh": mesh, "dx": dx, "cells": cells, "counts": counts, "volume": _mesh_volume(mesh), "share": share}
     if particles.volumes is not None:
         idx = np.floor(np.asarray(particles.positions, dtype=np.float64) / dx).astype(np.int64)
@@ -126,6 +144,13 @@ def fem_world_mesh(contract, particles, *, world: FemWorld = FemWorld()) -> dict
     used, inv = np.unique(t, return_inverse=True)
     mesh = skfem.MeshTet(np.ascontiguousarray(full.p[:, used]), np.ascontiguousarray(inv.reshape(t.shape)))
     return {"mesh": mesh, "dx": dx, "cells": cells, "counts": counts, "volume": float(len(cells) * dx**3), "share": share}
+
+
+def _support_boxes(contract) -> list:
+    """The boxes of ``contract``'s still sticky supports (``FixedCuboid`` at rest)."""
+    return [bc.box for bc in contract.sim.boundaries
+            if getattr(bc, "box", None) is not None and type(bc).__name__ == "FixedCuboid"
+            and not any(getattr(bc, "velocity", (0, 0, 0)))]
 
 
 def _mesh_volume(mesh: skfem.MeshTet) -> float:
@@ -268,11 +293,7 @@ def fem_world_rollout(contract, particles, theta, probe: str, points, *, world: 
     if pr.start_time != 0.0 or pr.duration >= dt:
         raise InputError(contract.source, f"probes.{probe}", "the FEM world applies a probe shorter than its step at t = 0 only")
     system, geo = fem_world_system(contract, particles, theta, world=world)
-    fixed = []
-    for bc in contract.sim.boundaries:
-        box = getattr(bc, "box", None)
-        if box is not None and type(bc).__name__ == "FixedCuboid" and not any(getattr(bc, "velocity", (0, 0, 0))):
-            fixed.append(held_dofs(system, Region.from_center(box.center, box.half_size)))
+    fixed = [held_dofs(system, Region.from_center(box.center, box.half_size)) for box in _support_boxes(contract)]
     fixed = np.unique(np.concatenate(fixed)) if fixed else np.zeros(0, dtype=np.int64)
     sel = contract.probe_selection(pr, particles.positions)
     cells, counts = _cells(np.asarray(particles.positions)[sel], geo["dx"])
@@ -290,7 +311,7 @@ def fem_world_rollout(contract, particles, theta, probe: str, points, *, world: 
     damping = RayleighDamping(world.rayleigh_alpha, world.rayleigh_beta)
     gravity = (0.0, 0.0, -float(world.gravity)) if world.gravity else None
     res = newmark(system, dt=dt, frame_dt=export.frame_dt, n_frames=export.n_frames, fixed=fixed, v0=v0,
-                  damping=damping, gravity=gravity)
+                  damping=damping, gravity=gravity, solver=world.solver)
     x = np.asarray(points, dtype=np.float64)
     inside = _into_mesh(system.mesh, x) if world.body == "level_set" else _inside(x, geo["cells"], geo["dx"])
     u = interpolate(system, res.u, inside)
