@@ -7,6 +7,7 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import yaml
 
@@ -291,6 +292,27 @@ def test_the_references_check_is_the_same_construction_one_grid_coarser():
     c, _, world = bodies["fem (check)"]
     binned = fem_world_mesh(c, bodies["fem (reference)"][1], world=world)["share"]
     assert np.quantile(binned, 0.95) < 0.9
+
+
+def test_a_level_set_reference_meshes_the_fill_where_there_is_one_and_the_voxels_of_a_shell():
+    """``fem_body: level_set``: an object with an interior fill (the solid ci Vasedeck) gets a
+    reference meshed to the surface its fill encloses, measured on the fill grid the settings
+    name, at both the reference's and the check's grid; a shell without a fill (the ci Vasedeck)
+    keeps its voxels, which are its body (``cell_share``), and the table's note says which."""
+    from knockgs_core.contract import load_contract, with_body
+    from knockgs_core.experiments import floor_note
+    from knockgs_core.experiments._floor import _reference_runs
+
+    settings = FloorSettings(n_grid=(16,), fem_n_grid=24, fem_check_n_grid=16, fem_body="level_set",
+                             fem_body_resolution=48, record_factor=1, fit_steps=0)
+    shell = load_contract("vasedeck", "ci")
+    for contract, body, resolution in ((with_body(shell, solid=True), "level_set", 48), (shell, "voxel", None)):
+        worlds = [world for _, _, world in _reference_runs(contract, settings).values()]
+        assert [(w.body, w.body_resolution) for w in worlds] == [(body, resolution)] * 2
+        table = pd.DataFrame({"model": ["fem (check)"], "rmse_pct": [1.0], "period_error_pct": [0.5]})
+        assert ("meshed to that surface" in floor_note(table, contract, settings)) == (body == "level_set")
+    with pytest.raises(InputError, match="fem_body"):
+        FloorSettings(fem_body="tetrahedra")
 
 
 def test_a_floor_object_the_reference_cannot_hold_is_one_line_at_config_read(tmp_path):

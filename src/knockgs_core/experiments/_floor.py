@@ -351,12 +351,20 @@ def _reference_runs(contract, settings: FloorSettings) -> dict:
     probe = contract.roles["calibration"]
     n_long = (int(contract.probes[probe].export.n_frames) - 1) * int(settings.record_factor) + 1
     out = {}
+    body = reference_body(contract, settings)
     for name, n in (("fem (reference)", settings.fem_n_grid), ("fem (check)", settings.fem_check_n_grid)):
         c = at_resolution(contract, n)
         out[name] = (_with_record(c, probe, n_long), build_asset(c).particles,
                      FemWorld(degree=settings.fem_degree, steps_per_frame=settings.fem_steps_per_frame, n_grid=int(n),
-                              body=settings.fem_body, body_resolution=settings.fem_body_resolution))
+                              body=body, body_resolution=settings.fem_body_resolution if body == "level_set" else None))
     return out
+
+
+def reference_body(contract, settings: FloorSettings) -> str:
+    """The reference's body for ``contract``: ``settings.fem_body``, but ``voxel`` for an object
+    without an interior fill, whose body is the grid cells its Gaussians occupy (``cell_share``:
+    there is no enclosed surface to mesh)."""
+    return settings.fem_body if contract.fill.enabled else "voxel"
 
 
 def kept_reference_files(contract, settings: FloorSettings = FloorSettings(), *, theta=(1.0, 1.0), reference_cache) -> dict:
@@ -434,7 +442,12 @@ def floor_note(table: pd.DataFrame, contract, settings: FloorSettings, *, theta=
     check = table[table.model == "fem (check)"].iloc[0]
     return (f"{contract.name} ({contract.profile} contract), Probe A ({probe}), theta ({theta[0]:g}, {theta[1]:g}). "
             f"MPM levels: grid and fill refined together, dt by the contracts' rule. Reference: the particle set at "
-            f"n_grid {settings.fem_n_grid} voxelized on that grid, P{settings.fem_degree} tetrahedra, Newmark, "
+            f"n_grid {settings.fem_n_grid} "
+            + ("voxelized on that grid" if reference_body(contract, settings) == "voxel" else
+               "(its probe's particles), the body its fill encloses measured on "
+               + (f"a fill grid of {settings.fem_body_resolution}" if settings.fem_body_resolution else "its fill grid")
+               + " and meshed to that surface and to the supports' faces on that grid")
+            + f", P{settings.fem_degree} tetrahedra, Newmark, "
             f"{settings.fem_steps_per_frame} steps per frame; its check (the same construction on n_grid "
             f"{settings.fem_check_n_grid}) is {check.rmse_pct:.1f} % and {check.period_error_pct:+.2f} % (period) from it. "
             f"rmse_pct: trajectory RMSE of the Gaussian particles over the Probe-A record ({pr.export.n_frames} frames), "
@@ -443,9 +456,11 @@ def floor_note(table: pd.DataFrame, contract, settings: FloorSettings, *, theta=
             f"MPM at that level against the reference's Probe-A trajectory (least squares, not the library's local ridge). "
             f"particles: the FEM rows' DOFs. cells_through: median shortest axis run of occupied cells; "
             f"enclosed_empty: empty cells enclosed by occupied ones. Volume rule: fill.volumes {contract.fill.volumes}"
-            + ("." if contract.fill.volumes == "cell_share"
+            + ("." if contract.fill.volumes == "cell_share" or reference_body(contract, settings) == "level_set"
                else " (each FEM cell carries its particles' volume: E and rho x that over dx^3; fem_scale: the body's "
-                    "volume over the voxels')."))
+                    "volume over the voxels').")
+            + (" fem_scale: the particles' volume over the meshed body's." if reference_body(contract, settings) == "level_set"
+               else ""))
 
 
 def plot_floor(table: pd.DataFrame, path, *, title: str = "") -> None:
