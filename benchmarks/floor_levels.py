@@ -33,6 +33,24 @@ from knockgs_core.io import write_text
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def snapped_supports(contract, n: int):
+    """``contract`` with each support box's faces moved to the nearest multiple of
+    ``grid_lim / n``: on a grid plane at every n_grid that ``n`` divides, where the MPM holds the
+    nodes on the face and the finite-element mesh has its face there."""
+    from knockgs_core.sim._config import Box, FixedCuboid
+
+    step = contract.sim.grid_lim / n
+    boundaries = []
+    for bc in contract.sim.boundaries:
+        if isinstance(bc, FixedCuboid):
+            lo = [round((c - h) / step) * step for c, h in zip(bc.box.center, bc.box.half_size)]
+            hi = [round((c + h) / step) * step for c, h in zip(bc.box.center, bc.box.half_size)]
+            box = Box(tuple((a + b) / 2 for a, b in zip(lo, hi)), tuple((b - a) / 2 for a, b in zip(lo, hi)))
+            bc = dataclasses.replace(bc, box=box)
+        boundaries.append(bc)
+    return dataclasses.replace(contract, sim=dataclasses.replace(contract.sim, boundaries=tuple(boundaries)))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--object", default="pillow")
@@ -43,6 +61,9 @@ def main() -> None:
     ap.add_argument("--fem-n-grid", type=int, required=True)
     ap.add_argument("--fem-check-n-grid", type=int, required=True)
     ap.add_argument("--fit-steps", type=int, default=None)
+    ap.add_argument("--snap-supports", type=int, default=None, metavar="N",
+                    help="move each still support box's faces to the nearest multiple of grid_lim / N "
+                         "(onto grid planes of every level whose n_grid N divides)")
     ap.add_argument("--body-resolution", type=int, default=None,
                     help="the fill grid a level-set body is measured on (the floor block's when left out)")
     ap.add_argument("--fem-body", default=None, choices=("voxel", "level_set"),
@@ -68,6 +89,8 @@ def main() -> None:
     settings = dataclasses.replace(settings, **changes)
     contract = load_contract(args.object, profile)
     contract = with_body(contract, volumes=args.volumes, solid=args.solid)
+    if args.snap_supports:
+        contract = snapped_supports(contract, args.snap_supports)
     if args.check_kept:
         kept = kept_reference_files(contract, settings, reference_cache=args.reference_cache)
         for name, (path, there) in kept.items():
@@ -77,7 +100,8 @@ def main() -> None:
     table = floor_study(contract, settings, device=args.device, log=lambda m: print(m, flush=True),
                         reference_cache=args.reference_cache)
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = f"floor_{args.object}_{contract.fill.volumes}{'_solid' if args.solid else ''}_{settings.fem_body}"
+    stem = (f"floor_{args.object}_{contract.fill.volumes}{'_solid' if args.solid else ''}_{settings.fem_body}"
+            + (f"_supports{args.snap_supports}" if args.snap_supports else ""))
     write_text(args.out / f"{stem}.csv", table.to_csv(index=False))  # atomic: a stopped run leaves the old file
     write_text(args.out / f"{stem}.md", floor_note(table, contract, settings))
     print(f"{stem}: {time.perf_counter() - t0:.0f} s on {args.device}")
