@@ -134,7 +134,8 @@ def level_set_mesh(distance: Callable[[np.ndarray], np.ndarray], lo: Sequence[fl
     moved onto it (one Newton step along the distance's gradient), so that no cut falls close
     to a vertex and no element is a sliver; a tetrahedron's vertex moves by less than the
     tetrahedron's smallest height (``h / sqrt(2)``) even where all four move, for ``snap`` < 0.35,
-    so none turns over.
+    so none turns over (on the uniform grid: beside a moved plane, below, a cell may be half as
+    thick, and the bound is not kept there).
     A tetrahedron with every vertex inside or on the surface is kept, one with none inside
     dropped, and a cut one keeps its inside part: a tetrahedron (one vertex inside) or a prism
     (two or three), cut into three tetrahedra by :func:`_split_prisms` (a prism with a vertex
