@@ -14,26 +14,19 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-from floor_levels import snapped_supports
+from _floor_object import add_object_arguments, floor_object
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def main() -> None:
     from knockgs_core.assets import build_asset
-    from knockgs_core.contract import load_contract, with_body
-    from knockgs_core.experiments import FloorSettings, at_resolution
+    from knockgs_core.experiments import at_resolution
     from knockgs_core.experiments._floor import _fem_run, _reference_runs
     from knockgs_core.rollout import run_rollouts
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--object", default="vasedeck")
-    ap.add_argument("--profile", default="config")
-    ap.add_argument("--volumes", default=None, choices=("cell_share", "enclosed", "wall"))
-    ap.add_argument("--solid", action="store_true")
-    ap.add_argument("--snap-supports", type=int, default=None)
+    add_object_arguments(ap, default_object="vasedeck")
     ap.add_argument("--levels", type=int, nargs="+", required=True)
     ap.add_argument("--fem-n-grid", type=int, required=True)
     ap.add_argument("--fem-check-n-grid", type=int, required=True)
@@ -42,14 +35,9 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--reference-cache", type=Path, required=True)
     args = ap.parse_args()
-    profile = {"config": "default"}.get(args.profile, args.profile)
-    block = yaml.safe_load((ROOT / "config" / f"{args.profile}.yaml").read_text())["floor"]
-    s = FloorSettings.from_config({k: v for k, v in block.items() if k not in ("enabled", "objects")})
+    contract, s = floor_object(args)
     s = dataclasses.replace(s, n_grid=tuple(args.levels), fem_n_grid=args.fem_n_grid, fem_check_n_grid=args.fem_check_n_grid,
                             fem_body=args.fem_body, fem_body_resolution=args.body_resolution)
-    contract = with_body(load_contract(args.object, profile), volumes=args.volumes, solid=args.solid)
-    if args.snap_supports:
-        contract = snapped_supports(contract, args.snap_supports)
     gs = build_asset(contract).particles
     points = np.asarray(gs.positions[: gs.n_gs], dtype=np.float64)
     probe = contract.roles["calibration"]

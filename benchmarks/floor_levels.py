@@ -24,46 +24,21 @@ import dataclasses
 import time
 from pathlib import Path
 
-import yaml
 
-from knockgs_core.contract import load_contract, with_body
-from knockgs_core.experiments import FloorSettings, floor_note, floor_study, kept_reference_files
+from knockgs_core.experiments import floor_note, floor_study, kept_reference_files
 from knockgs_core.io import write_text
 
-ROOT = Path(__file__).resolve().parents[1]
+from _floor_object import add_object_arguments, floor_object
 
-
-def snapped_supports(contract, n: int):
-    """``contract`` with each support box's faces moved to the nearest multiple of
-    ``grid_lim / n``: on a grid plane at every n_grid that ``n`` divides, where the MPM holds the
-    nodes on the face and the finite-element mesh has its face there."""
-    from knockgs_core.sim._config import Box, FixedCuboid
-
-    step = contract.sim.grid_lim / n
-    boundaries = []
-    for bc in contract.sim.boundaries:
-        if isinstance(bc, FixedCuboid):
-            lo = [round((c - h) / step) * step for c, h in zip(bc.box.center, bc.box.half_size)]
-            hi = [round((c + h) / step) * step for c, h in zip(bc.box.center, bc.box.half_size)]
-            box = Box(tuple((a + b) / 2 for a, b in zip(lo, hi)), tuple((b - a) / 2 for a, b in zip(lo, hi)))
-            bc = dataclasses.replace(bc, box=box)
-        boundaries.append(bc)
-    return dataclasses.replace(contract, sim=dataclasses.replace(contract.sim, boundaries=tuple(boundaries)))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--object", default="pillow")
-    ap.add_argument("--profile", default="config", help="config file stem: ci, config (default), paper")
-    ap.add_argument("--volumes", default=None, choices=("cell_share", "enclosed", "wall"))
-    ap.add_argument("--solid", action="store_true", help="fill the closed surface's inside (contract.with_body)")
+    add_object_arguments(ap, default_object="pillow")
     ap.add_argument("--levels", type=int, nargs="+", required=True)
     ap.add_argument("--fem-n-grid", type=int, required=True)
     ap.add_argument("--fem-check-n-grid", type=int, required=True)
     ap.add_argument("--fit-steps", type=int, default=None)
-    ap.add_argument("--snap-supports", type=int, default=None, metavar="N",
-                    help="move each still support box's faces to the nearest multiple of grid_lim / N "
-                         "(onto grid planes of every level whose n_grid N divides)")
     ap.add_argument("--body-resolution", type=int, default=None,
                     help="the fill grid a level-set body is measured on (the floor block's when left out)")
     ap.add_argument("--fem-body", default=None, choices=("voxel", "level_set"),
@@ -76,9 +51,7 @@ def main() -> None:
     if args.check_kept and args.reference_cache is None:
         ap.error("--check-kept needs --reference-cache")
 
-    profile = {"config": "default"}.get(args.profile, args.profile)
-    block = yaml.safe_load((ROOT / "config" / f"{args.profile}.yaml").read_text())["floor"]
-    settings = FloorSettings.from_config({k: v for k, v in block.items() if k not in ("enabled", "objects")})
+    contract, settings = floor_object(args)
     changes = {"n_grid": tuple(args.levels), "fem_n_grid": args.fem_n_grid, "fem_check_n_grid": args.fem_check_n_grid}
     if args.fit_steps is not None:
         changes["fit_steps"] = args.fit_steps
@@ -87,10 +60,6 @@ def main() -> None:
     if args.body_resolution is not None:
         changes["fem_body_resolution"] = args.body_resolution
     settings = dataclasses.replace(settings, **changes)
-    contract = load_contract(args.object, profile)
-    contract = with_body(contract, volumes=args.volumes, solid=args.solid)
-    if args.snap_supports:
-        contract = snapped_supports(contract, args.snap_supports)
     if args.check_kept:
         kept = kept_reference_files(contract, settings, reference_cache=args.reference_cache)
         for name, (path, there) in kept.items():

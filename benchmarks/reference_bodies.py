@@ -17,33 +17,25 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
+from _floor_object import add_object_arguments, floor_object
 
 
 def main() -> None:
     from knockgs_core.assets import build_asset
-    from knockgs_core.contract import load_contract, with_body
-    from knockgs_core.experiments import FloorSettings, at_resolution, probe_period
+    from knockgs_core.experiments import at_resolution, probe_period
     from knockgs_core.experiments._floor import _fem_run, _with_record
     from knockgs_core.fem import FemWorld
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--object", default="vasedeck")
-    ap.add_argument("--profile", default="config", help="config file stem: ci, config (default), paper")
-    ap.add_argument("--volumes", default=None, choices=("cell_share", "enclosed", "wall"))
-    ap.add_argument("--solid", action="store_true", help="fill the closed surface's inside (contract.with_body)")
+    add_object_arguments(ap, default_object="vasedeck")
     ap.add_argument("--body-n-grid", type=int, default=64)
     ap.add_argument("--mesh-n-grid", type=int, required=True)
     ap.add_argument("--fills", type=int, nargs="+", required=True,
                     help="fill grids the body is measured on; the last is compared with")
     ap.add_argument("--cache", type=Path, default=None)
     args = ap.parse_args()
-    profile = {"config": "default"}.get(args.profile, args.profile)
-    block = yaml.safe_load((ROOT / "config" / f"{args.profile}.yaml").read_text())["floor"]
-    s = FloorSettings.from_config({k: v for k, v in block.items() if k not in ("enabled", "objects")})
-    base = with_body(load_contract(args.object, profile), volumes=args.volumes, solid=args.solid)
+    base, s = floor_object(args)
     gs = build_asset(base).particles
     points = np.asarray(gs.positions[: gs.n_gs], dtype=np.float64)
     probe = base.roles["calibration"]

@@ -26,21 +26,16 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
+from _floor_object import add_object_arguments, floor_object
 
 
 def _setup(args):
     from knockgs_core.assets import build_asset
-    from knockgs_core.contract import load_contract, with_body
-    from knockgs_core.experiments import FloorSettings, at_resolution
+    from knockgs_core.experiments import at_resolution
     from knockgs_core.experiments._floor import _with_record
 
-    profile = {"config": "default"}.get(args.profile, args.profile)
-    block = yaml.safe_load((ROOT / "config" / f"{args.profile}.yaml").read_text())["floor"]
-    settings = FloorSettings.from_config({k: v for k, v in block.items() if k not in ("enabled", "objects")})
-    contract = with_body(load_contract(args.object, profile), volumes=args.volumes, solid=args.solid)
+    contract, settings = floor_object(args)
     gs = build_asset(contract).particles
     points = np.asarray(gs.positions[: gs.n_gs], dtype=np.float64)
     probe = contract.roles["calibration"]
@@ -64,10 +59,7 @@ def main() -> None:
     from knockgs_core.io import write_text
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--object", default="vasedeck")
-    ap.add_argument("--profile", default="config", help="config file stem: ci, config (default), paper")
-    ap.add_argument("--volumes", default=None, choices=("cell_share", "enclosed", "wall"))
-    ap.add_argument("--solid", action="store_true", help="fill the closed surface's inside (contract.with_body)")
+    add_object_arguments(ap, default_object="vasedeck")
     ap.add_argument("--body-n-grid", type=int, required=True)
     ap.add_argument("--levels", type=int, nargs="+", required=True, help="mesh grids, increasing")
     ap.add_argument("--fem-body", default="level_set", choices=("voxel", "level_set"))
