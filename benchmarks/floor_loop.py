@@ -119,7 +119,7 @@ def _fem_run(job):
     from knockgs_core.assets import build_asset
     from knockgs_core.discrepancy import FEM_EFFECTS
     from knockgs_core.experiments import at_resolution
-    from knockgs_core.fem import FemWorld, fem_world_mesh, fem_world_rollout
+    from knockgs_core.fem import FemWorld, body_scale, fem_world_mesh, fem_world_rollout
 
     args, key, (theta, effect, strength, probe), path = job
     if Path(path).is_file():
@@ -135,10 +135,8 @@ def _fem_run(job):
     if effect != "none":
         world = dataclasses.replace(world, **FEM_EFFECTS[effect][0](strength, H))
     geo = fem_world_mesh(ref, particles, world=world)
-    carried = float(np.sum(particles.volumes)) if particles.volumes is not None else len(geo["cells"]) * geo["dx"] ** 3
-    scale = carried / geo["volume"]                  # the particles' volume over the meshed body's
-    Y = fem_world_rollout(ref, particles, theta, probe, np.concatenate([loop_points, surface]), world=world)
-    write_npz(path, Y=Y.astype(np.float32), scale=scale, cost=time.perf_counter() - t0)
+    Y = fem_world_rollout(ref, particles, theta, probe, np.concatenate([loop_points, surface]), world=world, geo=geo)
+    write_npz(path, Y=Y.astype(np.float32), scale=body_scale(particles, geo), cost=time.perf_counter() - t0)
     return key, path, time.perf_counter() - t0
 
 

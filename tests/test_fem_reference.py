@@ -367,6 +367,37 @@ def test_the_level_set_body_keeps_its_volume_as_the_fill_refines_and_the_enclose
     assert excess[0] > excess[1] > excess[2] > 0 and excess[2] < 0.03, excess
 
 
+def test_a_level_set_world_holds_the_body_inside_its_support_and_moves_the_rest():
+    """The solid ci Vasedeck as a ``level_set`` FEM world on a grid of 16 (P1): the support box's
+    top (z = 0.74, between grid planes) is a face of the mesh, the points inside the box stay put,
+    the particles outside the meshed surface move with it (finite everywhere), and the body
+    responds to the push. Bad settings are one line naming the field."""
+    from knockgs_core.assets import build_asset
+    from knockgs_core.contract import load_contract, with_body
+    from knockgs_core.fem import FemWorld, fem_world_mesh, fem_world_rollout, find_elements
+    from knockgs_core.fem._world import _support_boxes
+
+    contract = with_body(load_contract("vasedeck", "ci"), solid=True)
+    particles = build_asset(contract).particles
+    world = FemWorld(n_grid=16, degree=1, steps_per_frame=1, body="level_set")
+    geo = fem_world_mesh(contract, particles, world=world)
+    (box,) = _support_boxes(contract)
+    top = box.center[2] + box.half_size[2]
+    assert np.isclose(geo["mesh"].p[2], top).sum() > 4                 # the support's face is in the mesh
+    centroids = geo["mesh"].p[:, geo["mesh"].t].mean(axis=1).T
+    x = np.concatenate([np.asarray(particles.positions, np.float64), centroids])   # the particles and the elements
+    Y = fem_world_rollout(contract, particles, (1.0, 1.0), "standard_x", x, world=world, geo=geo)
+    u = np.linalg.norm(Y - Y[0], axis=2)
+    assert np.all(np.isfinite(Y))
+    inside = find_elements(geo["mesh"], x) >= 0                         # (those outside move with its nearest point)
+    held = np.asarray(box.contains(x)) & inside                          # in the 3 cm slab of the foot
+    assert held.sum() > 5 and u[:, held].max() < 1e-6 * u.max()
+    assert u[:, ~held].max() > 0
+    for field, bad in (("body", "tetrahedra"), ("solver", "lu"), ("body_resolution", 1)):
+        with pytest.raises(InputError, match=field):
+            FemWorld(**{field: bad})
+
+
 def test_natural_frequencies_of_a_free_body_start_with_six_rigid_motions():
     s = _beam((6, 2, 2))
     f = natural_frequencies(s, [], n_modes=8)

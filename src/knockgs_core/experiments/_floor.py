@@ -408,7 +408,7 @@ def _fem_run(contract, particles, points, world, theta, probe, *, cache=None) ->
     depends on: the finite-element package's source, the contract (its record's length
     included; not where its files lie, :func:`_placeless`), the world's settings, theta, the
     probe, and the particles and points."""
-    from ..fem import fem_world_mesh, fem_world_rollout
+    from ..fem import body_scale, fem_world_mesh, fem_world_rollout
 
     path = None
     if cache is not None:
@@ -420,13 +420,11 @@ def _fem_run(contract, particles, points, world, theta, probe, *, cache=None) ->
                         "cached": True}
     t0 = time.perf_counter()
     geo = fem_world_mesh(contract, particles, world=world)
-    carried = float(np.sum(particles.volumes)) if particles.volumes is not None else len(geo["cells"]) * geo["dx"] ** 3
-    scale = carried / geo["volume"]                  # the particles' volume over the meshed body's
-    Y = fem_world_rollout(contract, particles, theta, probe, points, world=world)
+    Y = fem_world_rollout(contract, particles, theta, probe, points, world=world, geo=geo)
     mesh = geo["mesh"]
     run = {"u": Y - Y[0], "n_grid": int(world.n_grid), "cells": len(geo["cells"]),
            "dofs": 3 * (len(mesh.p.T) + (len(mesh.edges.T) if world.degree == 2 else 0)),
-           "volume": float(geo["volume"]), "scale": float(scale), "cost": time.perf_counter() - t0, "cached": False}
+           "volume": float(geo["volume"]), "scale": body_scale(particles, geo), "cost": time.perf_counter() - t0, "cached": False}
     if path is not None:
         from ..io import atomic_write
 

@@ -27,7 +27,7 @@ from ._elasticity import (
 )
 from ._mesh import Region, box_mesh, level_set_mesh, mesh_size, tapered_plate_mesh, tensor_mesh
 from ._newmark import DIRECT_MAX_DOFS, SOLVERS, ForcePulse, NewmarkResult, RayleighDamping, newmark
-from ._world import BODIES, FemWorld, fem_world_mesh, fem_world_rollout, fem_world_system, held_dofs
+from ._world import BODIES, FemWorld, body_scale, fem_world_mesh, fem_world_rollout, fem_world_system, held_dofs
 from ._verification import (
     BLOCK,
     MATERIAL,
@@ -50,6 +50,7 @@ from ._verification import (
 __all__ = [
     "BODIES",
     "FemWorld",
+    "body_scale",
     "fem_world_mesh",
     "fem_world_rollout",
     "fem_world_system",

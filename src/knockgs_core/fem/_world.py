@@ -40,7 +40,7 @@ from ._newmark import SOLVERS, RayleighDamping, newmark
 #: the FEM world's bodies (:class:`FemWorld`'s ``body``)
 BODIES = ("voxel", "level_set")
 
-__all__ = ["BODIES", "FemWorld", "fem_world_mesh", "fem_world_rollout", "fem_world_system", "held_dofs"]
+__all__ = ["BODIES", "FemWorld", "body_scale", "fem_world_mesh", "fem_world_rollout", "fem_world_system", "held_dofs"]
 
 
 @dataclass(frozen=True)
@@ -146,6 +146,13 @@ def fem_world_mesh(contract, particles, *, world: FemWorld = FemWorld()) -> dict
     return {"mesh": mesh, "dx": dx, "cells": cells, "counts": counts, "volume": float(len(cells) * dx**3), "share": share}
 
 
+def body_scale(particles, geo: dict) -> float:
+    """The particles' volume over the meshed body's (``geo``: :func:`fem_world_mesh`'s dict): their
+    rest volumes' sum, or the occupied cells' volume where they carry none."""
+    carried = float(np.sum(particles.volumes)) if particles.volumes is not None else len(geo["cells"]) * geo["dx"] ** 3
+    return carried / geo["volume"]
+
+
 def _support_boxes(contract) -> list:
     """The boxes of ``contract``'s still sticky supports (``FixedCuboid`` at rest)."""
     return [bc.box for bc in contract.sim.boundaries
@@ -174,13 +181,15 @@ def _cell_field(cells: np.ndarray, values: np.ndarray, dx: float):
     return field
 
 
-def fem_world_system(contract, particles, theta, *, world: FemWorld = FemWorld()) -> tuple[ElasticSystem, dict]:
+def fem_world_system(contract, particles, theta, *, world: FemWorld = FemWorld(),
+                     geo: dict | None = None) -> tuple[ElasticSystem, dict]:
     """The assembled body of ``particles`` (a :class:`~knockgs_core.assets.ParticleSet`) on its
     voxel mesh (:func:`fem_world_mesh`), of ``contract``'s base material at theta = (s_E, s_rho):
     each cell's E and rho scaled by its share of the body (module docstring), the modulus graded
-    by ``world.stiffness_slope``. Returns (the :class:`ElasticSystem`, the mesh's dict)."""
+    by ``world.stiffness_slope``. ``geo``: the mesh's dict when already built (it is not built
+    again). Returns (the :class:`ElasticSystem`, the mesh's dict)."""
     m = contract.materials["base"]
-    geo = fem_world_mesh(contract, particles, world=world)
+    geo = fem_world_mesh(contract, particles, world=world) if geo is None else geo
     uniform = particles.volumes is None or world.body == "level_set"
     share = None if uniform else _cell_field(geo["cells"], geo["share"], geo["dx"])
     field = share
@@ -277,12 +286,14 @@ def _inside(points: np.ndarray, cells: np.ndarray, dx: float) -> np.ndarray:
     return q
 
 
-def fem_world_rollout(contract, particles, theta, probe: str, points, *, world: FemWorld = FemWorld()) -> np.ndarray:
+def fem_world_rollout(contract, particles, theta, probe: str, points, *, world: FemWorld = FemWorld(),
+                      geo: dict | None = None) -> np.ndarray:
     """Positions [T, P, 3] (float64, normalized domain [m]) of material points with rest
     positions ``points`` [P, 3] under ``probe`` at its export frames (T = export.n_frames, frame
     0 = rest), for the object of ``contract`` (one base material at theta = (s_E, s_rho)) on
     ``particles`` (a :class:`~knockgs_core.assets.ParticleSet`). Points outside the meshed body
-    move with its closest point."""
+    move with its closest point. ``geo``: :func:`fem_world_mesh`'s dict of the same arguments,
+    when the caller has it (the mesh, and a level set's fill grid, are not built again)."""
     if probe not in contract.probes:
         raise InputError(f"object {contract.name}", "probe", f"unknown probe '{probe}'")
     if set(contract.region_names) != {"base"}:
@@ -292,7 +303,7 @@ def fem_world_rollout(contract, particles, theta, probe: str, points, *, world: 
     dt = export.frame_dt / int(world.steps_per_frame)
     if pr.start_time != 0.0 or pr.duration >= dt:
         raise InputError(contract.source, f"probes.{probe}", "the FEM world applies a probe shorter than its step at t = 0 only")
-    system, geo = fem_world_system(contract, particles, theta, world=world)
+    system, geo = fem_world_system(contract, particles, theta, world=world, geo=geo)
     fixed = [held_dofs(system, Region.from_center(box.center, box.half_size)) for box in _support_boxes(contract)]
     fixed = np.unique(np.concatenate(fixed)) if fixed else np.zeros(0, dtype=np.int64)
     sel = contract.probe_selection(pr, particles.positions)
