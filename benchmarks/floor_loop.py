@@ -131,13 +131,20 @@ def _fem_run(job):
     loop_points, surface = _points(contract, args)
     H = contract.probes[contract.roles["calibration"]].export.horizon
     world = FemWorld(degree=int(block["fem_degree"]), steps_per_frame=int(block["fem_steps_per_frame"]),
-                     n_grid=int(args.fem_n_grid), body=args.fem_body)
+                     n_grid=int(args.fem_n_grid), body=args.fem_body,
+                     body_resolution=_body_resolution(args, block) if args.fem_body == "level_set" else None)
     if effect != "none":
         world = dataclasses.replace(world, **FEM_EFFECTS[effect][0](strength, H))
     geo = fem_world_mesh(ref, particles, world=world)
     Y = fem_world_rollout(ref, particles, theta, probe, np.concatenate([loop_points, surface]), world=world, geo=geo)
     write_npz(path, Y=Y.astype(np.float32), scale=body_scale(particles, geo), cost=time.perf_counter() - t0)
     return key, path, time.perf_counter() - t0
+
+
+def _body_resolution(args, block):
+    """The fill grid a level-set body is measured on: ``--body-resolution``, else the profile's
+    floor block's ``fem_body_resolution`` (None: the reference contract's own fill grid)."""
+    return args.body_resolution if args.body_resolution is not None else block.get("fem_body_resolution")
 
 
 def worlds(args) -> None:
@@ -252,6 +259,8 @@ def main() -> None:
     ap.add_argument("--fem-n-grid", type=int, required=True)
     ap.add_argument("--fem-body", default="voxel", choices=("voxel", "level_set"),
                     help="the worlds' body: the voxels, or the fill's surface meshed (knockgs_core.fem.FemWorld)")
+    ap.add_argument("--body-resolution", type=int, default=None,
+                    help="fill grid of a level-set body (default: the profile's floor block's fem_body_resolution)")
     ap.add_argument("--surface-points", type=int, default=10000)
     ap.add_argument("--worlds", type=Path, required=True, help="folder of the finite-element runs (kept)")
     ap.add_argument("--levels", type=int, nargs="+", default=None)

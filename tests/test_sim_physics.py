@@ -238,6 +238,32 @@ def test_a_particle_flung_to_the_int32_limit_is_outside_the_active_box():
     assert dict(zip(cases, out.numpy().tolist())) == cases
 
 
+@pytest.mark.parametrize("center, half, n_grid", [
+    (0.65, 0.09, 100),   # the Vasedeck's support, z: its top (0.74) is node 37, which float32 put outside
+    (0.65, 0.09, 96),    # the same between node planes: nodes 27-35
+    (1.0, 0.7, 100),     # the paper Pillow's support, x: its faces are nodes 15 and 85, float32 held only 85
+    (0.7, 0.14, 100),    # the paper Ficus's pot, z: nodes 28 and 42
+    (1.0, 0.2, 100),     # and x: nodes 40 and 60, float32 held only 60
+])
+def test_a_support_box_holds_the_nodes_on_its_faces_whichever_way_float32_rounds_them(center, half, n_grid):
+    """A sticky support holds the grid nodes in its closed box: node k along an axis iff
+    center - half <= k dx <= center + half in exact arithmetic (dx = 2 / n_grid), so both faces
+    that lie on node planes hold them, as the finite-element reference's support does."""
+    from fractions import Fraction
+
+    from knockgs_core.sim import _kernels as K
+
+    dx = Fraction(2, n_grid)
+    lo, hi = Fraction(str(center)) - Fraction(str(half)), Fraction(str(center)) + Fraction(str(half))
+    expected = [k for k in range(n_grid) if lo <= k * dx <= hi]
+    grid_v = wp.array(np.ones((2, 2, n_grid, 3), dtype=np.float32), dtype=wp.vec3, device="cpu")
+    box_center, box_half = wp.vec3(1.0, 1.0, center), wp.vec3(5.0, 5.0, half)  # the axis under test: z
+    wp.launch(K.grid_bc_cuboid, dim=(1, 1, n_grid), inputs=[wp.vec3i(1, 1, 0), 2.0 / n_grid, box_center, box_half,
+                                                              wp.vec3(0.0), -1.0], outputs=[grid_v], device="cpu")
+    held = [k for k in range(n_grid) if not grid_v.numpy()[1, 1, k].any()]
+    assert held == expected
+
+
 def test_guard_refuses_an_elastically_unstable_dt():
     params = SimParams(n_grid=32, dt=2e-2, boundaries=(DomainWalls(),))
     X = block((0.85, 0.85, 0.85), (1.15, 1.15, 1.15), 1 / 32)
@@ -822,7 +848,7 @@ def test_the_kernels_are_one_warp_module():
     kernels += [K.p2g_windows(SolverConfig.cell_chunk, flip, fixed, records) for flip in (0, 1)
                 for fixed, records in ((False, False), (True, False), (False, True))]
     functions = [f for f in vars(K).values() if isinstance(f, wp.Function)]
-    assert len(kernels) == 23 and len(functions) == 40
+    assert len(kernels) == 23 and len(functions) == 41
     for kernel in kernels:
         assert module.kernels[kernel.key] is kernel, kernel.key
         assert all(o.module is module for o in kernel.overloads.values()), kernel.key

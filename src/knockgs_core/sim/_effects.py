@@ -109,7 +109,7 @@ def grid_support_slip(
     if grid_m[gi, gj, gk] <= 1.0e-15:
         return
     p = wp.vec3(float(gi), float(gj), float(gk)) * dx - center
-    if K.inside_box(p, half_size):
+    if K.node_in_box(p, half_size, dx):
         n = K.nearest_face_normal(p, half_size)
         v = grid_v[gi, gj, gk]
         grid_v[gi, gj, gk] = (v - wp.dot(v, n) * n) * factor

@@ -30,9 +30,9 @@ one cache entry and one load on a device.
 """
 
 from ._g2p import columns_to_mat33, fold_line, g2p, g2p_particle, g2p_prepare, gather_by_lines, gather_by_nodes
-from ._grid import (FIXED_LIMIT, fixed_add, fixed_value, grid_bc_cuboid, grid_bc_walls, grid_update, grid_update_fixed,
-                    grid_update_records, grid_zero, inside_box, nearest_face_normal, updated_node, vec4_atomic_add,
-                    wall_velocity)
+from ._grid import (FACE_TOLERANCE, FIXED_LIMIT, fixed_add, fixed_value, grid_bc_cuboid, grid_bc_walls, grid_update,
+                    grid_update_fixed, grid_update_records, grid_zero, inside_box, nearest_face_normal, node_in_box,
+                    updated_node, vec4_atomic_add, wall_velocity)
 from ._math import (DISPLACEMENT_ARRAY, MATRIX_ARRAYS, bspline_weights, fixed_corotated_kirchhoff, kelvin_voigt_kirchhoff,
                     mat33_at, mat33_from_rows, mat33_put, mat33_to_f32, mat33_to_f64, mat33d_at, mat33d_put,
                     overload_per_layout, polar_rotation, stencil_base, stencil_inside, vec4_head)
@@ -53,7 +53,7 @@ __all__ = [
     # grid
     "grid_zero", "wall_velocity", "updated_node", "grid_update", "FIXED_LIMIT", "fixed_add", "fixed_value",
     "grid_update_fixed", "vec4_atomic_add", "grid_update_records", "grid_bc_walls", "inside_box", "nearest_face_normal",
-    "grid_bc_cuboid",
+    "FACE_TOLERANCE", "node_in_box", "grid_bc_cuboid",
     # particle to grid
     "p2g_terms", "p2g_particle", "p2g", "p2g_store", "p2g_prepare", "p2g_sort_keys", "stencil_offset", "momentum_mass",
     "apic_term", "node_term", "window_run_sum", "window_sums", "window_sums_fixed", "window_runs_before",
