@@ -48,13 +48,12 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import yaml
 
 from knockgs_core.io import write_json, write_npz, write_text
 
+from _floor_object import add_object_arguments, floor_object
 from _world_loop import run_and_score
 
-ROOT = Path(__file__).resolve().parents[1]
 
 #: (case, planted effect, theta, strength): held-out targets of split main; the Rayleigh damping's
 #: rate alpha [1/s] is the one the ci world suite's search found for a 25 % held-out change
@@ -67,15 +66,14 @@ SEED = 2008
 
 
 def _setup(args):
-    from knockgs_core.contract import load_contract, with_body
+    """(the contract ``args`` name, the profile's floor settings with ``--body-resolution``)."""
+    contract, settings = floor_object(args)
+    if args.body_resolution is not None:
+        settings = dataclasses.replace(settings, fem_body_resolution=args.body_resolution)
+    return contract, settings
 
-    profile = {"config": "default"}.get(args.profile, args.profile)
-    contract = with_body(load_contract(args.object, profile), volumes=args.volumes, solid=args.solid)
-    block = yaml.safe_load((ROOT / "config" / f"{args.profile}.yaml").read_text())["floor"]
-    return contract, block
 
-
-def _world_runs(contract, block, args):
+def _world_runs(contract, args):
     """{(case, role): (theta, effect, strength, probe)} of every finite-element run."""
     probes = {"calib": contract.roles["calibration"], "heldout": contract.roles["heldout"][0]}
     runs = {}
@@ -119,20 +117,18 @@ def _fem_run(job):
     from knockgs_core.assets import build_asset
     from knockgs_core.discrepancy import FEM_EFFECTS
     from knockgs_core.experiments import at_resolution
-    from knockgs_core.fem import FemWorld, body_scale, fem_world_mesh, fem_world_rollout
+    from knockgs_core.fem import body_scale, fem_world_mesh, fem_world_rollout
 
     args, key, (theta, effect, strength, probe), path = job
     if Path(path).is_file():
         return key, path, 0.0
     t0 = time.perf_counter()
-    contract, block = _setup(args)
+    contract, settings = _setup(args)
     ref = at_resolution(contract, args.fem_n_grid)
     particles = build_asset(ref).particles
     loop_points, surface = _points(contract, args)
     H = contract.probes[contract.roles["calibration"]].export.horizon
-    world = FemWorld(degree=int(block["fem_degree"]), steps_per_frame=int(block["fem_steps_per_frame"]),
-                     n_grid=int(args.fem_n_grid), body=args.fem_body,
-                     body_resolution=_body_resolution(args, block) if args.fem_body == "level_set" else None)
+    world = settings.world(args.fem_n_grid, body=args.fem_body)
     if effect != "none":
         world = dataclasses.replace(world, **FEM_EFFECTS[effect][0](strength, H))
     geo = fem_world_mesh(ref, particles, world=world)
@@ -141,16 +137,10 @@ def _fem_run(job):
     return key, path, time.perf_counter() - t0
 
 
-def _body_resolution(args, block):
-    """The fill grid a level-set body is measured on: ``--body-resolution``, else the profile's
-    floor block's ``fem_body_resolution`` (None: the reference contract's own fill grid)."""
-    return args.body_resolution if args.body_resolution is not None else block.get("fem_body_resolution")
-
-
 def worlds(args) -> None:
-    contract, block = _setup(args)
+    contract, _ = _setup(args)
     _points(contract, args)  # drawn once, before the runs read them
-    runs = _world_runs(contract, block, args)
+    runs = _world_runs(contract, args)
     jobs = [(args, key, spec, str(args.worlds / f"{key[0]}__{key[1]}.npz")) for key, spec in runs.items()]
     # each finite-element run's sparse solves use the BLAS threads of its share of the cores: with
     # every run taking all of them, six runs at n_grid 64 on 16 cores (load 84) finished none in
@@ -252,10 +242,7 @@ def loop(args) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("phase", choices=("worlds", "loop"))
-    ap.add_argument("--object", default="pillow")
-    ap.add_argument("--profile", default="config", help="config file stem: ci, config (default), paper")
-    ap.add_argument("--volumes", default=None, choices=("cell_share", "enclosed", "wall"))
-    ap.add_argument("--solid", action="store_true", help="fill the closed surface's inside (contract.with_body)")
+    add_object_arguments(ap, default_object="pillow")
     ap.add_argument("--fem-n-grid", type=int, required=True)
     ap.add_argument("--fem-body", default="voxel", choices=("voxel", "level_set"),
                     help="the worlds' body: the voxels, or the fill's surface meshed (knockgs_core.fem.FemWorld)")

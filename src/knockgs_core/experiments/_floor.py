@@ -126,6 +126,15 @@ class FloorSettings:
         names = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in block.items() if k in names})
 
+    def world(self, n_grid: int, *, body: str):
+        """The reference's :class:`~knockgs_core.fem.FemWorld` meshed on ``n_grid`` with
+        ``body`` (:func:`reference_body`): this block's degree and steps a frame, and a
+        ``level_set`` body measured on ``fem_body_resolution``."""
+        from ..fem import FemWorld
+
+        return FemWorld(degree=int(self.fem_degree), steps_per_frame=int(self.fem_steps_per_frame), n_grid=int(n_grid),
+                        body=body, body_resolution=self.fem_body_resolution if body == "level_set" else None)
+
 
 def _with_record(contract, probe: str, n_frames: int):
     """``contract`` with ``probe`` exporting ``n_frames`` frames at its frame interval."""
@@ -346,7 +355,6 @@ def _reference_runs(contract, settings: FloorSettings) -> dict:
     ``record_factor`` times longer, meshed on ``fem_n_grid`` (on ``fem_check_n_grid``): its
     voxels, or its fill's surface (``fem_body``)."""
     from ..assets import build_asset
-    from ..fem import FemWorld
 
     probe = contract.roles["calibration"]
     n_long = (int(contract.probes[probe].export.n_frames) - 1) * int(settings.record_factor) + 1
@@ -354,9 +362,7 @@ def _reference_runs(contract, settings: FloorSettings) -> dict:
     body = reference_body(contract, settings)
     for name, n in (("fem (reference)", settings.fem_n_grid), ("fem (check)", settings.fem_check_n_grid)):
         c = at_resolution(contract, n)
-        out[name] = (_with_record(c, probe, n_long), build_asset(c).particles,
-                     FemWorld(degree=settings.fem_degree, steps_per_frame=settings.fem_steps_per_frame, n_grid=int(n),
-                              body=body, body_resolution=settings.fem_body_resolution if body == "level_set" else None))
+        out[name] = (_with_record(c, probe, n_long), build_asset(c).particles, settings.world(n, body=body))
     return out
 
 
