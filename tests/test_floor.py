@@ -374,6 +374,10 @@ def test_the_loop_runs_at_the_coarsest_level_whose_floor_is_under_half_the_effec
     wide, w = widen_by_floor_bias([[0.5, 1.0], [0.0, float("inf")]], c)
     assert w == pytest.approx([abs(np.log(f)) for f in fit])
     assert wide[0] == pytest.approx([0.5 * np.exp(-w[0]), np.exp(w[0])]) and wide[1] == [0.0, float("inf")]
+    # a run whose fit a model error of the floor's size could bias further is widened by that instead, per coordinate
+    per_response = [0.0, 2.0 * w[1] / (c["rmse_pct"] / 100.0)]
+    _, w2 = widen_by_floor_bias([[0.5, 1.0], [1.0, 2.0]], c, per_response)
+    assert w2 == pytest.approx([w[0], 2.0 * w[1]])
     ci = load_contract("pillow", "ci")
     at24 = at_resolution(ci, 24)
     check_floor_body(c24, at24, build_asset(at24).particles)                     # the table's own body
@@ -448,3 +452,23 @@ def test_a_floor_table_that_is_not_one_is_one_line_naming_its_field(pillow_floor
     assert code == 2 and len(err.splitlines()) == 1 and "n_grid 20" in err and "floor_pillow.csv" in err, err
     assert not any(tmp_path.glob("out_*"))
     assert isinstance(pd.read_csv(csv), pd.DataFrame)     # the table is read, never written
+
+
+def test_a_model_error_of_a_given_norm_biases_theta_at_most_by_the_fits_worst_ratio():
+    """The least-squares theta moves by at most ``sqrt(((A^T A)^-1)_jj)`` per unit norm of a
+    change in the data, and a change in the columns' span reaches it; columns that do not
+    determine theta give no bound."""
+    from knockgs_core.discrepancy._interval import worst_theta_per_misfit
+
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(60, 3)) @ np.array([[1.0, 0.6, 0.2], [0.0, 0.8, 0.1], [0.0, 0.0, 0.5]])  # correlated columns
+    bound = worst_theta_per_misfit(A)
+    moves = [np.abs(np.linalg.lstsq(A, d / np.linalg.norm(d), rcond=None)[0][:2]) for d in rng.normal(size=(400, 60))]
+    assert np.all(np.max(moves, axis=0) <= bound * (1 + 1e-12))
+    G = np.linalg.inv(A.T @ A)
+    for j in range(2):
+        d = A @ G[:, j]                          # the change that moves theta_j most per unit norm
+        x = np.linalg.lstsq(A, d / np.linalg.norm(d), rcond=None)[0]
+        assert abs(x[j]) == pytest.approx(bound[j], rel=1e-10)
+    assert np.all(np.isinf(worst_theta_per_misfit(np.column_stack([A[:, 0], 2 * A[:, 0], A[:, 2]]))))
+

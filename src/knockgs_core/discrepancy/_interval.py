@@ -40,7 +40,7 @@ import math
 
 import numpy as np
 
-__all__ = ["MIN_ORDER", "interval_from_estimates", "theta_per_misfit"]
+__all__ = ["MIN_ORDER", "interval_from_estimates", "theta_per_misfit", "worst_theta_per_misfit"]
 
 #: the smallest observed order of convergence at which three estimates are taken as asymptotic
 MIN_ORDER = 0.5
@@ -68,6 +68,23 @@ def theta_per_misfit(A: np.ndarray, changes) -> tuple[np.ndarray, np.ndarray]:
     norms = np.linalg.norm(shapes, axis=1)
     ratios = [np.abs(x[:2]) / n for x, n in zip(coefs, norms) if n > 0]
     return (np.stack(ratios) if ratios else np.zeros((0, 2))), shapes
+
+
+def worst_theta_per_misfit(A: np.ndarray) -> np.ndarray:
+    """The most a model error can bias each of log s_E and log s_rho per unit of its norm, when
+    the fit's columns are ``A`` [rows, k] (the first two: log s_E, log s_rho): a change ``D`` in
+    the data moves the least-squares coefficients by ``x = (A^T A)^-1 A^T D``, and over every
+    ``D`` of norm 1 the largest ``|x_j|`` is ``sqrt(((A^T A)^-1)_jj)``, reached by the ``D`` in
+    the columns' span that a change of ``x_j`` alone would leave after the others' fit.
+
+    Returns [2] in log theta per m of misfit (``inf`` where the columns do not determine
+    theta)."""
+    A = np.asarray(A, dtype=np.float64)
+    if A.ndim != 2 or A.shape[0] < A.shape[1] or np.linalg.matrix_rank(A) < A.shape[1]:
+        return np.full(2, np.inf)
+    R = np.linalg.qr(A, mode="r")                 # A^T A = R^T R: (A^T A)^-1 = R^-1 R^-T
+    Rinv = np.linalg.solve(R, np.eye(A.shape[1]))
+    return np.sqrt(np.sum(Rinv[:2] ** 2, axis=1))
 
 
 def interval_from_estimates(estimate, sd, *, remaining=None, refined=None, second=None, factor: float = 1.5,

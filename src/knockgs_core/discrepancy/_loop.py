@@ -39,7 +39,7 @@ from ._attribution import AttributionRound, _passes, attribute, within_floor
 from ._catalogue import Candidate, CatalogueContext, default_catalogue, dev_strain_norm
 from ._fitting import Parametrization, Problem, levenberg_marquardt, lm_fit, theta_sensitivities
 from ._forward import ForwardModel, ModelSpec
-from ._interval import interval_from_estimates, theta_per_misfit
+from ._interval import interval_from_estimates, theta_per_misfit, worst_theta_per_misfit
 from ._measured import Measurement
 from ._model_error import ModelError, build_model_error
 from ._settings import LoopSettings
@@ -339,6 +339,8 @@ def _theta_interval(problem: Problem, spec: ModelSpec, me: ModelError | None, se
                                   factor=me.factor if me is not None else 1.5, shows_error=shows_error, floor_share=share)
     out["shows_discretization_error"] = bool(shows_error)
     out["misfit_above_noise"] = excess
+    response = float(np.linalg.norm((problem.Y - problem.Y[0])[1:]))
+    out["theta_per_response_log"] = [float(response * x) for x in worst_theta_per_misfit(A)]
     out["theta_per_misfit"] = None if ratios is None else [[float(x) for x in row] for row in ratios]
     return out
 

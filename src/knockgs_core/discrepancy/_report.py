@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -121,9 +122,12 @@ def _calibration_lines(result: DiscrepancyResult) -> list[str]:
         w = r.get("theta_bias_log")
         if w and any(w):
             fit = r["theta_fit"]
-            L.append(f"- the theta interval below is widened on both sides by this level's calibration bias, the theta "
-                     f"it needs to reproduce the reference (s_E x {fit[0]:.3f}, s_rho x {fit[1]:.3f}): {w[0]:.3g} and "
-                     f"{w[1]:.3g} in log theta")
+            bias = [abs(math.log(f)) if math.isfinite(f) else 0.0 for f in fit]
+            L.append(f"- the theta interval below is widened on both sides by what this level's floor can do to theta: "
+                     f"{w[0]:.3g} and {w[1]:.3g} in log theta, the larger of its calibration bias, the theta it needs to "
+                     f"reproduce the reference (s_E x {fit[0]:.3f}, s_rho x {fit[1]:.3f}: {bias[0]:.3g} and {bias[1]:.3g}), "
+                     f"and the most a model error of the floor's size ({r['rmse_pct']:.1f} % of the response) could bias "
+                     "this fit")
         elif w is not None:
             L.append("- the floor table has no theta fit at this level: the interval carries no calibration bias of it")
         L.append("")

@@ -24,7 +24,8 @@ reference must be finer than the model it judges.
 The table also measures the level's calibration bias: ``s_E_fit``, ``s_rho_fit``, the theta the
 model at that level needs to reproduce the reference made at theta (1, 1). A theta calibrated
 at that level carries a bias of that size, which no statistic of the data shows; the loop's theta
-interval is widened by it on both sides (:func:`widen_by_floor_bias`).
+interval is widened on both sides by it, or by the most a model error of the floor's size could
+bias the run's own fit where that is larger (:func:`widen_by_floor_bias`).
 """
 
 from __future__ import annotations
@@ -151,11 +152,24 @@ def check_floor_body(choice: dict, contract, particles) -> None:
                          "(another particle-volume rule or fill)")
 
 
-def widen_by_floor_bias(interval, choice: dict) -> tuple[list, list]:
-    """``interval`` ([[lo, hi], [lo, hi]] in (s_E, s_rho)) widened on both sides by the chosen
-    level's calibration bias: each bound scaled by ``exp(-+w)`` with ``w = |log theta_fit|``
-    per coordinate (0 where the table has no fit). Returns (the interval, w)."""
+def widen_by_floor_bias(interval, choice: dict, per_response=None) -> tuple[list, list]:
+    """``interval`` ([[lo, hi], [lo, hi]] in (s_E, s_rho)) widened on both sides by what the
+    chosen level's floor can do to theta: each bound scaled by ``exp(-+w)``, per coordinate the
+    larger of
+
+    - the level's calibration bias, ``|log theta_fit|`` (0 where the table has no fit): what
+      the floor did to theta at theta (1, 1);
+    - ``rmse_pct / 100`` times ``per_response`` [2] (the run's
+      ``theta_uncertainty["theta_per_response_log"]``: the most a model error as large as the
+      measured response could bias log theta in the run's own fit; None: not used): what a
+      model error of the floor's size could do to theta at the run's estimate, whatever its
+      shape. A floor above the effects lets an effect of the model's own error be named, and
+      the fit then follows it; the bias at (1, 1) does not bound that.
+
+    Returns (the interval, w)."""
     w = [abs(math.log(f)) if math.isfinite(f) else 0.0 for f in choice["theta_fit"]]
+    if per_response is not None:
+        w = [max(wk, float(choice["rmse_pct"]) / 100.0 * float(x)) for wk, x in zip(w, per_response)]
     return [[float(lo) * math.exp(-wk), float(hi) * math.exp(wk)] for (lo, hi), wk in zip(interval, w)], w
 
 
