@@ -25,6 +25,12 @@ CI = "results/ci"  # every output of a ci-profile run lies under it
 #: has three: each adds a descriptor table, five estimates and their Probe-B rollouts, and no code
 #: path).
 CI_TESTS_OVERRIDES = {"diagnostics": {"splits": []}, "ladder": {"depth_noise": [0.01]}}
+#: The shared run's estimators: the ci profile's six but the k-nearest and the global ridge, each
+#: of which adds five estimates, their evaluation rollouts and renders (about 20 jobs) and no code
+#: path (every method goes through the same estimate, evaluation and render rules; the two are
+#: tested on the authors' Ficus data in tests/test_calibration.py and through the command in
+#: tests/test_cli_calibrate.py).
+CI_TESTS_METHODS = ["fixed_default", "response_nearest", "local_ridge", "parameter_nearest_oracle"]
 #: The small library's runs (:func:`library_run`, the fault and Slurm tests): six candidates a job.
 LIBRARY_RUN_CONFIG = ("--configfile=config/ci_tests.yaml", "--config", "objects=[pillow]")
 #: The shared run's: the same, the library in two jobs of 27 candidates (the ci profile's six a
@@ -46,7 +52,8 @@ CI_RUN_TARGETS = tuple(f"{CI}/{path}" for path in (
 
 def scratch_copy(dest: Path) -> Path:
     """Copy the Snakefile, ``workflow/`` and ``config/`` into ``dest`` (results stay there), and
-    write the shared run's profile ``config/ci_tests.yaml`` there (:data:`CI_TESTS_OVERRIDES`)."""
+    write the shared run's profile ``config/ci_tests.yaml`` there (:data:`CI_TESTS_OVERRIDES`,
+    :data:`CI_TESTS_METHODS`)."""
     dest.mkdir(parents=True, exist_ok=True)
     shutil.copy(ROOT / "Snakefile", dest)
     shutil.copytree(ROOT / "workflow", dest / "workflow")
@@ -54,6 +61,8 @@ def scratch_copy(dest: Path) -> Path:
     ci = yaml.safe_load((dest / "config" / "ci.yaml").read_text())
     for key, value in CI_TESTS_OVERRIDES.items():
         ci[key].update(value)
+    ci["methods"] = list(CI_TESTS_METHODS)
+    ci["method_params"] = {m: p for m, p in ci["method_params"].items() if m in CI_TESTS_METHODS}
     (dest / "config" / "ci_tests.yaml").write_text(yaml.safe_dump(ci, sort_keys=False))
     return dest
 

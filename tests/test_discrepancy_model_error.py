@@ -293,7 +293,11 @@ def test_a_push_that_starts_late_is_not_named_gravity(loop_model):
     from knockgs_core.sim import BodyForcePulse, Box, Gravity
 
     contract, particles = loop_model
-    settings = LoopSettings(catalogue=("damping", "gravity"), model_error_refine=None)
+    # the data come from the loop's own model (no discretization term); the candidates' fits run
+    # 2 LM iterations in the attribution (the pushed case's gravity row must still explain most
+    # of the residual, the planted case's joint fit then finds the value) and 5 in the joint fit
+    settings = LoopSettings(catalogue=("damping", "gravity"), model_error_refine=None, refine_iterations=2,
+                            joint_iterations=5)
     push = BodyForcePulse(accel=0.6, direction=(0.0, 0.0, -1.0), box=Box((1.0, 1.0, 1.0), (1.0, 1.0, 1.0)), start=0.12, end=0.36)
     m, _ = _tracks(contract, particles, (0.8, 1.2), "standard_x", (push,), np.random.default_rng(6))
     res = run_discrepancy(m, contract, particles, settings=settings)
@@ -312,18 +316,33 @@ def test_a_push_that_starts_late_is_not_named_gravity(loop_model):
 
 YIELD_TRUTH = (0.95, 1.35)
 YIELD_CATALOGUE = ("plasticity", "stiffness_gradient_z")
+#: the loops on the yield world: two catalogue terms, the candidates' fits in the attribution at
+#: 2 LM iterations (both loops alike: what differs between them is only the term they are scored with)
+YIELD_SETTINGS = LoopSettings(catalogue=YIELD_CATALOGUE, refine_iterations=2)
 
 
 class _SharedRollouts:
     """Rollouts shared by loops on the same data: ``with shared:`` runs its block with
     :func:`knockgs_core.rollout.run_rollout` answered from every call made under ``shared``
-    before (the same contract and particle objects, theta, probe and options), else simulated
-    and kept. CPU rollouts are the same bit for bit on every run, so a loop run again on the same
-    data with other settings makes every decision it would make alone, and simulates only the
-    models where it departs from the first (``simulated`` of ``calls`` counts them)."""
+    before (a contract of the same hash, particles of the same arrays, the same theta, probe
+    and options), else simulated and kept. CPU rollouts are the same bit for bit on every run,
+    so a loop run again on the same data with other settings makes every decision it would make
+    alone, and simulates only the models where it departs from the first (``simulated`` of
+    ``calls`` counts them): the refined model and the grid placements, which each loop builds
+    anew, are the same contracts on the same particles, and are read too."""
 
     def __init__(self):
         self._done, self.calls, self.simulated = {}, 0, 0
+
+    @staticmethod
+    def _particles_key(particles):
+        import hashlib
+
+        digest = hashlib.sha256()
+        for name in ("positions", "volumes", "gaussian_index", "region"):
+            a = getattr(particles, name)
+            digest.update(b"-" if a is None else np.ascontiguousarray(a).tobytes() + str(np.asarray(a).dtype).encode())
+        return digest.hexdigest(), particles.n_gs, tuple(particles.region_names)
 
     def __enter__(self):
         import knockgs_core.rollout as rollout
@@ -331,13 +350,13 @@ class _SharedRollouts:
         real = rollout.run_rollout
 
         def run_rollout(contract, theta, probe_name, *, particles=None, **options):
-            key = (id(contract), id(particles), tuple(float(t) for t in theta), probe_name,
+            key = (contract.hash, self._particles_key(particles), tuple(float(t) for t in theta), probe_name,
                    pickle.dumps(sorted(options.items())))
             self.calls += 1
-            if key not in self._done:  # the objects are kept with the rollout: their ids stay theirs
+            if key not in self._done:
                 self.simulated += 1
-                self._done[key] = (contract, particles, real(contract, theta, probe_name, particles=particles, **options))
-            return self._done[key][2]
+                self._done[key] = real(contract, theta, probe_name, particles=particles, **options)
+            return self._done[key]
 
         self._patch = pytest.MonkeyPatch()
         self._patch.setattr(rollout, "run_rollout", run_rollout)
@@ -350,8 +369,8 @@ class _SharedRollouts:
 @pytest.fixture(scope="module")
 def yield_world(loop_model):
     """Plasticity in data from the same MPM on a grid twice as fine (one rollout of the world on
-    a grid of 64^3), and the loop on them at its smallest (two catalogue terms, the loop's model
-    at 2 substeps per frame; about 150 rollouts of the model and a few of the refined one):
+    a grid of 64^3), and the loop on them at its smallest (:data:`YIELD_SETTINGS`, the loop's
+    model at 2 substeps per frame; about 120 rollouts of the model and a few of the refined one):
     (measurement, result, the loop's rollouts, shared with the second loop on these data)."""
     from knockgs_core.assets import build_asset
     from knockgs_core.sim import VonMisesPlasticity
@@ -362,7 +381,7 @@ def yield_world(loop_model):
                    (VonMisesPlasticity(yield_stress=80.0),), np.random.default_rng(11))
     shared = _SharedRollouts()
     with shared:
-        res = run_discrepancy(m, contract, particles, settings=LoopSettings(catalogue=YIELD_CATALOGUE))
+        res = run_discrepancy(m, contract, particles, settings=YIELD_SETTINGS)
     return m, res, shared
 
 
@@ -389,15 +408,16 @@ def test_a_yield_in_a_finer_world_is_missed_with_the_theta_only_models_term(loop
     """The same data scored with the term of the theta-only model: the yield explains less of
     the residual beyond the floor and is not added (a stiffness gradient, ahead of it there, may
     be named in its place): what the own term of the test above changes."""
-    # A second whole loop on the same data, about 15 s: every model of the loop's grid that it
-    # simulates, the loop of the fixture has simulated (which differs from it only by the own
-    # terms it adds), so it reads them; only the refined model, which each loop rebuilds, runs again
+    # A second whole loop on the same data: the models that it simulates where it follows the
+    # loop of the fixture (which differs from it only by the own terms it adds), that loop has
+    # simulated, so it reads them (the refined model and the placements too, rebuilt by each
+    # loop: the same contracts on the same particles)
     contract, particles = loop_model
     m, res, shared = yield_world
     row = next(r for r in res.rounds[0]["table"] if r["key"] == "plasticity")
     with shared:
         old = run_discrepancy(m, contract, particles,
-                              settings=LoopSettings(catalogue=YIELD_CATALOGUE, model_error_own_term=False))
+                              settings=dataclasses.replace(YIELD_SETTINGS, model_error_own_term=False))
     assert "plasticity" not in old.identified, old.verdict
     old_row = next(r for r in old.rounds[0]["table"] if r["key"] == "plasticity")
     assert "own_term" not in old_row and old_row["explained_excess"] < row["explained_excess"]

@@ -78,9 +78,10 @@ def test_the_fem_world_delivers_the_contracts_impulse_and_tracks_the_mpm(pillow,
     and its Probe-A response (the null case's clean motion of the loop's Gaussian particles)
     follows the MPM's at the same theta within the discretization gap (12 % measured at ci);
     planted damping and a modulus gradient change it as they should."""
-    # About 15 s, after the shared null case (about 15 s): two FEM rollouts over a third of the
-    # record (each factorizes two sparse systems of about 21,000 DOFs), one MPM rollout and two
-    # assemblies.
+    # About 15 s, after the shared null case (about 30 s: two FEM rollouts on the world's mesh,
+    # each factorizing two sparse systems of about 21,000 DOFs): one assembly on that mesh, one
+    # MPM rollout, three FEM rollouts over a third of the record on a mesh of cells twice as
+    # large and two assemblies there.
     import skfem  # noqa: F401
 
     from knockgs_core.fem import FemWorld, assemble_elasticity, fem_world_mesh, fem_world_rollout
@@ -115,31 +116,40 @@ def test_the_fem_world_delivers_the_contracts_impulse_and_tracks_the_mpm(pillow,
     gap = np.sqrt(((u - v) ** 2).sum(-1).mean() / (v**2).sum(-1).mean())
     assert 0.02 < gap < 0.25
     assert np.sign(u[-1, :, 0].mean()) == np.sign(v[-1, :, 0].mean()) == -1.0
-    # the planted effects over the first third of the record: a rollout's frames do not depend on
-    # how many follow (the null case's first 11 frames, bit for bit), and the effects show there
+    # the planted effects over the first third of the record (a rollout's frames do not depend
+    # on how many follow) and on the world's voxel mesh of cells twice the MPM's (n_grid 16): what
+    # each effect does to the response is the same on any mesh, and each rollout on this one
+    # factorizes systems of an eighth of the DOFs (the world's mesh is the null case's above)
     early = 11
     probe_x = contract.probes["standard_x"]
     short = dataclasses.replace(contract, probes={**contract.probes, "standard_x": dataclasses.replace(
         probe_x, export=dataclasses.replace(probe_x.export, n_frames=early))})
-    u = u[:early]
+    coarse = contract.sim.n_grid // 2
+
+    def rollout(**effects):
+        Y = fem_world_rollout(short, particles, theta, "standard_x", pts, world=FemWorld(n_grid=coarse, **effects))
+        assert len(Y) == early
+        return Y - Y[0]
+
+    u = rollout()
     # mass-proportional Rayleigh damping (C = alpha M) damps every mode of the free motion after
     # the impulse by exp(-alpha t / 2): 0.74 at the end of the third (the damped frequencies
     # move by alpha^2 / 8 omega^2, far below a percent)
     alpha = 3.0
-    Yd = fem_world_rollout(short, particles, theta, "standard_x", pts, world=FemWorld(rayleigh_alpha=alpha))
-    ud = Yd - Yd[0]
+    ud = rollout(rayleigh_alpha=alpha)
     t_end = (early - 1) * probe_x.export.frame_dt
-    assert len(ud) == early
     assert np.abs(ud[-1]).mean() / np.abs(u[-1]).mean() == pytest.approx(math.exp(-alpha * t_end / 2), rel=0.05)
     # a modulus graded along z: slope 0 is the same world (its modulus field is the uniform
     # one, the stiffness matrix unchanged); a softer base moves the body more
     assert FemWorld(stiffness_slope=0.0) == FemWorld()
     z_p = np.asarray(particles.positions, dtype=np.float64)[:, 2]
-    flat = assemble_elasticity(geo["mesh"], E=m.E, nu=m.nu, rho=m.rho, degree=2,
+    mesh = fem_world_mesh(contract, particles, world=FemWorld(n_grid=coarse))["mesh"]
+    uniform = assemble_elasticity(mesh, E=m.E, nu=m.nu, rho=m.rho, degree=2)
+    flat = assemble_elasticity(mesh, E=m.E, nu=m.nu, rho=m.rho, degree=2,
                                stiffness_field=lambda x: StiffnessGradient(slope=0.0, axis=2).factor(x[2], z_p.min(), z_p.max()))
-    assert (flat.K != system.K).nnz == 0
-    Yg = fem_world_rollout(short, particles, theta, "standard_x", pts, world=FemWorld(stiffness_slope=2.0))
-    assert np.sqrt(np.mean((Yg - Yg[0]) ** 2)) > 1.02 * np.sqrt(np.mean(u**2))
+    assert (flat.K != uniform.K).nnz == 0
+    ug = rollout(stiffness_slope=2.0)
+    assert np.sqrt(np.mean(ug**2)) > 1.02 * np.sqrt(np.mean(u**2))
 
 
 @pytest.mark.slow

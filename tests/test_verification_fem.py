@@ -25,6 +25,7 @@ import yaml
 from _workflow import scratch_copy, snakemake
 
 from knockgs_core.errors import InputError
+from knockgs_core.fem import _verification
 from knockgs_core.fem import (
     VerificationSettings,
     block_particles,
@@ -123,7 +124,7 @@ def test_first_mode_period_and_response_gap(rng):
 # ------------------------------------------------------------------------ a GPU's substep against the reference
 
 @pytest.mark.slow
-def test_the_gpus_substep_meets_the_reference_as_the_cpus_does(ci_table):
+def test_the_gpus_substep_meets_the_reference_as_the_cpus_does(ci_table, monkeypatch):
     """The paper profile's GPU substep (GPU_SOLVER_OPTIONS, F - I in float32 component by
     component, the fixed-point sums of `deterministic: true`) replayed on the CPU at the ci
     levels meets the FEM reference as the CPU's substep does. Measured: period gaps +7.434,
@@ -138,7 +139,16 @@ def test_the_gpus_substep_meets_the_reference_as_the_cpus_does(ci_table):
     gpu = dict(solver_options=GPU_SOLVER_OPTIONS, storage=GPU_STORAGE, deterministic=True)
     # the CPU's substep: the ci profile's table, as the workflow made it (the same settings)
     cpu_table = pd.read_csv(ci_table / f"{CI}/tables/verification_fem.csv")
+    # the study's MPM rollouts (the GPU substep's) kept: its finest one is compared below
+    runs = {}
+
+    def kept_rollout(n_grid, settings, **kwargs):
+        runs[n_grid] = run = mpm_block_rollout(n_grid, settings, **kwargs)
+        return run
+
+    monkeypatch.setattr(_verification, "mpm_block_rollout", kept_rollout)
     gpu_table = verification_study(s, device="cpu", **gpu)
+    monkeypatch.undo()
     cpu_mpm, gpu_mpm = (t[t["model"] == "mpm"].reset_index(drop=True) for t in (cpu_table, gpu_table))
     assert (gpu_mpm["period_error_pct"] - cpu_mpm["period_error_pct"]).abs().max() < 0.05
     assert (gpu_mpm["traj_rmse_pct"] - cpu_mpm["traj_rmse_pct"]).abs().max() < 0.2
@@ -148,7 +158,7 @@ def test_the_gpus_substep_meets_the_reference_as_the_cpus_does(ci_table):
     # the trajectories themselves, at the finest level
     n = s.n_grid[-1]
     u_cpu = mpm_block_rollout(n, s, device="cpu")["u"]
-    u_gpu = mpm_block_rollout(n, s, device="cpu", **gpu)["u"]
+    u_gpu = runs[n]["u"]   # the study's: mpm_block_rollout(n, s, device="cpu", **gpu)
     cpu_step = dict(GPU_SOLVER_OPTIONS, polar_step=1.0, polar_update="axis_angle")
     u_cpu_step = mpm_block_rollout(n, s, device="cpu", solver_options=cpu_step, storage=GPU_STORAGE)["u"]
     rms = np.sqrt(np.mean(np.sum(u_cpu**2, axis=-1)))

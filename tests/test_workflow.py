@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from _workflow import CI, CI_RUN_CONFIG, scratch_copy, snakemake
+from _workflow import CI, CI_RUN_CONFIG, CI_TESTS_METHODS, scratch_copy, snakemake
 
 from knockgs_core.audits import audit_completion, audit_duplicates, audit_leakage
 from knockgs_core.calibration import METHOD_NAMES, METHOD_OPTIONS
@@ -21,7 +21,7 @@ from knockgs_core.contract import load_candidates, load_contract, load_targets
 from knockgs_core.rollout import read_rollout
 
 ROOT = Path(__file__).resolve().parents[1]
-METHODS = ["fixed_default", "response_nearest", "response_knn", "global_ridge", "local_ridge", "parameter_nearest_oracle"]
+METHODS = CI_TESTS_METHODS  # the shared run's estimators, in table order
 
 
 def _snakemake(workdir: Path, *targets: str, extra=()):
@@ -95,7 +95,8 @@ def test_ci_audits_pass_and_rerun_is_a_no_op(ci_run):
     leak = json.loads((ci_run / f"{CI}/audits/leakage.json").read_text())
     # the main split's estimates and the passive route's; the Probe-A and the passive libraries;
     # the k x alpha grid's selection
-    assert leak["deployable_estimates_checked"] == 5 + 5 and leak["library_rollouts_checked"] == 2 * 54
+    deployable = [m for m in METHODS if m != "parameter_nearest_oracle"]   # the main and the passive route's
+    assert leak["deployable_estimates_checked"] == 2 * len(deployable) and leak["library_rollouts_checked"] == 2 * 54
     assert leak["sensitivity_grids_checked"] == 1
     dry = snakemake(ci_run, "-n", f"{CI}/tables/main_pillow.csv", *CI_RUN_CONFIG)
     assert dry.returncode == 0 and "Nothing to be done" in dry.stdout + dry.stderr
@@ -265,14 +266,53 @@ def _planned_paths(dry_run_stdout: str) -> list[str]:
     return paths
 
 
+def _planned_jobs(dry_run_stdout: str) -> list[dict]:
+    """The jobs a dry run plans: ``rule`` and the lines under it (``input``, ``output``, ...,
+    ``resources``) as they read."""
+    jobs = []
+    for line in dry_run_stdout.splitlines():
+        words = line.split()
+        if len(words) == 2 and words[0] in ("rule", "localrule", "checkpoint") and words[1].endswith(":"):
+            jobs.append({"rule": words[1][:-1]})
+        elif jobs and line.startswith("    ") and ": " in line:
+            key, _, rest = line.strip().partition(": ")
+            jobs[-1].setdefault(key, rest)
+    return jobs
+
+
+@pytest.fixture(scope="module")
+def dry_run(tmp_path_factory):
+    """``snakemake -n ARGS`` (its CompletedProcess) in one scratch copy of the workflow, each plan
+    made once for the module's tests that read it: the profiles' ``all`` and the paper profile's
+    plan of the Pillow on one card are read by several tests, and each Snakemake start costs a
+    few CPU seconds, a plan read again none. ``dry_run.work``: the scratch copy."""
+    work = scratch_copy(tmp_path_factory.mktemp("plans"))
+    plans = {}
+
+    def plan(*args: str):
+        if args not in plans:
+            plans[args] = snakemake(work, "-n", *args)
+        return plans[args]
+
+    plan.work = work
+    return plan
+
+
+#: the profiles' ``all`` plans (read by several tests): profile -> dry-run arguments
+ALL = {profile: ("all", f"--configfile={cfg}")
+       for cfg, profile in [("config/config.yaml", "default"), ("config/ci.yaml", "ci"), ("config/paper.yaml", "paper")]}
+#: the paper profile's plan of the Pillow's main table on one card (read by several tests)
+PAPER_ONE_CARD = ("--configfile=config/paper.yaml", "--resources", "gpu=1", "--", "results/paper/tables/main_pillow.csv")
+
+
 @pytest.mark.slow
-def test_workflow_lints_and_dry_runs_for_all_profiles(tmp_path):
-    work = scratch_copy(tmp_path)
+def test_workflow_lints_and_dry_runs_for_all_profiles(dry_run):
+    work = dry_run.work
     lint = snakemake(work, "--lint", "--configfile=config/ci.yaml")
     assert lint.returncode == 0 and "good condition" in lint.stdout + lint.stderr, lint.stdout[-3000:]
     planned = {}
-    for cfg, profile in [("config/config.yaml", "default"), ("config/ci.yaml", "ci"), ("config/paper.yaml", "paper")]:
-        out = snakemake(work, "-n", "all", f"--configfile={cfg}")
+    for profile, args in ALL.items():
+        out = dry_run(*args)
         assert out.returncode == 0, out.stderr[-3000:]
         # each profile writes only under its own results/ and logs/ folders: the ci command
         # never overwrites the default run's tables, figures or audits
@@ -382,15 +422,14 @@ def test_boolean_config_values_are_read_as_yaml_writes_them(tmp_path):
     # boolean refused; YAML's true and false are now read as booleans, other words still refused
     work = scratch_copy(tmp_path)
     table = "results/ci/tables/main_pillow.csv"
-    for value in ("true", "false", "True"):
-        out = snakemake(work, "-n", "--configfile=config/ci.yaml", "--config", f"deterministic={value}", "--", table)
-        assert out.returncode == 0, (value, out.stderr[-2000:])
+    # a number where the schema allows a number or a word (alpha: a number or cv) is read as one;
+    # it rides along with the first boolean (one Snakemake start for both)
+    nested = "method_params={local_ridge: {k: 9, alpha: 0.001}}"
+    for value, also in (("true", [nested]), ("false", []), ("True", [])):
+        out = snakemake(work, "-n", "--configfile=config/ci.yaml", "--config", f"deterministic={value}", *also, "--", table)
+        assert out.returncode == 0, (value, also, out.stderr[-2000:])
     bad = snakemake(work, "-n", "--configfile=config/ci.yaml", "--config", "deterministic=maybe", "--", table)
     assert bad.returncode != 0 and "deterministic" in bad.stdout + bad.stderr and "'maybe'" in bad.stdout + bad.stderr
-    # a number where the schema allows a number or a word (alpha: a number or cv) is read as one
-    nested = "method_params={local_ridge: {k: 9, alpha: 0.001}}"
-    out = snakemake(work, "-n", "--configfile=config/ci.yaml", "--config", nested, "--", table)
-    assert out.returncode == 0, out.stderr[-2000:]
     bad = snakemake(work, "-n", "--configfile=config/ci.yaml", "--config", nested.replace("0.001", "much"), "--", table)
     assert bad.returncode != 0 and "method_params.local_ridge.alpha" in bad.stdout + bad.stderr
 
@@ -475,67 +514,74 @@ def _planned(work: Path, *args) -> dict:
 
 
 @pytest.mark.slow
-def test_library_jobs_split_over_the_cards_the_run_may_hold(tmp_path):
+def test_library_jobs_split_over_the_cards_the_run_may_hold(dry_run):
     # library_chunk auto: six candidates a job on the CPU; on a GPU the 54 candidates split
     # evenly over --resources gpu (one job an object on one card); a number is taken as given
-    work = scratch_copy(tmp_path)
     table = "results/{}/tables/main_pillow.csv"
 
-    def library_jobs(config, *args):
-        profile = {"config": "default"}.get(config, config)
-        return _planned(work, f"--configfile=config/{config}.yaml", *args, "--", table.format(profile))["rollout_library"]
+    def library_jobs(*args):
+        """The Pillow's library jobs in the plan of ``snakemake -n ARGS``."""
+        out = dry_run(*args)
+        assert out.returncode == 0, out.stderr[-3000:]
+        return sum(1 for job in _planned_jobs(out.stdout)
+                   if job["rule"] == "rollout_library" and "/rollouts/pillow/lib/chunk" in job["output"])
 
-    assert library_jobs("config") == 9
-    assert library_jobs("paper", "--resources", "gpu=1") == library_jobs("paper") == 1
-    assert library_jobs("paper", "--resources", "gpu=4") == 4  # 14, 14, 14, 12
-    assert library_jobs("paper", "--resources", "gpu=1", "--config", "library_chunk=6") == 9
-    assert library_jobs("config", "--config", "library_chunk=54") == 1
-    bad = snakemake(work, "-n", "--config", "library_chunk=0", "--", table.format("default"))
+    def main_table(config, *args):
+        profile = {"config": "default"}.get(config, config)
+        return library_jobs(f"--configfile=config/{config}.yaml", *args, "--", table.format(profile))
+
+    assert library_jobs(*ALL["default"]) == 9
+    assert library_jobs(*PAPER_ONE_CARD) == library_jobs(*ALL["paper"]) == 1
+    assert main_table("paper", "--resources", "gpu=4") == 4  # 14, 14, 14, 12
+    assert main_table("paper", "--resources", "gpu=1", "--config", "library_chunk=6") == 9
+    assert main_table("config", "--config", "library_chunk=54") == 1
+    bad = dry_run("--config", "library_chunk=0", "--", table.format("default"))
     assert bad.returncode != 0 and "library_chunk" in bad.stdout + bad.stderr
 
 
-def _planned_runtimes(work: Path, *args) -> dict:
-    """The time limit [min] (``runtime``) of each rule's planned jobs in a dry run: rule -> set."""
-    out = snakemake(work, "-n", *args)
+def _planned_runtimes(out) -> dict:
+    """The time limit [min] (``runtime``) of each rule's planned jobs in a dry run (its
+    CompletedProcess): rule -> set."""
     assert out.returncode == 0, out.stderr[-3000:]
-    runtimes, rule = {}, None
-    for line in out.stdout.splitlines():
-        line = line.strip()
-        if line.startswith(("rule ", "localrule ")) and line.endswith(":"):
-            rule = line.split()[1].rstrip(":")
-        elif line.startswith("resources:") and rule:
-            fields = dict(f.strip().split("=", 1) for f in line.partition(":")[2].split(","))
-            if "runtime" in fields:
-                runtimes.setdefault(rule, set()).add(int(fields["runtime"]))
+    runtimes = {}
+    for job in _planned_jobs(out.stdout):
+        fields = dict(f.strip().split("=", 1) for f in job.get("resources", "").split(",") if "=" in f)
+        if "runtime" in fields:
+            runtimes.setdefault(job["rule"], set()).add(int(fields["runtime"]))
     return runtimes
 
 
 @pytest.mark.slow
-def test_rollout_jobs_ask_for_the_time_their_device_needs(tmp_path):
+def test_rollout_jobs_ask_for_the_time_their_device_needs(dry_run):
     # a Slurm job's time limit: an hour a paper-scale rollout on the CPU, 20 minutes at the
     # smaller profiles, a minute a rollout plus ten a job on a GPU (one job of 54 candidates a card)
-    work = scratch_copy(tmp_path)
-    paper = ["--configfile=config/paper.yaml", "--resources", "gpu=1"]
-    gpu = _planned_runtimes(work, *paper, "--", "results/paper/tables/main_pillow.csv")
+    gpu = _planned_runtimes(dry_run(*PAPER_ONE_CARD))
     assert gpu["rollout_library"] == {10 + 54}
     assert gpu["rollout_eval"] <= {10 + 2, 10 + 3} and gpu["rollout_eval"]
-    cpu = _planned_runtimes(work, *paper, "--config", "device=cpu", "--", "results/paper/tables/main_pillow.csv")
+    cpu = _planned_runtimes(dry_run("--configfile=config/paper.yaml", "--resources", "gpu=1", "--config", "device=cpu",
+                                    "--", "results/paper/tables/main_pillow.csv"))
     assert cpu["rollout_library"] == {60 * 6} and cpu["rollout_eval"] <= {60 * 2, 60 * 3}
-    default = _planned_runtimes(work, "--", "results/default/tables/main_pillow.csv")
+    default = _planned_runtimes(dry_run(*ALL["default"]))  # every object's library jobs
     assert default["rollout_library"] == {20 * 6}
 
 
 @pytest.mark.slow
-def test_discrepancy_cases_run_at_their_configured_resolution(tmp_path):
+def test_discrepancy_cases_run_at_their_configured_resolution(dry_run):
     # default profile, cases at the ci resolution: their own asset and library, not the profile's
-    work = scratch_copy(tmp_path)
-    table = "results/default/tables/discrepancy.csv"
-    own = _planned(work, "--", table)
-    assert own.get("discrepancy_asset") == 1 and own.get("discrepancy_library") == 9 and "rollout_library" not in own
+    out = dry_run(*ALL["default"])  # `all` holds the discrepancy table
+    assert out.returncode == 0, out.stderr[-3000:]
+    jobs = [job for job in _planned_jobs(out.stdout) if job["rule"].startswith("discrepancy_")]
+    own = {rule: sum(1 for job in jobs if job["rule"] == rule) for rule in {job["rule"] for job in jobs}}
+    assert own.get("discrepancy_asset") == 1 and own.get("discrepancy_library") == 9
     assert own.get("discrepancy_run") == own.get("discrepancy_case") > 0
-    shared = _planned(work, "--config", "discrepancy={resolution: default}", "--", table)
+    # no case, run or library job reads the profile's asset or library rollouts
+    read = [p.strip() for job in jobs for p in job.get("input", "").split(",")]
+    assert not [p for p in read if p.startswith(("results/default/assets/", "results/default/rollouts/"))], read
+    assert "results/default/discrepancy/ci/assets/pillow.particles.npz" in read
+    table = "results/default/tables/discrepancy.csv"
+    shared = _planned(dry_run.work, "--config", "discrepancy={resolution: default}", "--", table)
     assert "discrepancy_library" not in shared and shared.get("rollout_library") == 9 and shared.get("asset") == 1
-    bad = snakemake(work, "-n", "--config", "discrepancy={resolution: huge}", "--", table)
+    bad = dry_run("--config", "discrepancy={resolution: huge}", "--", table)
     assert bad.returncode != 0 and "huge" in bad.stdout + bad.stderr
 
 
