@@ -8,6 +8,11 @@ module whose tests share a module-scoped fixture is a group of its own, so the f
 once. The ``ci_run`` group goes first (it is the longest), then the Slurm test's module (on the
 other worker meanwhile), then the modules marked ``slow``, so that the short tests fill the
 workers' time at the end.
+
+The tests that read the shared ci-profile run (the ci profile's Pillow tables made by the
+workflow and checked: about 6 minutes of the run's jobs on two cores) are the ``tables`` tier,
+which the project's default options deselect (``pyproject.toml``: ``-m "not tables"``):
+``python3 -m pytest -m tables`` runs them, as CI does after the suite (``.ci/run``).
 """
 
 from __future__ import annotations
@@ -56,12 +61,17 @@ FIRST = ("ci_run", "test_slurm")
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
+    """Group and order the tests (module docs); mark every test that reads the shared ci run
+    ``tables`` (and ``slow``): the project's default ``-m "not tables"`` leaves them to
+    ``pytest -m tables``, which CI runs after the suite."""
     slow_modules = {item.path for item in items if item.get_closest_marker("slow")}
     for item in items:
         if item.get_closest_marker("xdist_group"):
             continue
         if "ci_run" in item.fixturenames:
             item.add_marker(pytest.mark.xdist_group("ci_run"))
+            item.add_marker(pytest.mark.tables)   # deselected by default: `pytest -m tables` runs them
+            item.add_marker(pytest.mark.slow)
         elif _shares_a_module_fixture(item):
             item.add_marker(pytest.mark.xdist_group(item.path.stem))
 
