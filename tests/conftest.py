@@ -66,12 +66,13 @@ def pytest_collection_modifyitems(config, items):
     ``pytest -m tables``, which CI runs after the suite."""
     slow_modules = {item.path for item in items if item.get_closest_marker("slow")}
     for item in items:
+        if "ci_run" in item.fixturenames:         # whatever its group: deselected by default
+            item.add_marker(pytest.mark.tables)
+            item.add_marker(pytest.mark.slow)
         if item.get_closest_marker("xdist_group"):
             continue
         if "ci_run" in item.fixturenames:
             item.add_marker(pytest.mark.xdist_group("ci_run"))
-            item.add_marker(pytest.mark.tables)   # deselected by default: `pytest -m tables` runs them
-            item.add_marker(pytest.mark.slow)
         elif _shares_a_module_fixture(item):
             item.add_marker(pytest.mark.xdist_group(item.path.stem))
 

@@ -491,3 +491,23 @@ def test_each_profiles_floor_block_sets_every_key_the_default_block_sets():
         block = yaml.safe_load((root / name).read_text()).get("floor")
         assert block is not None and set(default) <= set(block), (name, sorted(set(default) - set(block or {})))
 
+
+
+def test_the_report_says_by_how_much_the_floor_widened_the_interval_and_why():
+    """The report's Resolution section gives the widening used (the larger share) beside the
+    calibration bias it replaced, and the floor's size."""
+    import types
+
+    from knockgs_core.discrepancy._report import _calibration_lines
+
+    choice = {"statement": "n_grid 32, as told", "levels": [[32, 11.25]], "theta_fit": [0.847, 0.99],
+              "rmse_pct": 11.25, "theta_bias_log": [0.448, 0.126]}
+    result = types.SimpleNamespace(
+        object="pillow", profile="ci", probe="standard_x", verdict="no effect", resolution=choice, effects=[],
+        theta_base=(1.0, 1.0), theta_refit=(1.0, 1.0), theta_final=(0.8, 1.3), base_method="library", identified=[],
+        observation={"points": 10, "frames": 31, "identity": True, "fit_frames": 20, "validation_frames": 10},
+        noise={"std": 1e-4, "source": "declared"}, n_simulations=1, seconds=1.0, theta_interval=None,
+        residual={"rms_per_point": 1e-4, "excess_rms_per_point": 0.0, "excess_fraction_of_response": 0.0,
+                  "measured_rms_displacement": 1e-3}, theta_uncertainty={})
+    line = next(s for s in _calibration_lines(result) if "widened" in s)
+    assert "0.448 and 0.126 in log theta" in line and "0.166 and 0.0101" in line and "11.2 % of the response" in line

@@ -6,6 +6,8 @@ import ast
 import json
 import re
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -698,3 +700,21 @@ def test_evaluation_jobs_write_deformation_gradients_only_for_renders(tmp_path):
     for target in (f"{CI}/frames/pillow/{tag}", f"{CI}/ladder/observations/pillow/targets_main.csv"):
         out = snakemake(work, "-n", target, *flag)
         assert out.returncode != 0 and "render.enabled is false" in out.stdout + out.stderr, target
+
+
+@pytest.mark.slow
+def test_the_tests_that_read_the_shared_ci_run_are_the_tables_tier_and_only_by_name():
+    """``pytest`` leaves out every test that reads the shared ci run (the project's ``-m "not
+    tables"``); ``pytest -m tables`` collects them and nothing else. Collection only, no test runs."""
+    def collected(*args):
+        out = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-n", "0", "-p", "no:cacheprovider",
+                              *args, "tests/test_workflow.py", "tests/test_convergence_study.py"],
+                             cwd=ROOT, capture_output=True, text=True)
+        assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
+        return {line for line in out.stdout.splitlines() if "::" in line}
+
+    default, tables = collected(), collected("-m", "tables")
+    assert "tests/test_workflow.py::test_ci_main_table_end_to_end" in tables
+    assert any(t.startswith("tests/test_convergence_study.py::") for t in tables)
+    assert not default & tables
+    assert default | tables == collected("-m", "tables or not tables")

@@ -80,11 +80,12 @@ def worst_theta_per_misfit(A: np.ndarray) -> np.ndarray:
     Returns [2] in log theta per m of misfit (``inf`` where the columns do not determine
     theta)."""
     A = np.asarray(A, dtype=np.float64)
-    if A.ndim != 2 or A.shape[0] < A.shape[1] or np.linalg.matrix_rank(A) < A.shape[1]:
+    if A.ndim != 2 or A.shape[0] < A.shape[1]:
         return np.full(2, np.inf)
-    R = np.linalg.qr(A, mode="r")                 # A^T A = R^T R: (A^T A)^-1 = R^-1 R^-T
-    Rinv = np.linalg.solve(R, np.eye(A.shape[1]))
-    return np.sqrt(np.sum(Rinv[:2] ** 2, axis=1))
+    _, sv, Vt = np.linalg.svd(A, full_matrices=False)   # (A^T A)^-1 = V diag(1 / sv^2) V^T
+    if sv[-1] <= sv[0] * max(A.shape) * np.finfo(np.float64).eps:
+        return np.full(2, np.inf)
+    return np.sqrt(np.sum((Vt[:, :2] / sv[:, None]) ** 2, axis=0))
 
 
 def interval_from_estimates(estimate, sd, *, remaining=None, refined=None, second=None, factor: float = 1.5,

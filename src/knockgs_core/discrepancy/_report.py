@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 
 from ..io import atomic_write, write_json, write_npz, write_text
 from ._loop import DiscrepancyResult
+from ._resolution import calibration_bias_log
 from ._views import VIEW_METRICS
 
 __all__ = ["write_report", "write_result"]
@@ -122,7 +122,7 @@ def _calibration_lines(result: DiscrepancyResult) -> list[str]:
         w = r.get("theta_bias_log")
         if w and any(w):
             fit = r["theta_fit"]
-            bias = [abs(math.log(f)) if math.isfinite(f) else 0.0 for f in fit]
+            bias = calibration_bias_log(r)
             L.append(f"- the theta interval below is widened on both sides by what this level's floor can do to theta: "
                      f"{w[0]:.3g} and {w[1]:.3g} in log theta, the larger of its calibration bias, the theta it needs to "
                      f"reproduce the reference (s_E x {fit[0]:.3f}, s_rho x {fit[1]:.3f}: {bias[0]:.3g} and {bias[1]:.3g}), "

@@ -37,7 +37,8 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["read_floor_table", "choose_resolution", "check_floor_body", "widen_by_floor_bias", "qualify_verdict"]
+__all__ = ["read_floor_table", "choose_resolution", "check_floor_body", "calibration_bias_log", "widen_by_floor_bias",
+           "qualify_verdict"]
 
 #: the columns a floor table must have
 FLOOR_COLUMNS = ("model", "n_grid", "rmse_pct", "period_error_pct", "particles", "mass_kg")
@@ -152,6 +153,12 @@ def check_floor_body(choice: dict, contract, particles) -> None:
                          "(another particle-volume rule or fill)")
 
 
+def calibration_bias_log(choice: dict) -> list[float]:
+    """The chosen level's calibration bias in log theta, ``|log theta_fit|`` per coordinate (0
+    where the table has no fit)."""
+    return [abs(math.log(f)) if math.isfinite(f) else 0.0 for f in choice["theta_fit"]]
+
+
 def widen_by_floor_bias(interval, choice: dict, per_response=None) -> tuple[list, list]:
     """``interval`` ([[lo, hi], [lo, hi]] in (s_E, s_rho)) widened on both sides by what the
     chosen level's floor can do to theta: each bound scaled by ``exp(-+w)``, per coordinate the
@@ -167,7 +174,7 @@ def widen_by_floor_bias(interval, choice: dict, per_response=None) -> tuple[list
       the fit then follows it; the bias at (1, 1) does not bound that.
 
     Returns (the interval, w)."""
-    w = [abs(math.log(f)) if math.isfinite(f) else 0.0 for f in choice["theta_fit"]]
+    w = calibration_bias_log(choice)
     if per_response is not None:
         w = [max(wk, float(choice["rmse_pct"]) / 100.0 * float(x)) for wk, x in zip(w, per_response)]
     return [[float(lo) * math.exp(-wk), float(hi) * math.exp(wk)] for (lo, hi), wk in zip(interval, w)], w
