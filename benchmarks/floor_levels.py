@@ -43,6 +43,8 @@ def main() -> None:
                     help="the fill grid a level-set body is measured on (the floor block's when left out)")
     ap.add_argument("--fem-body", default=None, choices=("voxel", "level_set"),
                     help="the reference's body (the profile's floor block's when left out)")
+    ap.add_argument("--band-hz", type=float, default=None,
+                    help="the record's slow band compared besides the whole record (the floor block's when left out)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--reference-cache", type=Path, default=None)
@@ -59,6 +61,8 @@ def main() -> None:
         changes["fem_body"] = args.fem_body
     if args.body_resolution is not None:
         changes["fem_body_resolution"] = args.body_resolution
+    if args.band_hz is not None:
+        changes["band_hz"] = args.band_hz
     settings = dataclasses.replace(settings, **changes)
     if args.check_kept:
         kept = kept_reference_files(contract, settings, reference_cache=args.reference_cache)

@@ -12,8 +12,8 @@ import pytest
 import yaml
 
 from knockgs_core.errors import InputError
-from knockgs_core.experiments import (FloorSettings, at_resolution, cells_through, enclosed_empty_cells, fit_theta, floor_study,
-                                      probe_period)
+from knockgs_core.experiments import (FloorSettings, at_resolution, band_components, band_limited, cells_through,
+                                      enclosed_empty_cells, fit_theta, floor_study, probe_period)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -31,6 +31,9 @@ def test_settings_defaults_are_the_config_schema_defaults():
         FloorSettings(fem_n_grid=32, fem_check_n_grid=32)
     with pytest.raises(InputError, match="n_grid"):
         FloorSettings(n_grid=(32, 24))
+    for bad in (0.0, -5.0, float("nan"), "5", True):
+        with pytest.raises(InputError, match="band_hz"):
+            FloorSettings(band_hz=bad)
 
 
 def test_the_fem_worlds_box_probe_delivers_the_contracts_impulse_on_its_cells_only():
@@ -163,6 +166,29 @@ def test_fit_theta_recovers_the_theta_of_an_oscillator_family():
     assert fit["residual_pct"] < 0.1 < fit["start_residual_pct"] and calls[0] == 3
 
 
+def test_the_slow_band_keeps_a_records_slow_cosines_and_drops_its_fast_ones(rng):
+    """The band of a Probe-A record (31 frames 0.02 s apart): the cosines at or below 5 Hz are
+    the first 7 (component k at k / 1.24 s); a record's slow part passes unchanged, its fast part
+    is removed, two records that differ only above the band agree in it, and the whole band
+    returns the record."""
+    T, dt = 31, 0.02
+    assert band_components(5.0, dt, T) == 7 and band_components(100.0, dt, T) == T and band_components(0.1, dt, T) == 1
+    n = np.arange(T)
+    cos = lambda k: np.cos(np.pi * k * (n + 0.5) / T)  # noqa: E731  (the DCT-II's basis)
+    shape = rng.standard_normal((1, 40, 3))
+    slow = (cos(1) + 0.4 * cos(6))[:, None, None] * shape
+    fast = (0.7 * cos(7) + 0.3 * cos(19))[:, None, None] * rng.standard_normal((1, 40, 3))
+    np.testing.assert_allclose(band_limited(slow + fast, 7), slow, atol=1e-12)
+    np.testing.assert_allclose(band_limited(slow + fast, T), slow + fast, atol=1e-12)
+    assert np.abs(band_limited(fast, 7)).max() < 1e-12
+    # a sampled sinusoid of 2 Hz keeps nearly all of itself in the 5 Hz band, one of 15 Hz little
+    t = n * dt
+    for f, kept in ((2.0, (0.95, 1.0)), (15.0, (0.0, 0.1))):
+        u = np.sin(2 * np.pi * f * t)[:, None, None] * np.ones((1, 2, 3))
+        share = np.linalg.norm(band_limited(u, 7)) / np.linalg.norm(u)
+        assert kept[0] <= share <= kept[1], (f, share)
+
+
 def test_cells_through_counts_a_slab_and_a_one_cell_shell():
     dx = 0.1
     g = np.stack(np.meshgrid(np.arange(10), np.arange(12), np.arange(3), indexing="ij"), -1).reshape(-1, 3)
@@ -193,7 +219,7 @@ def pillow_floor(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("floor")
     table = floor_study(load_contract("pillow", "ci"), FloorSettings(n_grid=(16, 24), fem_n_grid=24, fem_check_n_grid=16,
-                                                                     fit_steps=1, record_factor=1),
+                                                                     fit_steps=1, record_factor=1, band_hz=5.0),
                         reference_cache=root / "fem")
     write_table(table, root / "floor_pillow.csv")
     return table, root / "floor_pillow.csv", root / "fem"
@@ -211,6 +237,10 @@ def test_the_pillows_gap_to_the_fem_reference_falls_under_refinement(pillow_floo
     assert mpm.rmse_pct[1] < 0.75 * mpm.rmse_pct[0]
     assert table.rmse_pct.iloc[-1] == 0.0 and np.all(mpm.fit_residual_pct < mpm.rmse_pct)
     assert mpm.mass_kg[1] < mpm.mass_kg[0]                          # the voxel body thins towards the solid
+    # the record's slow band (<= 5 Hz): its gap falls under refinement too, and its own fit lowers it
+    assert np.all(table.band_hz == 5.0) and table.rmse_band_pct.iloc[-1] == 0.0
+    assert mpm.rmse_band_pct[1] < mpm.rmse_band_pct[0] and np.all(mpm.fit_band_residual_pct < mpm.rmse_band_pct)
+    assert np.all(np.isfinite(mpm[["s_E_fit_band", "s_rho_fit_band"]].to_numpy()))
 
 
 def test_a_kept_fem_run_is_read_back_only_for_the_same_inputs(tmp_path):

@@ -67,7 +67,7 @@ from ..contract import at_resolution  # re-exported: the studies and benchmarks 
 from ..sim import body_volume  # re-exported, as at_resolution
 from ..errors import InputError
 
-__all__ = ["FloorSettings", "at_resolution", "cells_through", "enclosed_empty_cells", "body_volume", "probe_period",
+__all__ = ["FloorSettings", "at_resolution", "band_components", "band_limited", "cells_through", "enclosed_empty_cells", "body_volume", "probe_period",
            "fit_theta", "floor_study", "floor_note", "plot_floor"]
 
 _SOURCE = "config floor"
@@ -86,7 +86,9 @@ class FloorSettings:
     ``level_set`` body is measured on (None: each construction's own fill; a fixed, fine grid
     gives the reference and its check one body); ``record_factor``: the record
     simulated, in Probe-A records (for the period); ``fit_steps``: Gauss-Newton steps of the
-    theta fit (0: no fit); ``fit_step``: the finite-difference step in log theta."""
+    theta fit (0: no fit); ``fit_step``: the finite-difference step in log theta; ``band_hz``
+    [Hz]: the slow band compared besides the whole record (``rmse_band_pct`` and, with a fit,
+    the theta fitted in it: :func:`band_limited`); None: the whole record only."""
 
     n_grid: tuple[int, ...] = (32, 48, 64)
     fem_n_grid: int = 48
@@ -98,6 +100,7 @@ class FloorSettings:
     record_factor: int = 4
     fit_steps: int = 2
     fit_step: float = 0.05
+    band_hz: float | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "n_grid", tuple(int(n) for n in self.n_grid))
@@ -119,6 +122,9 @@ class FloorSettings:
             raise InputError(_SOURCE, "fit_steps", f"must be >= 0, got {self.fit_steps}")
         if not (0 < self.fit_step < 1 and math.isfinite(self.fit_step)):
             raise InputError(_SOURCE, "fit_step", f"must lie in (0, 1), got {self.fit_step}")
+        band = self.band_hz
+        if band is not None and (isinstance(band, bool) or not isinstance(band, (int, float)) or not (math.isfinite(band) and band > 0)):
+            raise InputError(_SOURCE, "band_hz", f"must be a finite frequency > 0 [Hz] or null, got {self.band_hz}")
 
     @classmethod
     def from_config(cls, block: Mapping) -> "FloorSettings":
@@ -190,6 +196,39 @@ def probe_period(times: np.ndarray, u: np.ndarray, direction) -> float:
 def _rel(u: np.ndarray, ref: np.ndarray) -> float:
     """``100 ||u - ref|| / ||ref||`` [%] over frames, points and axes."""
     return 100.0 * float(np.linalg.norm(u - ref) / np.linalg.norm(ref))
+
+
+def band_components(band_hz: float, frame_dt: float, n_frames: int) -> int:
+    """How many of the slowest cosines of a record of ``n_frames`` frames ``frame_dt`` [s] apart
+    lie at or below ``band_hz`` [Hz]: the orthonormal DCT-II's component ``k`` has the frequency
+    ``k / (2 n_frames frame_dt)``, so ``floor(2 band_hz n_frames frame_dt) + 1``, at most
+    ``n_frames``."""
+    return int(min(int(n_frames), math.floor(2.0 * float(band_hz) * int(n_frames) * float(frame_dt) + 1e-9) + 1))
+
+
+def band_limited(u: np.ndarray, components: int) -> np.ndarray:
+    """``u`` [T, ...] (a record along its first axis) kept in its ``components`` slowest cosines:
+    the orthonormal DCT-II along the record, the components from ``components`` on set to zero,
+    transformed back (:func:`band_components` gives the count below a frequency). Orthonormal, so
+    the band's RMS difference of two records is their difference's energy in those components,
+    and all ``T`` components return ``u``."""
+    from scipy.fft import dct, idct
+
+    a = dct(np.asarray(u, dtype=np.float64), axis=0, norm="ortho")
+    a[int(components):] = 0.0
+    return idct(a, axis=0, norm="ortho")
+
+
+def _band_columns(u: np.ndarray, ref: np.ndarray, band: int | None, fit: dict | None) -> dict:
+    """A row's slow-band columns: the RMSE of ``u`` against ``ref`` [T, P, 3] in the band's ``band``
+    slowest cosines (:func:`band_components`), and the band's theta fit (NaN where there is no band
+    or no fit)."""
+    nan = float("nan")
+    if band is None:
+        return {"rmse_band_pct": nan, "s_E_fit_band": nan, "s_rho_fit_band": nan, "fit_band_residual_pct": nan}
+    return {"rmse_band_pct": _rel(band_limited(u, band), band_limited(ref, band)),
+            "s_E_fit_band": float(fit["theta"][0]) if fit else nan, "s_rho_fit_band": float(fit["theta"][1]) if fit else nan,
+            "fit_band_residual_pct": fit["residual_pct"] if fit else nan}
 
 
 def fit_theta(simulate: Callable[[list], list], target: np.ndarray, *, start=(1.0, 1.0), steps: int = 2,
@@ -276,6 +315,7 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
     u_ref = fem["fem (reference)"]["u"]
     p_ref = probe_period(times, u_ref, direction)
     rec = slice(0, n_record)
+    band = band_components(settings.band_hz, float(pr.export.frame_dt), n_record) if settings.band_hz else None
 
     rows = []
     for n in settings.n_grid:
@@ -291,14 +331,24 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
                                     deterministic=deterministic)[0].positions, dtype=np.float64)[:, : len(points)]
         u = X - X[0]
 
-        def simulate(thetas, c=c, particles=particles):
-            out = run_rollouts(c, [(th, probe) for th in thetas], particles=particles, device=device, deterministic=deterministic)
-            X = [np.asarray(r.positions, dtype=np.float64)[:, : len(points)] for r in out]
-            return [x - x[0] for x in X]
+        done: dict = {}      # theta -> displacements: the band's fit starts where the record's did
 
-        fit = None
+        def simulate(thetas, c=c, particles=particles, done=done):
+            new = list(dict.fromkeys(th for th in thetas if th not in done))
+            if new:
+                out = run_rollouts(c, [(th, probe) for th in new], particles=particles, device=device, deterministic=deterministic)
+                for th, r in zip(new, out):
+                    x = np.asarray(r.positions, dtype=np.float64)[:, : len(points)]
+                    done[th] = x - x[0]
+            return [done[th] for th in thetas]
+
+        fit = band_fit = None
         if settings.fit_steps:
             fit = fit_theta(simulate, u_ref[rec], start=theta, steps=settings.fit_steps, step=settings.fit_step, first=u[rec])
+            if band:
+                band_fit = fit_theta(lambda thetas, s=simulate: [band_limited(x, band) for x in s(thetas)],
+                                     band_limited(u_ref[rec], band), start=theta, steps=settings.fit_steps,
+                                     step=settings.fit_step, first=band_limited(u[rec], band))
         period = probe_period(times, u, direction)
         rows.append({"model": "mpm", "n_grid": n, "dx_m": dx, "dt_s": c.sim.dt, "particles": len(particles.positions),
                      "cells_through": cells_through(particles.positions, dx), "mass_kg": body_volume(particles, dx) * rho,
@@ -307,6 +357,7 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
                      "s_E_fit": float(fit["theta"][0]) if fit else float("nan"),
                      "s_rho_fit": float(fit["theta"][1]) if fit else float("nan"),
                      "fit_residual_pct": fit["residual_pct"] if fit else float("nan"),
+                     **_band_columns(u[rec], u_ref[rec], band, band_fit),
                      "cost_s": time.perf_counter() - t0,
                      "enclosed_empty": enclosed_empty_cells(particles.positions, dx), "fem_scale": float("nan")})
         r = rows[-1]
@@ -329,11 +380,15 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
                      "mass_kg": f["volume"] * f["scale"] * rho, "rmse_pct": _rel(f["u"][rec], u_ref[rec]),
                      "period_s": period, "period_fem_s": p_ref, "period_error_pct": 100.0 * (period - p_ref) / p_ref,
                      "order_rmse": float("nan"), "order_period": float("nan"), "s_E_fit": float("nan"),
-                     "s_rho_fit": float("nan"), "fit_residual_pct": float("nan"), "cost_s": f["cost"],
+                     "s_rho_fit": float("nan"), "fit_residual_pct": float("nan"),
+                     **_band_columns(f["u"][rec], u_ref[rec], band, None), "cost_s": f["cost"],
                      "enclosed_empty": enclosed_empty_cells(ref_particles.positions, dx), "fem_scale": f["scale"]})
     columns = ["model", "n_grid", "dx_m", "dt_s", "particles", "cells_through", "mass_kg", "rmse_pct", "period_s",
                "period_fem_s", "period_error_pct", "order_rmse", "order_period", "s_E_fit", "s_rho_fit",
-               "fit_residual_pct", "cost_s", "enclosed_empty", "fem_scale"]
+               "fit_residual_pct", "band_hz", "rmse_band_pct", "s_E_fit_band", "s_rho_fit_band", "fit_band_residual_pct",
+               "cost_s", "enclosed_empty", "fem_scale"]
+    for row in rows:
+        row["band_hz"] = float(settings.band_hz) if settings.band_hz else float("nan")
     return pd.DataFrame(rows, columns=columns)
 
 
@@ -458,7 +513,10 @@ def floor_note(table: pd.DataFrame, contract, settings: FloorSettings, *, theta=
             f"% of the reference's RMS displacement; periods: mean displacement along the force over "
             f"{settings.record_factor}x the record. s_E_fit, s_rho_fit: {settings.fit_steps} Gauss-Newton steps of the "
             f"MPM at that level against the reference's Probe-A trajectory (least squares, not the library's local ridge). "
-            f"particles: the FEM rows' DOFs. cells_through: median shortest axis run of occupied cells; "
+            + (f"rmse_band_pct, s_E_fit_band, s_rho_fit_band: the same in the record's slow band, its cosines at or below "
+               f"{settings.band_hz:g} Hz ({band_components(settings.band_hz, float(pr.export.frame_dt), int(pr.export.n_frames))} "
+               f"of {pr.export.n_frames}). " if settings.band_hz else "")
+            + "particles: the FEM rows' DOFs. cells_through: median shortest axis run of occupied cells; "
             f"enclosed_empty: empty cells enclosed by occupied ones. Volume rule: fill.volumes {contract.fill.volumes}"
             + ("." if contract.fill.volumes == "cell_share" or reference_body(contract, settings) == "level_set"
                else " (each FEM cell carries its particles' volume: E and rho x that over dx^3; fem_scale: the body's "
