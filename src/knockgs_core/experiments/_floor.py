@@ -67,8 +67,8 @@ from ..contract import at_resolution  # re-exported: the studies and benchmarks 
 from ..sim import body_volume  # re-exported, as at_resolution
 from ..errors import InputError
 
-__all__ = ["FloorSettings", "at_resolution", "band_components", "band_limited", "cells_through", "enclosed_empty_cells", "body_volume", "probe_period",
-           "fit_theta", "floor_study", "floor_note", "plot_floor"]
+__all__ = ["FloorSettings", "at_resolution", "band_components", "band_limited", "cells_through", "enclosed_empty_cells",
+           "body_volume", "probe_period", "fit_theta", "floor_study", "floor_note", "plot_floor"]
 
 _SOURCE = "config floor"
 
@@ -123,7 +123,8 @@ class FloorSettings:
         if not (0 < self.fit_step < 1 and math.isfinite(self.fit_step)):
             raise InputError(_SOURCE, "fit_step", f"must lie in (0, 1), got {self.fit_step}")
         band = self.band_hz
-        if band is not None and (isinstance(band, bool) or not isinstance(band, (int, float)) or not (math.isfinite(band) and band > 0)):
+        if band is not None and (isinstance(band, bool) or not isinstance(band, (int, float))
+                                 or not (math.isfinite(band) and band > 0)):
             raise InputError(_SOURCE, "band_hz", f"must be a finite frequency > 0 [Hz] or null, got {self.band_hz}")
 
     @classmethod
@@ -336,7 +337,8 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
         def simulate(thetas, c=c, particles=particles, done=done):
             new = list(dict.fromkeys(th for th in thetas if th not in done))
             if new:
-                out = run_rollouts(c, [(th, probe) for th in new], particles=particles, device=device, deterministic=deterministic)
+                out = run_rollouts(c, [(th, probe) for th in new], particles=particles, device=device,
+                                   deterministic=deterministic)
                 for th, r in zip(new, out):
                     x = np.asarray(r.positions, dtype=np.float64)[:, : len(points)]
                     done[th] = x - x[0]
@@ -514,7 +516,7 @@ def floor_note(table: pd.DataFrame, contract, settings: FloorSettings, *, theta=
             f"{settings.record_factor}x the record. s_E_fit, s_rho_fit: {settings.fit_steps} Gauss-Newton steps of the "
             f"MPM at that level against the reference's Probe-A trajectory (least squares, not the library's local ridge). "
             + (f"rmse_band_pct, s_E_fit_band, s_rho_fit_band: the same in the record's slow band, its cosines at or below "
-               f"{settings.band_hz:g} Hz ({band_components(settings.band_hz, float(pr.export.frame_dt), int(pr.export.n_frames))} "
+               f"{settings.band_hz:g} Hz ({band_components(settings.band_hz, pr.export.frame_dt, pr.export.n_frames)} "
                f"of {pr.export.n_frames}). " if settings.band_hz else "")
             + "particles: the FEM rows' DOFs. cells_through: median shortest axis run of occupied cells; "
             f"enclosed_empty: empty cells enclosed by occupied ones. Volume rule: fill.volumes {contract.fill.volumes}"
