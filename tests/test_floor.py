@@ -241,6 +241,12 @@ def test_the_pillows_gap_to_the_fem_reference_falls_under_refinement(pillow_floo
     assert np.all(table.band_hz == 5.0) and table.rmse_band_pct.iloc[-1] == 0.0
     assert mpm.rmse_band_pct[1] < mpm.rmse_band_pct[0] and np.all(mpm.fit_band_residual_pct < mpm.rmse_band_pct)
     assert np.all(np.isfinite(mpm[["s_E_fit_band", "s_rho_fit_band"]].to_numpy()))
+    from knockgs_core.contract import load_contract
+    from knockgs_core.experiments import floor_note
+
+    note = floor_note(table, load_contract("pillow", "ci"), FloorSettings(n_grid=(16, 24), fem_n_grid=24, fem_check_n_grid=16,
+                                                                          band_hz=5.0))
+    assert "at or below 5 Hz (7 of 31)" in note
 
 
 def test_a_kept_fem_run_is_read_back_only_for_the_same_inputs(tmp_path):
