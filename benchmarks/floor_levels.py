@@ -39,6 +39,8 @@ def main() -> None:
     ap.add_argument("--fem-n-grid", type=int, required=True)
     ap.add_argument("--fem-check-n-grid", type=int, required=True)
     ap.add_argument("--fit-steps", type=int, default=None)
+    ap.add_argument("--record-factor", type=int, default=None,
+                    help="the record simulated for the period, in Probe-A records (the floor block's when left out)")
     ap.add_argument("--body-resolution", type=int, default=None,
                     help="the fill grid a level-set body is measured on (the floor block's when left out)")
     ap.add_argument("--fem-body", default=None, choices=("voxel", "level_set"),
@@ -57,6 +59,8 @@ def main() -> None:
     changes = {"n_grid": tuple(args.levels), "fem_n_grid": args.fem_n_grid, "fem_check_n_grid": args.fem_check_n_grid}
     if args.fit_steps is not None:
         changes["fit_steps"] = args.fit_steps
+    if args.record_factor is not None:
+        changes["record_factor"] = args.record_factor
     if args.fem_body is not None:
         changes["fem_body"] = args.fem_body
     if args.body_resolution is not None:
