@@ -1,0 +1,103 @@
+"""How much of an object's floor is its rim: the MPM levels of the floor study with the particles
+above a height carrying their rule's volume, and again carrying next to none (CPU, minutes).
+
+A solid body's open rim (the Vasedeck's flared lip above its closed mouth) is a sheet of
+Gaussians thinner than the fill's cells: the ``enclosed`` rule gives it a volume that depends on
+the fill grid (the shell band's ramp), while the finite-element reference, meshed to the level
+set the fill encloses, keeps almost none of it. Here the particles with rest height above
+``--rim-above`` [m] get ``--rim-share`` of the median particle's volume in the second run
+(the others scaled so that the total is unchanged): the MPM with a massless rim, as the
+reference has it. Each level is compared with the floor study's reference (computed, or read
+from ``--reference-cache`` where ``floor_levels.py`` kept it): trajectory RMSE and its slow
+band's (% of the reference's RMS displacement), first-mode period over the Probe-A record.
+
+    python3 benchmarks/floor_rim.py --object vasedeck --profile config --solid --snap-supports 16 \
+        --levels 48 64 96 --fem-n-grid 64 --fem-check-n-grid 48 --body-resolution 128 \
+        --rim-above 1.335 --reference-cache fem_cache
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+
+from _floor_object import add_object_arguments, floor_object
+
+
+def main() -> None:
+    import knockgs_core.assets._build as build_module
+    from knockgs_core.assets import build_asset
+    from knockgs_core.experiments import at_resolution, band_components, band_limited, probe_period
+    from knockgs_core.experiments._floor import _fem_run, _reference_runs
+    from knockgs_core.rollout import run_rollouts
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_object_arguments(ap, default_object="vasedeck")
+    ap.add_argument("--levels", type=int, nargs="+", required=True)
+    ap.add_argument("--fem-n-grid", type=int, required=True)
+    ap.add_argument("--fem-check-n-grid", type=int, required=True)
+    ap.add_argument("--body-resolution", type=int, default=None)
+    ap.add_argument("--rim-above", type=float, required=True, help="rest height [m] above which a particle is the rim")
+    ap.add_argument("--rim-share", type=float, default=1e-4, help="the massless rim's volume, x the median particle's")
+    ap.add_argument("--band-hz", type=float, default=5.0)
+    ap.add_argument("--reference-cache", type=Path, default=None)
+    args = ap.parse_args()
+
+    contract, settings = floor_object(args)
+    changes = {"fem_n_grid": args.fem_n_grid, "fem_check_n_grid": args.fem_check_n_grid, "record_factor": 1}
+    if args.body_resolution is not None:
+        changes["fem_body_resolution"] = args.body_resolution
+    settings = dataclasses.replace(settings, **changes)
+    probe = contract.roles["calibration"]
+    pr = contract.probes[probe]
+    gs = build_asset(contract).particles
+    points = np.asarray(gs.positions[: gs.n_gs], dtype=np.float64)
+    ref_contract, ref_particles, world = _reference_runs(contract, settings)["fem (reference)"]
+    t0 = time.perf_counter()
+    ref = _fem_run(ref_contract, ref_particles, points, world, (1.0, 1.0), probe, cache=args.reference_cache)["u"]
+    print(f"reference: n_grid {world.n_grid}, {world.body} body, {time.perf_counter() - t0:.0f} s", flush=True)
+    times = np.arange(len(ref)) * float(pr.export.frame_dt)
+    band = band_components(args.band_hz, float(pr.export.frame_dt), len(ref))
+    direction = np.asarray(pr.force, dtype=np.float64)
+    p_ref = probe_period(times, ref, direction)
+    rel = lambda a, b: 100.0 * float(np.linalg.norm(a - b) / np.linalg.norm(b))  # noqa: E731
+
+    rule = build_module.enclosed_volumes
+
+    def massless_rim(positions, grid, surface_points, **kw):
+        vol = rule(positions, grid, surface_points, **kw).astype(np.float64)
+        rim = np.asarray(positions, np.float64)[:, 2] > args.rim_above
+        total = vol.sum()
+        vol[rim] = args.rim_share * float(np.median(vol[~rim]))
+        vol[~rim] *= (total - vol[rim].sum()) / vol[~rim].sum()
+        return vol.astype(np.float32)
+
+    for n in args.levels:
+        c = at_resolution(contract, n)
+        for name, volumes in (("with its rim", rule), ("massless rim", massless_rim)):
+            build_module.enclosed_volumes = volumes
+            build_module._CACHE.clear()           # the same contract, another volume rule
+            try:
+                particles = build_asset(c).particles
+            finally:
+                build_module.enclosed_volumes = rule
+            rim = np.asarray(particles.positions)[:, 2] > args.rim_above
+            t0 = time.perf_counter()
+            X = np.asarray(run_rollouts(c, [((1.0, 1.0), probe)], particles=particles, device="cpu")[0].positions,
+                           dtype=np.float64)[:, : len(points)]
+            u = X - X[0]
+            period = probe_period(times, u, direction)
+            print(f"MPM n_grid {n}, {name}: rim volume {1e3 * float(np.asarray(particles.volumes)[rim].sum()):.3f} dm^3 of "
+                  f"{1e3 * float(np.asarray(particles.volumes).sum()):.2f}; RMSE {rel(u, ref):.1f} %, "
+                  f"band <= {args.band_hz:g} Hz {rel(band_limited(u, band), band_limited(ref, band)):.1f} %, "
+                  f"period {period:.4f} s "
+                  f"({100 * (period - p_ref) / p_ref:+.1f} % of {p_ref:.4f}), {time.perf_counter() - t0:.0f} s", flush=True)
+    build_module._CACHE.clear()
+
+
+if __name__ == "__main__":
+    main()
