@@ -23,6 +23,24 @@ def add_object_arguments(ap, *, default_object: str) -> None:
                          "(onto grid planes of every level whose n_grid N divides)")
 
 
+def add_reference_arguments(ap) -> None:
+    """``--levels`` (the MPM's), ``--fem-n-grid``, ``--fem-check-n-grid`` and ``--body-resolution``
+    (the reference's) on ``ap``."""
+    ap.add_argument("--levels", type=int, nargs="+", required=True)
+    ap.add_argument("--fem-n-grid", type=int, required=True)
+    ap.add_argument("--fem-check-n-grid", type=int, required=True)
+    ap.add_argument("--body-resolution", type=int, default=None,
+                    help="the fill grid a level-set body is measured on (the floor block's when left out)")
+
+
+def reference_settings(args, settings, **changes):
+    """``settings`` with ``args``' levels and reference grids (:func:`add_reference_arguments`), its
+    body resolution where given, and ``changes``."""
+    changes = {"n_grid": tuple(args.levels), "fem_n_grid": args.fem_n_grid, "fem_check_n_grid": args.fem_check_n_grid,
+               **({"fem_body_resolution": args.body_resolution} if args.body_resolution is not None else {}), **changes}
+    return dataclasses.replace(settings, **changes)
+
+
 def floor_object(args):
     """(the contract ``args`` name, with its body and supports, the profile's floor settings)."""
     from knockgs_core.contract import load_contract, with_body

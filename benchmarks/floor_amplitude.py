@@ -10,12 +10,11 @@ floor study's cache, the MPM rerun: a minute or two per level at n_grid 32-64).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from pathlib import Path
 
 import numpy as np
 
-from _floor_object import add_object_arguments, floor_object
+from _floor_object import add_object_arguments, add_reference_arguments, floor_object, reference_settings
 
 
 
@@ -27,17 +26,13 @@ def main() -> None:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_object_arguments(ap, default_object="vasedeck")
-    ap.add_argument("--levels", type=int, nargs="+", required=True)
-    ap.add_argument("--fem-n-grid", type=int, required=True)
-    ap.add_argument("--fem-check-n-grid", type=int, required=True)
+    add_reference_arguments(ap)
     ap.add_argument("--fem-body", default="level_set", choices=("voxel", "level_set"))
-    ap.add_argument("--body-resolution", type=int, default=None)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--reference-cache", type=Path, required=True)
     args = ap.parse_args()
     contract, s = floor_object(args)
-    s = dataclasses.replace(s, n_grid=tuple(args.levels), fem_n_grid=args.fem_n_grid, fem_check_n_grid=args.fem_check_n_grid,
-                            fem_body=args.fem_body, fem_body_resolution=args.body_resolution)
+    s = reference_settings(args, s, fem_body=args.fem_body, fem_body_resolution=args.body_resolution)
     gs = build_asset(contract).particles
     points = np.asarray(gs.positions[: gs.n_gs], dtype=np.float64)
     probe = contract.roles["calibration"]

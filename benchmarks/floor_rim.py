@@ -19,13 +19,12 @@ band's (% of the reference's RMS displacement), first-mode period over the Probe
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 from pathlib import Path
 
 import numpy as np
 
-from _floor_object import add_object_arguments, floor_object
+from _floor_object import add_object_arguments, add_reference_arguments, floor_object, reference_settings
 
 
 def main() -> None:
@@ -37,10 +36,7 @@ def main() -> None:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_object_arguments(ap, default_object="vasedeck")
-    ap.add_argument("--levels", type=int, nargs="+", required=True)
-    ap.add_argument("--fem-n-grid", type=int, required=True)
-    ap.add_argument("--fem-check-n-grid", type=int, required=True)
-    ap.add_argument("--body-resolution", type=int, default=None)
+    add_reference_arguments(ap)
     ap.add_argument("--rim-above", type=float, required=True, help="rest height [m] above which a particle is the rim")
     ap.add_argument("--rim-share", type=float, default=1e-4, help="the massless rim's volume, x the median particle's")
     ap.add_argument("--band-hz", type=float, default=5.0)
@@ -48,10 +44,7 @@ def main() -> None:
     args = ap.parse_args()
 
     contract, settings = floor_object(args)
-    changes = {"fem_n_grid": args.fem_n_grid, "fem_check_n_grid": args.fem_check_n_grid, "record_factor": 1}
-    if args.body_resolution is not None:
-        changes["fem_body_resolution"] = args.body_resolution
-    settings = dataclasses.replace(settings, **changes)
+    settings = reference_settings(args, settings, record_factor=1)
     probe = contract.roles["calibration"]
     pr = contract.probes[probe]
     gs = build_asset(contract).particles
