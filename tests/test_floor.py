@@ -252,7 +252,8 @@ def test_the_pillows_gap_to_the_fem_reference_falls_under_refinement(pillow_floo
 def test_a_kept_fem_run_is_read_back_only_for_the_same_inputs(tmp_path):
     """The floor study's finite-element runs are kept by what they depend on: the same inputs
     read the kept displacements back, bit for bit, without computing; another theta, another
-    grid or another record length computes anew; where the checkout lies does not matter. The
+    grid, another record length or another body code computes anew; where the checkout lies does
+    not matter. The
     ci Pillow's FEM at n_grid 12, P1, one step a frame (about 2 s a run)."""
     import dataclasses
 
@@ -285,6 +286,18 @@ def test_a_kept_fem_run_is_read_back_only_for_the_same_inputs(tmp_path):
         assert not run["cached"], other
     assert len(list(tmp_path.iterdir())) == 4
     assert not _fem_run(short, ps, points, world, (1.0, 1.0), probe)["cached"]   # no cache: computed
+    # and by the code that builds the reference's body: the level set lives in the asset build
+    from knockgs_core.assets import _build
+    from knockgs_core.experiments._floor import _fem_key
+
+    key = _fem_key(short, ps, points, world, (1.0, 1.0), probe)
+    own = Path(_build.__file__).read_bytes()
+    real = Path.read_bytes
+    changed = lambda self: real(self) + b"#" if self == Path(_build.__file__) else real(self)  # noqa: E731
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(Path, "read_bytes", changed)
+        assert _fem_key(short, ps, points, world, (1.0, 1.0), probe) != key
+    assert Path(_build.__file__).read_bytes() == own
 
 
 def test_the_kept_files_a_study_would_read_are_named_before_it_runs(tmp_path):

@@ -450,11 +450,11 @@ def kept_reference_files(contract, settings: FloorSettings = FloorSettings(), *,
 def _fem_key(contract, particles, points, world, theta, probe) -> str:
     """The name of a kept finite-element run (:func:`_fem_run`): 24 hex digits of a SHA-256."""
     from .. import fem as fem_package
-    from ..assets import _fill
+    from ..assets import _build, _fill
 
     h = hashlib.sha256()
-    for source in [*sorted(Path(fem_package.__file__).parent.rglob("*.py")), Path(_fill.__file__)]:
-        h.update(source.read_bytes())           # the solver, and the fill's surface that a level-set body meshes
+    for source in [*sorted(Path(fem_package.__file__).parent.rglob("*.py")), Path(_fill.__file__), Path(_build.__file__)]:
+        h.update(source.read_bytes())           # the solver, and the fill's surface (body_level_set) a level-set body meshes
     with np.printoptions(threshold=sys.maxsize, precision=17):
         h.update(repr((_placeless(contract), world, tuple(float(t) for t in theta), probe)).encode())
     for a in (particles.positions, particles.volumes, points):
