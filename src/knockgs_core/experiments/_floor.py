@@ -280,7 +280,9 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
     volume x rho x ``fem_scale``), ``rmse_pct``
     (Probe-A record), ``period_s``, ``period_fem_s``, ``period_error_pct``, ``order_rmse`` and
     ``order_period`` (to the previous level), ``s_E_fit``, ``s_rho_fit`` and
-    ``fit_residual_pct`` (the theta fit; NaN without one), ``cost_s`` (wall seconds of the
+    ``fit_residual_pct`` (the theta fit; NaN without one), ``band_hz``, ``rmse_band_pct``,
+    ``s_E_fit_band``, ``s_rho_fit_band`` and ``fit_band_residual_pct`` (the same in the record's
+    slow band, ``settings.band_hz``: :func:`band_limited`; NaN without one), ``cost_s`` (wall seconds of the
     level's rollouts and fit, or of the FEM run), ``enclosed_empty`` (:func:`enclosed_empty_cells`
     on the row's grid), ``fem_scale`` (the particles' volume over the FEM's voxel body's; NaN for
     the MPM). ``theta``: the material compared;
