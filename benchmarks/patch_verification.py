@@ -25,53 +25,12 @@ import time
 
 import numpy as np
 
-from knockgs_core.fem import ForcePulse, newmark
-from knockgs_core.fem._elasticity import assemble_elasticity, interpolation_matrix, support_dofs
-from knockgs_core.fem._mesh import Region, tensor_mesh
-from knockgs_core.fem._verification import (BLOCK, GRID_LIM, MATERIAL, PROBE_DURATION, SUPPORT, SUPPORT_TOP,
-                                            VerificationSettings, block_particles, mpm_dt, response_gap)
-from knockgs_core.sim import Box, FixedCuboid, Probe, SimParams, build_model, make_state, simulate
+from knockgs_core.fem._mesh import Region
+from knockgs_core.fem._verification import (VerificationSettings, _at, fem_block_reference, mpm_block_model,
+                                            response_gap)
+from knockgs_core.sim import make_state, simulate
 
-PATCH = ((0.75, 0.75, 1.0), (1.0, 0.875, 1.25))
-IMPULSE_VELOCITY = 0.002   # [m/s] per unit mass, the verification's
-
-
-def fem_run(cells: int, settings: VerificationSettings, patch: bool):
-    """(system, Newmark result, CPU s) of the block on ``cells`` per 0.5 m, P2."""
-    (x0, y0, z0), (x1, y1, z1) = BLOCK
-    per_m = cells / 0.5
-    axis = lambda a, b: np.linspace(a, b, max(1, round((b - a) * per_m)) + 1)  # noqa: E731
-    cpu = time.process_time()
-    system = assemble_elasticity(tensor_mesh(axis(x0, x1), axis(y0, y1), np.concatenate([[z0], axis(SUPPORT_TOP, z1)])),
-                                 **MATERIAL, degree=2)
-    fixed = support_dofs(system, Region.from_center(SUPPORT.center, SUPPORT.half_size))
-    pulse = ForcePulse((MATERIAL["rho"] * IMPULSE_VELOCITY / PROBE_DURATION, 0.0, 0.0), PROBE_DURATION,
-                       region=Region(*PATCH) if patch else None)
-    res = newmark(system, dt=settings.frame_dt / 8, frame_dt=settings.frame_dt, n_frames=settings.n_frames,
-                  fixed=fixed, pulses=[pulse])
-    return system, res, time.process_time() - cpu
-
-
-def mpm_run(n_grid: int, settings: VerificationSettings, patch: bool, transfer: str):
-    """(rest positions [n, 3], displacements [T, n, 3], impulse [N s], CPU s) at ``n_grid``."""
-    x = block_particles(n_grid, 2)
-    m_p = MATERIAL["rho"] * (GRID_LIM / n_grid) ** 3 / 8
-    box = (Box(center=tuple((a + b) / 2 for a, b in zip(*PATCH)),
-               half_size=tuple((b - a) / 2 + 1e-6 for a, b in zip(*PATCH))) if patch else None)
-    probe = Probe("knock", force=(m_p * IMPULSE_VELOCITY / PROBE_DURATION, 0.0, 0.0), box=box, n_steps=1,
-                  dt_ref=PROBE_DURATION)
-    params = SimParams(n_grid=n_grid, grid_lim=GRID_LIM, dt=mpm_dt(n_grid, settings), boundaries=(FixedCuboid(SUPPORT),),
-                       transfer=transfer)
-    cpu = time.process_time()
-    model = build_model(x, **MATERIAL, params=params, probe=probe, device="cpu")
-    out = simulate(model, make_state(model, x), frame_dt=settings.frame_dt, n_frames=settings.n_frames)
-    u = out.positions.astype(np.float64) - x[None].astype(np.float32).astype(np.float64)
-    return x, u, float(model.probe_impulse[0]), time.process_time() - cpu
-
-
-def at_points(system, res, x: np.ndarray) -> np.ndarray:
-    P = interpolation_matrix(system, x)
-    return (P @ res.u.T).reshape(3, len(x), -1).transpose(2, 1, 0)
+PATCH = Region((0.75, 0.75, 1.0), (1.0, 0.875, 1.25))
 
 
 def main() -> None:
@@ -86,28 +45,30 @@ def main() -> None:
     args = ap.parse_args()
     if args.knock == "patch" and any(n % 16 for n in args.levels):
         ap.error("--knock patch: levels must be multiples of 16 (the patch's faces on grid planes)")
-    settings = VerificationSettings(n_grid=(16, 32), frame_dt=args.frame_dt, n_frames=args.n_frames)
-    patch = args.knock == "patch"
+    settings = VerificationSettings(n_grid=(16, 32), frame_dt=args.frame_dt, n_frames=args.n_frames, fem_dt=args.frame_dt / 8)
+    knocked = PATCH if args.knock == "patch" else None
     fems = {}
     for cells in args.fem_cells:
-        system, res, cpu = fem_run(cells, settings, patch)
-        fems[cells] = (system, res)
-        print(f"FEM P2, {cells} cells per 0.5 m: {system.n_dofs} DOFs, {cpu:.0f} CPU s", flush=True)
-    finest = args.fem_cells[-1]
+        fems[cells] = fem_block_reference(settings, cells=cells, knocked=knocked)
+        print(f"FEM P2, {cells} cells per 0.5 m: {fems[cells]['system'].n_dofs} DOFs, {fems[cells]['cpu_s']:.0f} CPU s",
+              flush=True)
     for n in args.levels:
-        x, u, impulse, cpu = mpm_run(n, settings, patch, args.transfer)
+        cpu = time.process_time()
+        model, x = mpm_block_model(n, settings, device="cpu", knocked=knocked, transfer=args.transfer)
+        out = simulate(model, make_state(model, x), frame_dt=settings.frame_dt, n_frames=settings.n_frames)
+        u = out.positions.astype(np.float64) - x[None].astype(np.float32).astype(np.float64)
         parts = []
-        for cells, (system, res) in fems.items():
-            g = response_gap(settings.times, u, at_points(system, res, x))
+        for cells, fem in fems.items():
+            g = response_gap(settings.times, u, _at(fem, x))
             parts.append(f"vs FEM {cells}: RMSE {g['traj_rmse_pct']:.1f} %, period {g['period_error_pct']:+.1f} %, "
                          f"peak {g['peak_error_pct']:+.1f} %")
-        print(f"MPM {args.transfer}, {args.knock}, n_grid {n}: impulse {impulse:.4g} N s, {cpu:.0f} CPU s | " + " | ".join(parts),
-              flush=True)
-    x = block_particles(args.levels[-1], 2)
-    ref = at_points(*fems[finest], x)
-    for cells, (system, res) in list(fems.items())[:-1]:
-        g = response_gap(settings.times, at_points(system, res, x), ref)
-        print(f"FEM {cells} vs FEM {finest}: RMSE {g['traj_rmse_pct']:.2f} %, period {g['period_error_pct']:+.2f} %")
+        print(f"MPM {args.transfer}, {args.knock}, n_grid {n}: impulse {model.probe_impulse[0]:.4g} N s, "
+              f"{time.process_time() - cpu:.0f} CPU s | " + " | ".join(parts), flush=True)
+    finest = fems[args.fem_cells[-1]]
+    ref = _at(finest, x)
+    for cells, fem in list(fems.items())[:-1]:
+        g = response_gap(settings.times, _at(fem, x), ref)
+        print(f"FEM {cells} vs FEM {args.fem_cells[-1]}: RMSE {g['traj_rmse_pct']:.2f} %, period {g['period_error_pct']:+.2f} %")
 
 
 if __name__ == "__main__":

@@ -231,3 +231,23 @@ def test_all_includes_the_table_when_enabled(tmp_path):
     off.write_text(text.replace("verification:\n  enabled: true\n", "verification:\n  enabled: false\n"))
     out = snakemake(work, "-n", "all", f"--configfile={off}")
     assert out.returncode == 0 and "verification_fem" not in out.stdout, out.stderr[-2000:]
+
+
+def test_a_knock_on_a_patch_moves_the_patch_with_its_impulse_in_both_solvers():
+    """``knocked``: the MPM's probe selects the patch's particles alone and delivers rho v times
+    the patch's volume (a twentieth of the whole knock's); the FEM's pulse acts there alone, so a
+    frame after the knock the patch has moved along x many times further than the far side."""
+    from knockgs_core.fem._mesh import Region
+
+    patch = Region((0.75, 0.75, 1.0), (1.0, 0.875, 1.25))
+    s = VerificationSettings(n_grid=(16, 32), frame_dt=0.01, n_frames=3, fem_dt=0.002)
+    model, x = _verification.mpm_block_model(16, s, device="cpu", knocked=patch)
+    whole, _ = _verification.mpm_block_model(16, s, device="cpu")
+    rho_v = _verification.MATERIAL["rho"] * s.impulse_velocity
+    assert model.probe_impulse[0] == pytest.approx(rho_v * 0.25 * 0.125 * 0.25, rel=1e-5)
+    assert whole.probe_impulse[0] == pytest.approx(rho_v * 0.5 * 0.5 * 0.75, rel=1e-5)
+    fem = fem_block_reference(s, cells=2, knocked=patch)
+    u = _verification._at(fem, x)[1, :, 0]
+    inside = np.all((x >= patch.lo) & (x <= patch.hi), axis=1)
+    far = x[:, 0] > 1.15
+    assert u[inside].mean() > 5 * abs(u[far].mean()) > 0

@@ -174,16 +174,21 @@ def mpm_block_rollout(n_grid: int, settings: VerificationSettings, *, device: st
 
 
 def mpm_block_model(n_grid: int, settings: VerificationSettings, *, device: str | None = None,
-                    storage: Mapping | None = None):
+                    storage: Mapping | None = None, knocked: Region | None = None, transfer: str | None = None):
     """The MPM model of the knocked block at ``n_grid`` (substep :func:`mpm_dt`, the probe's
     impulse ``settings.impulse_velocity`` per unit mass, the support held) and its particles'
-    rest positions [m] (n, 3); ``storage`` as in :func:`mpm_block_rollout`."""
+    rest positions [m] (n, 3); ``storage`` as in :func:`mpm_block_rollout`. ``knocked``: the
+    part of the block the probe selects (None: all of it); ``transfer``: the simulator's
+    particle-grid transfer (None: its default)."""
     x = block_particles(n_grid, settings.particles_per_axis)
     dx = GRID_LIM / n_grid
     m_p = MATERIAL["rho"] * dx**3 / settings.particles_per_axis**3
-    probe = Probe("verification", force=(m_p * settings.impulse_velocity / PROBE_DURATION, 0.0, 0.0), box=None,
+    box = None if knocked is None else Box(center=tuple((np.asarray(knocked.lo) + np.asarray(knocked.hi)) / 2),
+                                           half_size=tuple((np.asarray(knocked.hi) - np.asarray(knocked.lo)) / 2 + 1e-6))
+    probe = Probe("verification", force=(m_p * settings.impulse_velocity / PROBE_DURATION, 0.0, 0.0), box=box,
                   n_steps=1, dt_ref=PROBE_DURATION)
-    params = SimParams(n_grid=n_grid, grid_lim=GRID_LIM, dt=mpm_dt(n_grid, settings), boundaries=(FixedCuboid(SUPPORT),))
+    params = SimParams(n_grid=n_grid, grid_lim=GRID_LIM, dt=mpm_dt(n_grid, settings), boundaries=(FixedCuboid(SUPPORT),),
+                       **({} if transfer is None else {"transfer": transfer}))
     return build_model(x, **MATERIAL, params=params, probe=probe, device=device, **_storage(storage)), x
 
 
@@ -196,10 +201,12 @@ def _storage(storage: Mapping | None) -> dict:
     return storage
 
 
-def fem_block_reference(settings: VerificationSettings, *, cells: int | None = None, degree: int | None = None) -> dict:
+def fem_block_reference(settings: VerificationSettings, *, cells: int | None = None, degree: int | None = None,
+                        knocked: Region | None = None) -> dict:
     """The FEM response of the block: ``system`` (assembled), ``result`` (Newmark frames),
     ``cpu_s`` (assembly and integration), ``impulse`` [N s] the pulse delivers (the load's
-    x sum times the duration). ``cells`` per 0.5 m and ``degree`` default to the settings'."""
+    x sum times the duration; the whole block's). ``cells`` per 0.5 m and ``degree`` default to
+    the settings'; ``knocked``: the part of the block the pulse acts on (None: all of it)."""
     cells = int(settings.fem_cells if cells is None else cells)
     degree = int(settings.fem_degree if degree is None else degree)
     cpu0 = time.process_time()
@@ -210,7 +217,7 @@ def fem_block_reference(settings: VerificationSettings, *, cells: int | None = N
     system = assemble_elasticity(tensor_mesh(axis(x0, x1), axis(y0, y1), zs), **MATERIAL, degree=degree)
     fixed = support_dofs(system, Region.from_center(SUPPORT.center, SUPPORT.half_size))
     density = MATERIAL["rho"] * settings.impulse_velocity / PROBE_DURATION
-    pulse = ForcePulse((density, 0.0, 0.0), PROBE_DURATION)
+    pulse = ForcePulse((density, 0.0, 0.0), PROBE_DURATION, region=knocked)
     result = newmark(system, dt=settings.fem_dt, frame_dt=settings.frame_dt, n_frames=settings.n_frames,
                      fixed=fixed, pulses=[pulse])
     impulse = density * system.volume * PROBE_DURATION
