@@ -22,6 +22,7 @@ Gauss-Newton fit from (1, 1), over the record and in the band).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
@@ -31,11 +32,9 @@ from _floor_object import add_object_arguments, add_reference_arguments, floor_o
 
 
 def main() -> None:
-    import knockgs_core.assets._build as build_module
     from knockgs_core.assets import build_asset
     from knockgs_core.experiments import at_resolution, band_components, band_limited, fit_theta, probe_period
-    from knockgs_core.experiments._floor import _fem_run, _reference_runs
-    from knockgs_core.rollout import run_rollouts
+    from knockgs_core.experiments._floor import _fem_run, _reference_runs, level_simulator
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_object_arguments(ap, default_object="vasedeck")
@@ -64,43 +63,22 @@ def main() -> None:
     p_ref = probe_period(times, ref, direction)
     rel = lambda a, b: 100.0 * float(np.linalg.norm(a - b) / np.linalg.norm(b))  # noqa: E731
 
-    rule = build_module.enclosed_volumes
-
-    def massless_rim(positions, grid, surface_points, **kw):
-        vol = rule(positions, grid, surface_points, **kw).astype(np.float64)
-        rim = np.asarray(positions, np.float64)[:, 2] > args.rim_above
-        total = vol.sum()
-        vol[rim] = args.rim_share * float(np.median(vol[~rim]))
-        vol[~rim] *= (total - vol[rim].sum()) / vol[~rim].sum()
-        return vol.astype(np.float32)
-
     for n in args.levels:
         c = at_resolution(contract, n)
-        for name, volumes in (("with its rim", rule), ("massless rim", massless_rim)):
-            build_module.enclosed_volumes = volumes
-            build_module._CACHE.clear()           # the same contract, another volume rule
-            try:
-                particles = build_asset(c).particles
-            finally:
-                build_module.enclosed_volumes = rule
-            rim = np.asarray(particles.positions)[:, 2] > args.rim_above
+        built = build_asset(c).particles
+        rim = np.asarray(built.positions)[:, 2] > args.rim_above
+        vol = np.asarray(built.volumes, dtype=np.float64).copy()
+        total = vol.sum()
+        vol[rim] = args.rim_share * float(np.median(vol[~rim]))
+        vol[~rim] *= (total - vol[rim].sum()) / vol[~rim].sum()        # the same total, the rim's moved to the body
+        massless = dataclasses.replace(built, volumes=vol.astype(np.float32))
+        for name, particles in (("with its rim", built), ("massless rim", massless)):
             t0 = time.perf_counter()
-            X = np.asarray(run_rollouts(c, [((1.0, 1.0), probe)], particles=particles, device="cpu")[0].positions,
-                           dtype=np.float64)[:, : len(points)]
-            u = X - X[0]
+            simulate = level_simulator(c, particles, probe, len(points))
+            u = simulate([(1.0, 1.0)])[0]
             period = probe_period(times, u, direction)
             fits = ""
             if args.fit_steps:
-                done = {(1.0, 1.0): u}
-
-                def simulate(thetas, c=c, particles=particles, done=done):
-                    new = [th for th in dict.fromkeys(thetas) if th not in done]
-                    for th, r in zip(new, run_rollouts(c, [(th, probe) for th in new], particles=particles, device="cpu")
-                                     if new else []):
-                        x = np.asarray(r.positions, dtype=np.float64)[:, : len(points)]
-                        done[th] = x - x[0]
-                    return [done[th] for th in thetas]
-
                 whole = fit_theta(simulate, ref, steps=args.fit_steps, first=u)["theta"]
                 slow = fit_theta(lambda th: [band_limited(x, band) for x in simulate(th)], band_limited(ref, band),
                                  steps=args.fit_steps, first=band_limited(u, band))["theta"]
@@ -108,9 +86,8 @@ def main() -> None:
             print(f"MPM n_grid {n}, {name}: rim volume {1e3 * float(np.asarray(particles.volumes)[rim].sum()):.3f} dm^3 of "
                   f"{1e3 * float(np.asarray(particles.volumes).sum()):.2f}; RMSE {rel(u, ref):.1f} %, "
                   f"band <= {args.band_hz:g} Hz {rel(band_limited(u, band), band_limited(ref, band)):.1f} %, "
-                  f"period {period:.4f} s "
-                  f"({100 * (period - p_ref) / p_ref:+.1f} % of {p_ref:.4f}){fits}, {time.perf_counter() - t0:.0f} s", flush=True)
-    build_module._CACHE.clear()
+                  f"period {period:.4f} s ({100 * (period - p_ref) / p_ref:+.1f} % of {p_ref:.4f}){fits}, "
+                  f"{time.perf_counter() - t0:.0f} s", flush=True)
 
 
 if __name__ == "__main__":

@@ -262,6 +262,28 @@ def fit_theta(simulate: Callable[[list], list], target: np.ndarray, *, start=(1.
     return {"theta": np.exp(y), "residual_pct": res, "start_residual_pct": res if start_res is None else start_res}
 
 
+def level_simulator(contract, particles, probe: str, n_points: int, *, device: str | None = None,
+                    deterministic: bool = False) -> Callable[[list], list]:
+    """``simulate(thetas)`` for :func:`fit_theta`: the displacements [T, n_points, 3] m of the first
+    ``n_points`` particles under ``probe`` at each theta of the list, simulated together, each
+    theta once (a second fit, such as the band's, starts where the first did)."""
+    from ..rollout import run_rollouts
+
+    done: dict = {}
+
+    def simulate(thetas):
+        new = list(dict.fromkeys(th for th in thetas if th not in done))
+        if new:
+            out = run_rollouts(contract, [(th, probe) for th in new], particles=particles, device=device,
+                               deterministic=deterministic)
+            for th, r in zip(new, out):
+                x = np.asarray(r.positions, dtype=np.float64)[:, : int(n_points)]
+                done[th] = x - x[0]
+        return [done[th] for th in thetas]
+
+    return simulate
+
+
 def _order(e_coarse: float, e_fine: float, h_coarse: float, h_fine: float) -> float:
     """Observed order ``log(e_coarse / e_fine) / log(h_coarse / h_fine)`` (NaN if an error is 0)."""
     if not (e_coarse > 0 and e_fine > 0):
@@ -334,17 +356,7 @@ def floor_study(contract, settings: FloorSettings = FloorSettings(), *, theta=(1
                                     deterministic=deterministic)[0].positions, dtype=np.float64)[:, : len(points)]
         u = X - X[0]
 
-        done: dict = {}      # theta -> displacements: the band's fit starts where the record's did
-
-        def simulate(thetas, c=c, particles=particles, done=done):
-            new = list(dict.fromkeys(th for th in thetas if th not in done))
-            if new:
-                out = run_rollouts(c, [(th, probe) for th in new], particles=particles, device=device,
-                                   deterministic=deterministic)
-                for th, r in zip(new, out):
-                    x = np.asarray(r.positions, dtype=np.float64)[:, : len(points)]
-                    done[th] = x - x[0]
-            return [done[th] for th in thetas]
+        simulate = level_simulator(c, particles, probe, len(points), device=device, deterministic=deterministic)
 
         fit = band_fit = None
         if settings.fit_steps:
