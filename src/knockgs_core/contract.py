@@ -106,7 +106,10 @@ class FillSettings:
     """Interior fill (see :func:`knockgs_core.assets.fill_interior`); ``resolution`` comes
     from the profile. ``volumes``: the particles' rest-volume rule (``cell_share``,
     ``enclosed`` or ``wall``; docs/assets.md); ``wall_thickness`` [m]: the wall of the
-    ``wall`` rule."""
+    ``wall`` rule; ``passenger_boxes`` (normalized domain): parts of the body thinner than any
+    fill cell (a vase's lip), whose particles the ``enclosed`` rule lets ride on the body with
+    no share of it, and which the body's level set leaves out (:mod:`knockgs_core.assets._volumes`).
+    A contract whose fill is off keeps them for its solid body (:func:`with_body`)."""
 
     enabled: bool = False
     box: Box | None = None
@@ -116,6 +119,7 @@ class FillSettings:
     resolution: int = 128
     volumes: str = "cell_share"
     wall_thickness: float | None = None
+    passenger_boxes: tuple[Box, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -147,6 +151,9 @@ def check_volume_rule(fill: FillSettings, source) -> None:
             raise InputError(source, "fill.wall_thickness", f"the wall rule needs a thickness > 0 [m], got {t!r}")
     elif fill.wall_thickness is not None:
         raise InputError(source, "fill.wall_thickness", f"is read by volumes: wall only (volumes is {fill.volumes})")
+    if fill.passenger_boxes and fill.enabled and fill.volumes != "enclosed":
+        raise InputError(source, "fill.passenger_boxes",
+                         f"are read by volumes: enclosed only (volumes is {fill.volumes} with the fill on)")
 
 
 # --------------------------------------------------------------------------- CFL
@@ -349,6 +356,8 @@ def _fill_dict(fill: FillSettings) -> dict:
     """``json_safe(fill)`` without the volume rule's keys where they keep their defaults, so a
     contract that does not use them keeps the hash it had before they existed."""
     d = json_safe(fill)
+    if fill.volumes != "enclosed" or not fill.passenger_boxes:
+        del d["passenger_boxes"]
     if d["volumes"] == "cell_share" and d["wall_thickness"] is None:
         del d["volumes"], d["wall_thickness"]
     return d
@@ -387,7 +396,9 @@ def with_body(contract: ObjectContract, *, volumes: str | None = None, solid: bo
     (``fill.volumes``: ``cell_share``, ``enclosed``, ``wall``; None: the contract's own) and,
     with ``solid``, the inside of its closed Gaussian surface filled (PhysGaussian's fill over
     the whole domain, ``seed``; ``enclosed`` volumes unless ``volumes`` says otherwise): the
-    body a closed surface bounds, whatever its contract's fill. Its hash is the new body's."""
+    body a closed surface bounds, whatever its contract's fill. The fill's ``passenger_boxes``
+    stay where the rule that reads them (``enclosed``) is chosen, and go otherwise. Its hash is
+    the new body's."""
     fill = contract.fill
     if solid:
         lim = float(contract.sim.grid_lim) / 2.0
@@ -395,6 +406,8 @@ def with_body(contract: ObjectContract, *, volumes: str | None = None, solid: bo
                        volumes=volumes or "enclosed")
     elif volumes is not None:
         fill = replace(fill, volumes=volumes)
+    if fill.volumes != "enclosed":
+        fill = replace(fill, passenger_boxes=())
     out = replace(contract, fill=fill)
     check_volume_rule(out.fill, contract.source)
     return out
@@ -771,7 +784,8 @@ def _build(data: dict, path: Path, cfg: Path, profile: str) -> ObjectContract:
     f = data.get("fill", {})
     fill = FillSettings(**_kwargs(f, ("enabled", "density_threshold", "max_particles_per_cell", "seed", "volumes")),
                         box=_box(f.get("box")), resolution=prof.fill_resolution,
-                        wall_thickness=None if f.get("wall_thickness") is None else float(f["wall_thickness"]))
+                        wall_thickness=None if f.get("wall_thickness") is None else float(f["wall_thickness"]),
+                        passenger_boxes=tuple(_box(b) for b in f.get("passenger_boxes", [])))
     if fill.enabled and fill.box is None:
         raise InputError(path, "fill.box", "required when fill.enabled is true")
     check_volume_rule(fill, path)

@@ -15,7 +15,7 @@ from ._particles import ParticleSet
 from ._ply import read_ply
 from ._procedural import make_procedural
 from ._transform import Normalization, preprocess
-from ._volumes import enclosed_volumes, wall_volumes
+from ._volumes import enclosed_volumes, passengers, wall_volumes
 
 __all__ = ["BuiltAsset", "body_level_set", "build_asset", "load_source_gaussians"]
 
@@ -135,6 +135,8 @@ def build_asset(contract) -> BuiltAsset:
                                         max_particles_per_cell=f.max_particles_per_cell,
                                         seed=f.seed, source=src, field_prefix="fill.",
                                         reach_surface=f.volumes == "enclosed", grid=grid)
+        if f.volumes == "enclosed" and f.passenger_boxes:      # no fill inside a passenger
+            fill_pos = fill_pos[~passengers(fill_pos, f.passenger_boxes)]
     positions = np.concatenate([sim_gs.means, fill_pos]).astype(np.float32)
     lim = contract.sim.grid_lim
     if np.any(positions < 0) or np.any(positions > lim):
@@ -142,7 +144,8 @@ def build_asset(contract) -> BuiltAsset:
     region = contract.assign_regions(positions)
     volumes = None                                   # cell_share: the simulator's, on its grid
     if f.volumes == "enclosed":
-        volumes = enclosed_volumes(positions, grid, sim_gs.means, source=src, field="fill.box")
+        volumes = enclosed_volumes(positions, grid, sim_gs.means, passenger_boxes=f.passenger_boxes,
+                                   source=src, field="fill.box")
     elif f.volumes == "wall":
         volumes = wall_volumes(positions, f.wall_thickness)
     particles = ParticleSet(positions=positions, volumes=volumes, n_gs=len(gi), gaussian_index=gi,
@@ -167,8 +170,9 @@ def body_level_set(contract, *, resolution: int | None = None):
     It is :func:`~._fill.body_distance` on the fill grid of the simulated Gaussians (the grid of
     ``fill.resolution`` cells, or ``resolution``'s: a finer grid gives the same surface more
     finely), interpolated trilinearly between cell centres (points beyond the grid take its
-    edge's value). Its zero level set bounds the volume the ``enclosed`` rule gives the
-    particles. Needs ``fill.enabled`` (else :class:`~knockgs_core.errors.InputError`)."""
+    edge's value), less ``fill.passenger_boxes`` (the distance to a box's faces, negative inside
+    it). Its zero level set bounds the volume the ``enclosed`` rule gives the particles. Needs
+    ``fill.enabled`` (else :class:`~knockgs_core.errors.InputError`)."""
     from scipy import ndimage
 
     f = contract.fill
@@ -185,7 +189,16 @@ def body_level_set(contract, *, resolution: int | None = None):
     lo, h = np.asarray(grid.lo, np.float64), np.asarray(grid.h, np.float64)
 
     def distance(points: np.ndarray) -> np.ndarray:
-        q = (np.asarray(points, np.float64) - lo) / h - 0.5
-        return ndimage.map_coordinates(dist, q.T, order=1, mode="nearest")
+        p = np.asarray(points, np.float64)
+        d = ndimage.map_coordinates(dist, ((p - lo) / h - 0.5).T, order=1, mode="nearest")
+        for b in f.passenger_boxes:
+            d = np.minimum(d, _box_distance(p, b))
+        return d
 
     return distance
+
+
+def _box_distance(points: np.ndarray, box) -> np.ndarray:
+    """Signed distance [P] m of ``points`` [P, 3] m from the faces of ``box``, positive outside."""
+    q = np.abs(points - np.asarray(box.center, np.float64)) - np.asarray(box.half_size, np.float64)
+    return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)

@@ -25,10 +25,13 @@ from knockgs_core.errors import InputError
 
 from ._fill import FillGrid, body_fraction
 
-__all__ = ["VOLUME_RULES", "enclosed_volumes", "surface_areas", "wall_volumes"]
+__all__ = ["PASSENGER_SHARE", "VOLUME_RULES", "box_share", "enclosed_volumes", "passengers", "surface_areas",
+           "wall_volumes"]
 
 #: the contract's ``fill.volumes`` choices
 VOLUME_RULES = ("cell_share", "enclosed", "wall")
+#: a passenger particle's volume, x the median body particle's
+PASSENGER_SHARE = 1e-4
 
 #: neighbours of a surface point that bound its area cell
 _AREA_NEIGHBOURS = 20
@@ -36,16 +39,41 @@ _AREA_NEIGHBOURS = 20
 _AREA_ANGLES = 96
 
 
+def passengers(positions: np.ndarray, boxes) -> np.ndarray:
+    """Boolean mask [N] of the ``positions`` [N, 3] m inside any of ``boxes`` (closed)."""
+    x = np.asarray(positions, np.float64)
+    out = np.zeros(len(x), dtype=bool)
+    for b in boxes:
+        out |= b.contains(x)
+    return out
+
+
+def box_share(grid: FillGrid, boxes) -> np.ndarray:
+    """Each cell's share [n, n, n] float64 in [0, 1] of its volume inside ``boxes`` (axis-aligned,
+    exact; boxes that overlap each other count their overlap once per box, clipped at 1)."""
+    n = grid.shell.shape[0]
+    out = np.zeros((n, n, n))
+    for b in boxes:
+        c, hs = np.asarray(b.center, np.float64), np.asarray(b.half_size, np.float64)
+        side = []
+        for a in range(3):
+            lo = grid.lo[a] + np.arange(n) * grid.h[a]
+            side.append(np.clip(np.minimum(lo + grid.h[a], c[a] + hs[a]) - np.maximum(lo, c[a] - hs[a]), 0.0, None)
+                        / grid.h[a])
+        out += np.einsum("i,j,k->ijk", *side)
+    return np.minimum(out, 1.0)
+
+
 def enclosed_volumes(positions: np.ndarray, grid: FillGrid, surface_points: np.ndarray, *,
-                     source: object = "fill", field: str = "fill.box") -> np.ndarray:
+                     passenger_boxes=(), source: object = "fill", field: str = "fill.box") -> np.ndarray:
     """Rest volumes [m^3] (N,) float32 of the particles at ``positions`` [N, 3] m under the
     ``enclosed`` rule (module docstring), the body measured on ``grid`` with its surface at
-    ``surface_points`` [P, 3] m (the Gaussian centres). Every particle must lie in the fill box
-    (else :class:`~knockgs_core.errors.InputError` naming ``field``); particles in a cell with no
-    share of the body (a Gaussian centre just outside the surface) share the nearest cell's that
-    has one, so every volume is positive and the total is the body's."""
-    from scipy.spatial import cKDTree
-
+    ``surface_points`` [P, 3] m (the Gaussian centres) and ``passenger_boxes`` cut from it. Every
+    particle must lie in the fill box (else :class:`~knockgs_core.errors.InputError` naming
+    ``field``); particles in a cell with no share of the body (a Gaussian centre just outside the
+    surface) share the nearest cell's that has one, so every body particle's volume is positive
+    and their total is the body's; particles in the boxes get :data:`PASSENGER_SHARE` of the
+    median body particle's."""
     x = np.asarray(positions, np.float64)
     n = grid.shell.shape[0]
     cell = grid.cell_of(x)
@@ -53,6 +81,24 @@ def enclosed_volumes(positions: np.ndarray, grid: FillGrid, surface_points: np.n
         raise InputError(source, field, "the enclosed volume rule needs every particle inside the fill box; "
                          f"{int(np.sum(~np.all((cell >= 0) & (cell < n), axis=1)))} lie outside it")
     frac = body_fraction(grid, surface_points)
+    if not passenger_boxes:
+        return _shares(cell, grid, frac, source, field)
+    rides = passengers(x, passenger_boxes)
+    if rides.all():
+        raise InputError(source, "fill.passenger_boxes", "hold every particle: no body is left to ride on")
+    out = np.empty(len(x), dtype=np.float32)
+    out[~rides] = _shares(cell[~rides], grid, frac * (1.0 - box_share(grid, passenger_boxes)), source, field)
+    out[rides] = PASSENGER_SHARE * float(np.median(out[~rides]))
+    return out
+
+
+def _shares(cell: np.ndarray, grid: FillGrid, frac: np.ndarray, source, field) -> np.ndarray:
+    """Volumes [m^3] (N,) float32 of the particles in fill cells ``cell`` [N, 3]: each cell's
+    share ``frac`` [n, n, n] of the body, split equally among its particles (the module
+    docstring's rule)."""
+    from scipy.spatial import cKDTree
+
+    n = grid.shell.shape[0]
     cell_vol = float(np.prod(grid.h))
     key = (cell[:, 0] * n + cell[:, 1]) * n + cell[:, 2]
     held, inverse, count = np.unique(key, return_inverse=True, return_counts=True)
