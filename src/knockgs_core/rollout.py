@@ -237,7 +237,7 @@ def _simulate_rollouts(contract, runs, *, particles, device, export_F, probe, pr
     for _, run_probe, E, nu, rho in setups:
         model = build_model(
             positions, E=E, nu=nu, rho=rho, params=params, volumes=volumes,
-            probe=run_probe, probe_force_scale=force_scale, device=device,
+            probe=run_probe, probe_force_scale=force_scale, probe_by_mass=particles.volumes is not None, device=device,
         )
         models.append((model, make_state(model, positions)))
     inv = None

@@ -34,6 +34,7 @@ import skfem
 
 from ..errors import InputError
 from ._elasticity import ElasticSystem, assemble_elasticity, interpolate
+from ..sim._config import probe_weights
 from ._mesh import Region, level_set_mesh
 from ._newmark import SOLVERS, RayleighDamping, newmark
 
@@ -308,6 +309,11 @@ def fem_world_rollout(contract, particles, theta, probe: str, points, *, world: 
     fixed = np.unique(np.concatenate(fixed)) if fixed else np.zeros(0, dtype=np.int64)
     sel = contract.probe_selection(pr, particles.positions)
     cells, counts = _cells(np.asarray(particles.positions)[sel], geo["dx"])
+    if particles.volumes is not None:       # the MPM's share of the force: by mass (sim.probe_weights)
+        w = probe_weights(sel, particles.volumes)[sel]
+        idx = np.floor(np.asarray(particles.positions, np.float64)[sel] / geo["dx"]).astype(np.int64)
+        _, where = np.unique(idx, axis=0, return_inverse=True)
+        counts = np.bincount(where.ravel(), weights=w, minlength=len(cells))
     scale = float(contract.probe_reference_particles) / len(particles.positions) if contract.probe_reference_particles else 1.0
     force = np.asarray(pr.force, dtype=np.float64) * scale
     J = _probe_load(system, cells, counts, geo["dx"], force) * pr.duration

@@ -26,6 +26,7 @@ from ._config import (
     SolverConfig,
     GPU_SOLVER_OPTIONS,
     is_still_sticky,
+    probe_weights,
 )
 from ._protocol import Effect
 
@@ -55,6 +56,7 @@ __all__ = [
     "Probe",
     "SimParams",
     "is_still_sticky",
+    "probe_weights",
     "GPU_SOLVER_OPTIONS",
     "GPU_STORAGE",
     "MPMSolver",

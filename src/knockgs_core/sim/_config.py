@@ -25,6 +25,7 @@ __all__ = [
     "BoundaryCondition",
     "is_still_sticky",
     "Probe",
+    "probe_weights",
     "ExportSchedule",
     "Material",
     "SimParams",
@@ -130,6 +131,29 @@ class ExportSchedule:
     @property
     def horizon(self) -> float:
         return (self.n_frames - 1) * self.frame_dt
+
+
+def probe_weights(selected, mass=None):
+    """Each particle's share [-] (N,) float32 of a probe that selects ``selected`` [N] bool: 0
+    outside, mean 1 inside, so the probe's total force is the per-particle force times the
+    count either way. Without ``mass`` every selected particle gets 1 (PhysGaussian's force per
+    particle: particles of one grid cell share its volume equally). With ``mass`` [kg] (N,),
+    for particles that carry their own volumes (``fill.volumes``: ``enclosed``, ``wall``), the
+    share is the particle's mass over the selection's mean: the force accelerates the knocked
+    region uniformly, the load a body force, however the region is sampled. (Equal forces on
+    particles of unequal mass would push a light particle at the surface, a sliver of a cell,
+    hundreds of times harder than the body around it, and the load would change with the
+    fill.)"""
+    import numpy as np
+
+    sel = np.asarray(selected, dtype=bool)
+    out = np.zeros(len(sel), dtype=np.float64)
+    if mass is None:
+        out[sel] = 1.0
+    elif sel.any():
+        m = np.asarray(mass, dtype=np.float64)[sel]
+        out[sel] = m / m.mean()
+    return out.astype(np.float32)
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ import warp as wp
 from .._warp import warp_device
 from ..errors import InputError
 from . import _kernels as K
-from ._config import ParticleTranslation, Probe, SimParams
+from ._config import ParticleTranslation, Probe, SimParams, probe_weights
 from ._protocol import Effect
 
 __all__ = ["Model", "State", "build_model", "make_state", "particle_volumes", "cell_crowding", "default_device",
@@ -73,9 +73,10 @@ class Model:
     """Static description of one simulation (Warp arrays live on ``device``).
 
     particle_mass [kg], particle_vol [m^3], particle_mu / particle_lam [Pa]: shape
-    (particle_count,). ``probe_mask`` marks the particles the probe acts on (selected once
-    at t = 0); ``probe_force`` is the per-step force on each of them [N] for steps
-    ``probe_first <= step < probe_first + probe_steps``. ``translations`` pairs each
+    (particle_count,). ``probe_weight`` [-] (particle_count,) float32 is each particle's share
+    of the probe (0 outside its box, selected once at t = 0; mean 1 over the selected
+    particles, :func:`probe_weights`); ``probe_force`` is the per-step force on a particle of
+    weight 1 [N] for steps ``probe_first <= step < probe_first + probe_steps``. ``translations`` pairs each
     :class:`ParticleTranslation` with its particle mask (at most one is active at a time).
     Host copies: ``mass_host`` particle masses [kg] (particle_count,) float32 and
     ``particle_x0_host`` rest positions [m] (particle_count, 3) float32, from which regions
@@ -93,7 +94,7 @@ class Model:
     particle_vol: wp.array
     particle_mu: wp.array
     particle_lam: wp.array
-    probe_mask: wp.array
+    probe_weight: wp.array
     probe_force: tuple[float, float, float] = (0.0, 0.0, 0.0)
     probe_first: int = 0
     probe_steps: int = 0
@@ -295,6 +296,7 @@ def build_model(
     volumes: np.ndarray | None = None,
     probe: Probe | None = None,
     probe_force_scale: float = 1.0,
+    probe_by_mass: bool = False,
     device: str | None = None,
     matrix_layout: str = "auto",
     deformation_storage: str = "auto",
@@ -305,8 +307,10 @@ def build_model(
     applied), then passed through each effect's ``materials`` hook. ``volumes`` [m^3]
     default to initial particles per cell. The probe's per-particle force is multiplied by
     ``probe_force_scale`` and rescaled so its impulse is kept at ``params.dt``; its contact
-    box selects particles once, here. ``params.effects`` must be :class:`Effect` instances
-    and at most one :class:`ParticleTranslation` may be active at any time.
+    box selects particles once, here, and shares the force among them by :func:`probe_weights`
+    (equally, or by mass with ``probe_by_mass``: particles that carry their own volumes).
+    ``params.effects`` must be :class:`Effect` instances and at most one
+    :class:`ParticleTranslation` may be active at any time.
     ``matrix_layout`` and ``deformation_storage``: how states made for the model store the
     per-particle matrices and F (:class:`Model`; ``"auto"``: the device's choice,
     :data:`GPU_STORAGE` on a GPU).
@@ -342,7 +346,7 @@ def build_model(
     lam = (E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))).astype(np.float32)
     wave = float(np.max(np.sqrt((lam.astype(np.float64) + 2.0 * mu) / rho)))
 
-    mask = np.zeros(n, dtype=np.int32)
+    weight = np.zeros(n, dtype=np.float32)
     force = (0.0, 0.0, 0.0)
     first = steps = count = 0
     if probe is not None:
@@ -350,7 +354,7 @@ def build_model(
         count = int(sel.sum())
         if count == 0:
             raise InputError(f"probe {probe.name}", "box", "the contact box selects no particles")
-        mask[sel] = 1
+        weight = probe_weights(sel, mass if probe_by_mass else None)
         first, steps, f = probe.schedule(params.dt)
         force = tuple(float(c) * probe_force_scale for c in f)
 
@@ -368,7 +372,7 @@ def build_model(
         particle_vol=wp.array(vol, dtype=float, device=device),
         particle_mu=wp.array(mu, dtype=float, device=device),
         particle_lam=wp.array(lam, dtype=float, device=device),
-        probe_mask=wp.array(mask, dtype=wp.int32, device=device),
+        probe_weight=wp.array(weight, dtype=float, device=device),
         probe_force=force,
         probe_first=first,
         probe_steps=steps,

@@ -323,7 +323,7 @@ class MPMSolver:
         # the particle inputs of both P2G variants
         particle_args = [state.particle_x0, state.particle_u, state.particle_C, state.particle_F,
                          m.particle_mass, m.particle_vol, m.particle_mu, m.particle_lam,
-                         m.probe_mask, wp.vec3(*m.probe_force), 0, self._inv_dx, p.dt, self.polar_iters, self.polar_step,
+                         m.probe_weight, wp.vec3(*m.probe_force), 0, self._inv_dx, p.dt, self.polar_iters, self.polar_step,
                          self._polar_rational, self.retardation, lo, hi]
         if self._cells is None:  # one float atomic per particle and stencil node
             return {"p2g": wp.launch(
@@ -418,7 +418,7 @@ class MPMSolver:
                 inputs=[state.grid_mv.flatten(), self._inv_dx, dt, self._zero_mask, wp.vec3(0.0), 0, lo, hi,
                         state.particle_x0, p.flip_weight, state.grid_mv_old.flatten(), self._g2p_lines,
                         m.particle_mass,
-                        m.particle_vol, m.particle_mu, m.particle_lam, m.probe_mask, wp.vec3(*m.probe_force), 0,
+                        m.particle_vol, m.particle_mu, m.particle_lam, m.probe_weight, wp.vec3(*m.probe_force), 0,
                         self.polar_iters, self.polar_step, self._polar_rational, self.retardation, p.n_grid, c.none_key],
                 outputs=[state.particle_u, state.particle_v, state.particle_C, state.particle_F, state.particle_rot,
                          c.fx, c.affine, c.keys, self._overrun],

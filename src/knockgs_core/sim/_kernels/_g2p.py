@@ -232,7 +232,7 @@ def g2p_prepare(affine_flip: int) -> wp.Kernel:
         vol: wp.array(dtype=float),
         mu: wp.array(dtype=float),
         lam: wp.array(dtype=float),
-        probe_mask: wp.array(dtype=wp.int32),
+        probe_weight: wp.array(dtype=float),
         probe_force: wp.vec3,
         probe_on: int,
         polar_iters: int,
@@ -261,8 +261,8 @@ def g2p_prepare(affine_flip: int) -> wp.Kernel:
                                           overrun)
         if ok:
             m = mass[p]
-            if probe_on == 1 and probe_mask[p] != 0:
-                vp = vp + probe_force * (dt / m)
+            if probe_on == 1 and probe_weight[p] != 0.0:
+                vp = vp + probe_force * (probe_weight[p] * dt / m)
                 v[p] = vp
             q, aff, mCp = p2g_terms(vp, Cp, Fp, rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt, polar_iters, polar_step,
                                     polar_rational, retardation)

@@ -43,7 +43,7 @@ def p2g_particle(
     vol: wp.array(dtype=float),
     mu: wp.array(dtype=float),
     lam: wp.array(dtype=float),
-    probe_mask: wp.array(dtype=wp.int32),
+    probe_weight: wp.array(dtype=float),
     probe_force: wp.vec3,
     probe_on: int,
     inv_dx: float,
@@ -55,13 +55,14 @@ def p2g_particle(
     v: wp.array(dtype=wp.vec3),
     rot: wp.array(dtype=wp.quat),
 ):
-    """Particle ``p``'s part of P2G: the probe impulse (``v += f / m dt``, written back), the
+    """Particle ``p``'s part of P2G: the probe impulse (``v += w f / m dt``, ``w`` the
+    particle's probe weight; written back), the
     warm-started rotation (written back) and :func:`p2g_terms`; returns the velocity,
     the affine matrix of the transfer (stress and APIC terms) and its APIC term alone."""
     m = mass[p]
     vp = v[p]
-    if probe_on == 1 and probe_mask[p] != 0:
-        vp = vp + probe_force * (dt / m)
+    if probe_on == 1 and probe_weight[p] != 0.0:
+        vp = vp + probe_force * (probe_weight[p] * dt / m)
         v[p] = vp
     q, affine, mC = p2g_terms(vp, mat33_at(C, p), mat33d_at(F, p), rot[p], m, vol[p], mu[p], lam[p], inv_dx, dt,
                               polar_iters, polar_step, polar_rational, retardation)
@@ -79,7 +80,7 @@ def p2g(
     vol: wp.array(dtype=float),
     mu: wp.array(dtype=float),
     lam: wp.array(dtype=float),
-    probe_mask: wp.array(dtype=wp.int32),
+    probe_weight: wp.array(dtype=float),
     probe_force: wp.vec3,
     probe_on: int,
     inv_dx: float,
@@ -103,7 +104,7 @@ def p2g(
     (the probe impulse is in both: it is the particle's velocity, not a grid force)."""
     p = wp.tid()
     m = mass[p]
-    vp, affine, mC = p2g_particle(p, C, F, mass, vol, mu, lam, probe_mask, probe_force, probe_on, inv_dx, dt, polar_iters,
+    vp, affine, mC = p2g_particle(p, C, F, mass, vol, mu, lam, probe_weight, probe_force, probe_on, inv_dx, dt, polar_iters,
                                   polar_step, polar_rational, retardation, v, rot)
     dx = 1.0 / inv_dx
 
@@ -166,7 +167,7 @@ def p2g_prepare(
     vol: wp.array(dtype=float),
     mu: wp.array(dtype=float),
     lam: wp.array(dtype=float),
-    probe_mask: wp.array(dtype=wp.int32),
+    probe_weight: wp.array(dtype=float),
     probe_force: wp.vec3,
     probe_on: int,
     inv_dx: float,
@@ -194,7 +195,7 @@ def p2g_prepare(
     state's ``v`` and ``C`` and the model's mass (:func:`momentum_mass`, :func:`apic_term`),
     which stay as they are until G2P: the same products."""
     p = wp.tid()
-    vp, aff, mCp = p2g_particle(p, C, F, mass, vol, mu, lam, probe_mask, probe_force, probe_on, inv_dx, dt, polar_iters,
+    vp, aff, mCp = p2g_particle(p, C, F, mass, vol, mu, lam, probe_weight, probe_force, probe_on, inv_dx, dt, polar_iters,
                                 polar_step, polar_rational, retardation, v, rot)
     p2g_store(p, (x0[p] + u[p]) * inv_dx, aff, lo, hi, n_grid, none_key, fx, affine, keys, overrun)
 
