@@ -398,6 +398,27 @@ def test_a_level_set_world_holds_the_body_inside_its_support_and_moves_the_rest(
             FemWorld(**{field: bad})
 
 
+def test_the_fem_world_shares_a_knock_among_cells_by_the_knocked_mass_as_the_mpm_does(rng):
+    """Particles of 1x and 3x volume in two cells: the finite-element world's load per cell is the
+    cell's knocked mass over the mean particle mass (the MPM's ``probe_weights``), 1 + 3 and
+    3 + 3 particles of weight 1 in the two cells, with the same total as the count, 4; where the
+    particles carry no volumes, their count."""
+    import dataclasses
+
+    from knockgs_core.assets import ParticleSet
+    from knockgs_core.fem._world import _probe_cells
+
+    x = np.array([[0.1, 0.1, 0.1], [0.15, 0.1, 0.1], [0.3, 0.1, 0.1], [0.35, 0.1, 0.1], [0.9, 0.9, 0.9]])
+    base = ParticleSet(positions=x.astype(np.float32), volumes=None, n_gs=5, gaussian_index=np.arange(5),
+                       region=np.zeros(5, np.int32))
+    sel = np.array([True, True, True, True, False])
+    with_volumes = dataclasses.replace(base, volumes=np.array([1.0, 3.0, 3.0, 3.0, 1.0], np.float32))
+    cells, share = _probe_cells(with_volumes, sel, 0.25)
+    np.testing.assert_array_equal(cells, [[0, 0, 0], [1, 0, 0]])
+    np.testing.assert_allclose(share, [4 * 4 / 10, 6 * 4 / 10])
+    np.testing.assert_allclose(_probe_cells(base, sel, 0.25)[1], [2, 2])
+
+
 def test_natural_frequencies_of_a_free_body_start_with_six_rigid_motions():
     s = _beam((6, 2, 2))
     f = natural_frequencies(s, [], n_modes=8)

@@ -108,6 +108,21 @@ def _cells(positions: np.ndarray, dx: float) -> tuple[np.ndarray, np.ndarray]:
     return cells, counts
 
 
+def _probe_cells(particles, selected: np.ndarray, dx: float) -> tuple[np.ndarray, np.ndarray]:
+    """The cells [K, 3] that hold the particles a probe selects (``selected`` [N] bool) and each
+    one's share of the probe [K], in particles of weight 1: the MPM's
+    (:func:`~knockgs_core.sim.probe_weights`), so both solvers put one load on the body. Where
+    the particles carry their own volumes a cell's share is its selected mass over the
+    selection's mean particle mass (one material), else its count."""
+    cells, counts = _cells(np.asarray(particles.positions)[selected], dx)
+    if particles.volumes is None:
+        return cells, counts.astype(np.float64)
+    w = probe_weights(selected, particles.volumes)[selected]
+    idx = np.floor(np.asarray(particles.positions, np.float64)[selected] / dx).astype(np.int64)
+    _, where = np.unique(idx, axis=0, return_inverse=True)
+    return cells, np.bincount(where.ravel(), weights=w, minlength=len(cells))
+
+
 def fem_world_mesh(contract, particles, *, world: FemWorld = FemWorld()) -> dict:
     """The voxel mesh of ``particles`` on ``contract``'s grid (or ``world.n_grid``'s): ``mesh``
     (scikit-fem MeshTet), ``dx`` [m], ``cells`` [K, 3] occupied cell indices, ``counts`` [K]
@@ -308,12 +323,7 @@ def fem_world_rollout(contract, particles, theta, probe: str, points, *, world: 
     fixed = [held_dofs(system, Region.from_center(box.center, box.half_size)) for box in _support_boxes(contract)]
     fixed = np.unique(np.concatenate(fixed)) if fixed else np.zeros(0, dtype=np.int64)
     sel = contract.probe_selection(pr, particles.positions)
-    cells, counts = _cells(np.asarray(particles.positions)[sel], geo["dx"])
-    if particles.volumes is not None:       # the MPM's share of the force: by mass (sim.probe_weights)
-        w = probe_weights(sel, particles.volumes)[sel]
-        idx = np.floor(np.asarray(particles.positions, np.float64)[sel] / geo["dx"]).astype(np.int64)
-        _, where = np.unique(idx, axis=0, return_inverse=True)
-        counts = np.bincount(where.ravel(), weights=w, minlength=len(cells))
+    cells, counts = _probe_cells(particles, sel, geo["dx"])
     scale = float(contract.probe_reference_particles) / len(particles.positions) if contract.probe_reference_particles else 1.0
     force = np.asarray(pr.force, dtype=np.float64) * scale
     J = _probe_load(system, cells, counts, geo["dx"], force) * pr.duration
