@@ -200,6 +200,9 @@ def _simulate_rollouts(contract, runs, *, particles, device, export_F, probe, pr
         particle_order = "cell" if warp_device(device).is_cuda else "asset"  # starts Warp, quiet on the CPU
     if particle_order not in ("asset", "cell"):
         raise InputError("run_rollouts", "particle_order", f"must be 'auto', 'asset' or 'cell', got {particle_order!r}")
+    riders = _riders(contract, particles)
+    if riders is not None and on_frame is not None:
+        on_frame = _riding_frames(on_frame, riders)
     perm = cell_order(particles, n_grid=params.n_grid, grid_lim=params.grid_lim) if particle_order == "cell" else None
     if perm is not None:
         particles = _permuted(particles, perm)
@@ -278,8 +281,61 @@ def _simulate_rollouts(contract, runs, *, particles, device, export_F, probe, pr
         if result.reproducible_sums is not None:
             meta["deterministic"] = True
             meta["reproducible_sums"] = result.reproducible_sums  # how: their bits differ
-        out.append(Rollout(positions=result.positions, F=result.F, meta=meta))
+        positions, F = result.positions, result.F
+        if riders is not None:
+            positions, F = _ride(riders, positions, F)
+            meta["passengers"] = int(len(riders[0]))
+        out.append(Rollout(positions=positions, F=F, meta=meta))
     return out
+
+
+def _riders(contract, particles):
+    """(rows [K], anchors [K], offsets [K, 3] m) of the particles that ride on the body (``fill.passenger_boxes``
+    under ``enclosed`` volumes, :mod:`knockgs_core.assets._volumes`) and of the body's
+    Gaussian-associated particle nearest each at rest, and each one's rest offset from its
+    anchor; None where there are none. The MPM moves
+    them with a negligible share of the body, which keeps them out of its dynamics but not out of
+    trouble: a part thinner than a cell, held by no body node on a fine grid, is a weightless sheet
+    that pure FLIP lets drift. Their exported motion is their anchor's, as the finite-element
+    world moves a point outside its mesh with the mesh's nearest point."""
+    from .assets._volumes import passengers
+
+    fill = getattr(contract, "fill", None)
+    if fill is None or fill.volumes != "enclosed" or not fill.passenger_boxes:
+        return None
+    g = int(particles.n_gs)
+    x = np.asarray(particles.positions, dtype=np.float64)
+    rides = passengers(x, fill.passenger_boxes)
+    rows = np.flatnonzero(rides)
+    body = np.flatnonzero(~rides[:g])
+    if not rows.size or not body.size:
+        return None
+    from scipy.spatial import cKDTree
+
+    anchors = body[cKDTree(x[body]).query(x[rows])[1]]
+    return rows, anchors, x[rows] - x[anchors]
+
+
+def _riding_frames(on_frame, riders):
+    """``on_frame`` handed each frame with the riders moved (:func:`_ride`)."""
+    def frame(run: int, index: int, positions: np.ndarray, F: np.ndarray | None) -> None:
+        on_frame(run, index, *_ride(riders, positions[None], None if F is None else F[None], single=True))
+
+    return frame
+
+
+def _ride(riders, positions, F, *, single: bool = False):
+    """``positions`` [T, N, 3] and ``F`` [T, n_gs, 3, 3] (or None) with each rider at its
+    anchor's position plus its rest offset from it and with its anchor's F; with ``single``, one
+    frame each, returned without the leading axis."""
+    rows, anchors, offset = riders
+    pos = np.array(positions, copy=True)
+    pos[:, rows] = (pos[:, anchors].astype(np.float64) + offset[None]).astype(pos.dtype)
+    if F is not None:
+        F = np.array(F, copy=True)
+        inside = rows < F.shape[1]
+        F[:, rows[inside]] = F[:, anchors[inside]]
+    return (pos[0], None if F is None else F[0]) if single else (pos, F)
 
 
 def cell_order(particles, *, n_grid: int, grid_lim: float) -> np.ndarray:
