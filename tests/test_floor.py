@@ -550,7 +550,7 @@ def test_the_report_says_by_how_much_the_floor_widened_the_interval_and_why():
     from knockgs_core.discrepancy._report import _calibration_lines
 
     choice = {"statement": "n_grid 32, as told", "levels": [[32, 11.25]], "theta_fit": [0.847, 0.99],
-              "rmse_pct": 11.25, "theta_bias_log": [0.448, 0.126]}
+              "rmse_pct": 11.25, "theta_widening_log": [0.448, 0.126]}
     result = types.SimpleNamespace(
         object="pillow", profile="ci", probe="standard_x", verdict="no effect", resolution=choice, effects=[],
         theta_base=(1.0, 1.0), theta_refit=(1.0, 1.0), theta_final=(0.8, 1.3), base_method="library", identified=[],

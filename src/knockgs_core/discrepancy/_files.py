@@ -104,7 +104,8 @@ def run_files(
     ``smallest_effect`` (a fraction of the response) of the finite-element reference, else at
     its finest; with ``n_grid``, at that level of the table (which must have it); either way it
     says which and why (``result.resolution``, the report's "Resolution") and its theta interval
-    is widened by what that level's floor can do to theta (:func:`._resolution.widen_by_floor_bias`)."""
+    is widened by what that level's floor can do to theta (:func:`._resolution.widen_by_floor_bias`;
+    the widening in log theta is ``result.resolution["theta_widening_log"]``)."""
     from ..io import check_input, check_outputs
     from ..contract import at_resolution, load_contract
     from ..rollout import check_rollout_meta, read_rollout_meta
@@ -154,7 +155,7 @@ def run_files(
     if choice is not None:
         if result.theta_interval:
             per_response = (result.theta_uncertainty or {}).get("theta_per_response_log")
-            result.theta_interval, choice["theta_bias_log"] = widen_by_floor_bias(result.theta_interval, choice,
+            result.theta_interval, choice["theta_widening_log"] = widen_by_floor_bias(result.theta_interval, choice,
                                                                                   per_response)
         result.verdict = qualify_verdict(result.verdict, result.identified, choice)
     result.resolution = choice

@@ -119,7 +119,7 @@ def _calibration_lines(result: DiscrepancyResult) -> list[str]:
         levels = ", ".join(f"{n}: {e:.1f} %" for n, e in r["levels"])
         L += ["## Resolution", "", f"- {r['statement']}.",
               f"- the floor table's levels (n_grid: trajectory RMSE against the reference): {levels}"]
-        w = r.get("theta_bias_log")
+        w = r.get("theta_widening_log")
         if w and any(w):
             fit = r["theta_fit"]
             bias = calibration_bias_log(r)
