@@ -13,11 +13,15 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def add_object_arguments(ap, *, default_object: str) -> None:
-    """``--object``, ``--profile``, ``--volumes``, ``--solid`` and ``--snap-supports`` on ``ap``."""
+    """``--object``, ``--profile``, ``--volumes``, ``--solid``, ``--one-body`` and ``--snap-supports``
+    on ``ap``."""
     ap.add_argument("--object", default=default_object)
     ap.add_argument("--profile", default="config", help="config file stem: ci, config (default), paper")
     ap.add_argument("--volumes", default=None, choices=("cell_share", "enclosed", "wall"))
     ap.add_argument("--solid", action="store_true", help="fill the closed surface's inside (contract.with_body)")
+    ap.add_argument("--one-body", type=int, default=None, metavar="N",
+                    help="measure every level's body on one fill grid of N cells (fill.body_resolution; "
+                         "the reference's --body-resolution gives both models one body)")
     ap.add_argument("--snap-supports", type=int, default=None, metavar="N",
                     help="move each still support box's faces to the nearest multiple of grid_lim / N "
                          "(onto grid planes of every level whose n_grid N divides)")
@@ -52,6 +56,8 @@ def floor_object(args):
     contract = with_body(load_contract(args.object, profile), volumes=args.volumes, solid=args.solid)
     if args.snap_supports:
         contract = snapped_supports(contract, args.snap_supports)
+    if getattr(args, "one_body", None):
+        contract = dataclasses.replace(contract, fill=dataclasses.replace(contract.fill, body_resolution=int(args.one_body)))
     return contract, settings
 
 

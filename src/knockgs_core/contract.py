@@ -109,7 +109,11 @@ class FillSettings:
     ``wall`` rule; ``passenger_boxes`` (normalized domain): parts of the body thinner than any
     fill cell (a vase's lip), whose particles the ``enclosed`` rule lets ride on the body with
     no share of it, and which the body's level set leaves out (:mod:`knockgs_core.assets._volumes`).
-    A contract whose fill is off keeps them for its solid body (:func:`with_body`)."""
+    A contract whose fill is off keeps them for its solid body (:func:`with_body`).
+    ``body_resolution``: the cells per axis of the grid on which the ``enclosed`` rule measures
+    the body (None: the fill's own grid, which :func:`at_resolution` refines with the simulation
+    grid); fixed, every level of a refinement study carries one body, the one the reference
+    meshes (:func:`knockgs_core.assets.body_level_set` measures on it too)."""
 
     enabled: bool = False
     box: Box | None = None
@@ -120,6 +124,7 @@ class FillSettings:
     volumes: str = "cell_share"
     wall_thickness: float | None = None
     passenger_boxes: tuple[Box, ...] = ()
+    body_resolution: int | None = None
 
 
 @dataclass(frozen=True)
@@ -151,6 +156,9 @@ def check_volume_rule(fill: FillSettings, source) -> None:
             raise InputError(source, "fill.wall_thickness", f"the wall rule needs a thickness > 0 [m], got {t!r}")
     elif fill.wall_thickness is not None:
         raise InputError(source, "fill.wall_thickness", f"is read by volumes: wall only (volumes is {fill.volumes})")
+    b = fill.body_resolution
+    if b is not None and (isinstance(b, bool) or not isinstance(b, int) or not 2 <= b <= 1024):
+        raise InputError(source, "fill.body_resolution", f"must be a whole number of cells in [2, 1024], got {b!r}")
     if fill.passenger_boxes and fill.enabled and fill.volumes != "enclosed":
         raise InputError(source, "fill.passenger_boxes",
                          f"are read by volumes: enclosed only (volumes is {fill.volumes} with the fill on)")
@@ -358,6 +366,8 @@ def _fill_dict(fill: FillSettings) -> dict:
     d = json_safe(fill)
     if fill.volumes != "enclosed" or not fill.passenger_boxes:
         del d["passenger_boxes"]
+    if fill.volumes != "enclosed" or fill.body_resolution is None:
+        del d["body_resolution"]
     if d["volumes"] == "cell_share" and d["wall_thickness"] is None:
         del d["volumes"], d["wall_thickness"]
     return d
@@ -785,7 +795,8 @@ def _build(data: dict, path: Path, cfg: Path, profile: str) -> ObjectContract:
     fill = FillSettings(**_kwargs(f, ("enabled", "density_threshold", "max_particles_per_cell", "seed", "volumes")),
                         box=_box(f.get("box")), resolution=prof.fill_resolution,
                         wall_thickness=None if f.get("wall_thickness") is None else float(f["wall_thickness"]),
-                        passenger_boxes=tuple(_box(b) for b in f.get("passenger_boxes", [])))
+                        passenger_boxes=tuple(_box(b) for b in f.get("passenger_boxes", [])),
+                        body_resolution=None if f.get("body_resolution") is None else int(f["body_resolution"]))
     if fill.enabled and fill.box is None:
         raise InputError(path, "fill.box", "required when fill.enabled is true")
     check_volume_rule(fill, path)

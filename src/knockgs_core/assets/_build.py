@@ -144,8 +144,12 @@ def build_asset(contract) -> BuiltAsset:
     region = contract.assign_regions(positions)
     volumes = None                                   # cell_share: the simulator's, on its grid
     if f.volumes == "enclosed":
+        body_grid = grid
+        if f.body_resolution is not None and f.body_resolution != f.resolution:
+            body_grid = fill_grid(sim_gs, fill_box=f.box, resolution=f.body_resolution,
+                                  density_threshold=f.density_threshold, source=src, field_prefix="fill.")
         volumes = enclosed_volumes(positions, grid, sim_gs.means, passenger_boxes=f.passenger_boxes,
-                                   source=src, field="fill.box")
+                                   body_grid=body_grid, source=src, field="fill.box")
     elif f.volumes == "wall":
         volumes = wall_volumes(positions, f.wall_thickness)
     particles = ParticleSet(positions=positions, volumes=volumes, n_gs=len(gi), gaussian_index=gi,
@@ -168,8 +172,8 @@ def body_level_set(contract, *, resolution: int | None = None):
     domain) -> signed distance [P] m from its surface, positive inside.
 
     It is :func:`~._fill.body_distance` on the fill grid of the simulated Gaussians (the grid of
-    ``fill.resolution`` cells, or ``resolution``'s: a finer grid gives the same surface more
-    finely), interpolated trilinearly between cell centres (points beyond the grid take its
+    ``fill.body_resolution`` cells where set, else ``fill.resolution``'s, or ``resolution``'s: a
+    finer grid gives the same surface more finely), interpolated trilinearly between cell centres (points beyond the grid take its
     edge's value), less ``fill.passenger_boxes`` (the distance to a box's faces, negative inside
     it). Its zero level set bounds the volume the ``enclosed`` rule gives the particles. Needs
     ``fill.enabled`` (else :class:`~knockgs_core.errors.InputError`)."""
@@ -180,7 +184,8 @@ def body_level_set(contract, *, resolution: int | None = None):
         raise InputError(contract.source, "fill.enabled", "the body's level set is measured on the fill grid: needs true")
     built = build_asset(contract)
     sim_gs = built.gaussians.subset(np.asarray(built.particles.gaussian_index))
-    grid = fill_grid(sim_gs, fill_box=f.box, resolution=f.resolution if resolution is None else int(resolution),
+    n = (f.body_resolution or f.resolution) if resolution is None else int(resolution)
+    grid = fill_grid(sim_gs, fill_box=f.box, resolution=n,
                      density_threshold=f.density_threshold, source=contract.source, field_prefix="fill.")
     try:
         dist = body_distance(grid, sim_gs.means)

@@ -64,8 +64,22 @@ def box_share(grid: FillGrid, boxes) -> np.ndarray:
     return np.minimum(out, 1.0)
 
 
+def body_on(grid: FillGrid, body_grid: FillGrid, frac: np.ndarray) -> np.ndarray:
+    """Each cell's share [n, n, n] of ``grid`` of a body measured as ``frac`` [m, m, m] (cell shares)
+    on ``body_grid``, another grid of the same box: the body in a fine cell taken as spread over
+    it, each cell of ``grid`` gets the shares of the fine cells it overlaps, by their overlap."""
+    side = []
+    for a in range(3):
+        n, m = grid.shell.shape[a], body_grid.shell.shape[a]
+        lo, flo = grid.lo[a] + np.arange(n) * grid.h[a], body_grid.lo[a] + np.arange(m) * body_grid.h[a]
+        over = np.minimum(lo[:, None] + grid.h[a], flo[None] + body_grid.h[a]) - np.maximum(lo[:, None], flo[None])
+        side.append(np.clip(over, 0.0, None) / grid.h[a])
+    return np.einsum("iI,jJ,kK,IJK->ijk", side[0], side[1], side[2], frac, optimize=True)
+
+
 def enclosed_volumes(positions: np.ndarray, grid: FillGrid, surface_points: np.ndarray, *,
-                     passenger_boxes=(), source: object = "fill", field: str = "fill.box") -> np.ndarray:
+                     passenger_boxes=(), body_grid: FillGrid | None = None, source: object = "fill",
+                     field: str = "fill.box") -> np.ndarray:
     """Rest volumes [m^3] (N,) float32 of the particles at ``positions`` [N, 3] m under the
     ``enclosed`` rule (module docstring), the body measured on ``grid`` with its surface at
     ``surface_points`` [P, 3] m (the Gaussian centres) and ``passenger_boxes`` cut from it. Every
@@ -73,21 +87,28 @@ def enclosed_volumes(positions: np.ndarray, grid: FillGrid, surface_points: np.n
     ``field``); particles in a cell with no share of the body (a Gaussian centre just outside the
     surface) share the nearest cell's that has one, so every body particle's volume is positive
     and their total is the body's; particles in the boxes get :data:`PASSENGER_SHARE` of the
-    median body particle's."""
+    median body particle's. With ``body_grid`` (the same box, other cells: ``fill.body_resolution``)
+    the body is measured there and its shares carried onto ``grid``'s cells (:func:`body_on`), so
+    the particles of every grid carry one body."""
     x = np.asarray(positions, np.float64)
     n = grid.shell.shape[0]
     cell = grid.cell_of(x)
     if not np.all((cell >= 0) & (cell < n)):
         raise InputError(source, field, "the enclosed volume rule needs every particle inside the fill box; "
                          f"{int(np.sum(~np.all((cell >= 0) & (cell < n), axis=1)))} lie outside it")
-    frac = body_fraction(grid, surface_points)
+    measured = grid if body_grid is None else body_grid
+    frac = body_fraction(measured, surface_points)
+    if passenger_boxes:
+        frac = frac * (1.0 - box_share(measured, passenger_boxes))
+    if measured is not grid:
+        frac = body_on(grid, measured, frac)
     if not passenger_boxes:
         return _shares(cell, grid, frac, source, field)
     rides = passengers(x, passenger_boxes)
     if rides.all():
         raise InputError(source, "fill.passenger_boxes", "hold every particle: no body is left to ride on")
     out = np.empty(len(x), dtype=np.float32)
-    out[~rides] = _shares(cell[~rides], grid, frac * (1.0 - box_share(grid, passenger_boxes)), source, field)
+    out[~rides] = _shares(cell[~rides], grid, frac, source, field)
     out[rides] = PASSENGER_SHARE * float(np.median(out[~rides]))
     return out
 
