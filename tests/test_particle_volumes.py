@@ -187,6 +187,7 @@ def test_the_vasedecks_lip_rides_on_its_neck_in_a_rollout():
     body = np.flatnonzero(x0[: particles.n_gs, 2] < 1.345)
     anchor = body[cKDTree(x0[body]).query(x0[lip])[1]]
     assert r.meta["passengers"] == len(lip) > 50
+    assert with_body(load_contract("vasedeck", "ci"), solid=True, volumes="cell_share").fill.passenger_boxes == ()
     u = r.positions.astype(np.float64) - x0
     np.testing.assert_allclose(u[:, lip], u[:, anchor], atol=1e-6)
     assert np.abs(u[:, anchor]).max() > 1e-3                             # the neck moves, and the lip with it
@@ -220,6 +221,7 @@ def test_a_body_measured_on_one_grid_is_the_same_body_at_every_level(tmp_path, e
 
 @pytest.mark.parametrize("fill, field", [
     ({"volumes": "enclosed", "body_resolution": 1}, "fill.body_resolution"),   # not a grid
+    ({"body_resolution": 64}, "fill.body_resolution"),                         # read by enclosed only
     ({"volumes": "cells"}, "fill.volumes"),                                      # not a rule
     ({"passenger_boxes": [{"center": [1, 1, 1.5], "half_size": [1, 1, 0.3]}]},  # read by enclosed only
      "fill.passenger_boxes"),

@@ -159,9 +159,10 @@ def check_volume_rule(fill: FillSettings, source) -> None:
     b = fill.body_resolution
     if b is not None and (isinstance(b, bool) or not isinstance(b, int) or not 2 <= b <= 1024):
         raise InputError(source, "fill.body_resolution", f"must be a whole number of cells in [2, 1024], got {b!r}")
-    if fill.passenger_boxes and fill.enabled and fill.volumes != "enclosed":
-        raise InputError(source, "fill.passenger_boxes",
-                         f"are read by volumes: enclosed only (volumes is {fill.volumes} with the fill on)")
+    for name in ("passenger_boxes", "body_resolution"):
+        if getattr(fill, name) not in ((), None) and fill.enabled and fill.volumes != "enclosed":
+            raise InputError(source, f"fill.{name}",
+                             f"is read by volumes: enclosed only (volumes is {fill.volumes} with the fill on)")
 
 
 # --------------------------------------------------------------------------- CFL
@@ -407,8 +408,8 @@ def with_body(contract: ObjectContract, *, volumes: str | None = None, solid: bo
     with ``solid``, the inside of its closed Gaussian surface filled (PhysGaussian's fill over
     the whole domain, ``seed``; ``enclosed`` volumes unless ``volumes`` says otherwise): the
     body a closed surface bounds, whatever its contract's fill. The fill's ``passenger_boxes``
-    stay where the rule that reads them (``enclosed``) is chosen, and go otherwise. Its hash is
-    the new body's."""
+    and ``body_resolution`` stay where the rule that reads them (``enclosed``) is chosen, and go
+    otherwise. Its hash is the new body's."""
     fill = contract.fill
     if solid:
         lim = float(contract.sim.grid_lim) / 2.0
@@ -417,7 +418,7 @@ def with_body(contract: ObjectContract, *, volumes: str | None = None, solid: bo
     elif volumes is not None:
         fill = replace(fill, volumes=volumes)
     if fill.volumes != "enclosed":
-        fill = replace(fill, passenger_boxes=())
+        fill = replace(fill, passenger_boxes=(), body_resolution=None)
     out = replace(contract, fill=fill)
     check_volume_rule(out.fill, contract.source)
     return out

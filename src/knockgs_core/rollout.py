@@ -290,14 +290,14 @@ def _simulate_rollouts(contract, runs, *, particles, device, export_F, probe, pr
 
 
 def _riders(contract, particles):
-    """(rows [K], anchors [K], offsets [K, 3] m) of the particles that ride on the body (``fill.passenger_boxes``
-    under ``enclosed`` volumes, :mod:`knockgs_core.assets._volumes`) and of the body's
-    Gaussian-associated particle nearest each at rest, and each one's rest offset from its
-    anchor; None where there are none. The MPM moves
-    them with a negligible share of the body, which keeps them out of its dynamics but not out of
-    trouble: a part thinner than a cell, held by no body node on a fine grid, is a weightless sheet
-    that pure FLIP lets drift. Their exported motion is their anchor's, as the finite-element
-    world moves a point outside its mesh with the mesh's nearest point."""
+    """(rows [K], anchors [K], offsets [K, 3] m): the particles that ride on the body
+    (``fill.passenger_boxes`` under ``enclosed`` volumes, :mod:`knockgs_core.assets._volumes`),
+    the body's Gaussian-associated particle nearest each at rest, and each one's rest offset from
+    it; None where there are none. The MPM moves them with a negligible share of the body, which
+    keeps them out of its dynamics but not out of trouble: a part thinner than a cell, held by no
+    body node on a fine grid, is a weightless sheet that pure FLIP lets drift. Their exported
+    motion is their anchor's, as the finite-element world moves a point outside its mesh with the
+    mesh's nearest point."""
     from .assets._volumes import passengers
 
     fill = getattr(contract, "fill", None)

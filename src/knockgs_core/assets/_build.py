@@ -173,8 +173,8 @@ def body_level_set(contract, *, resolution: int | None = None):
 
     It is :func:`~._fill.body_distance` on the fill grid of the simulated Gaussians (the grid of
     ``fill.body_resolution`` cells where set, else ``fill.resolution``'s, or ``resolution``'s: a
-    finer grid gives the same surface more finely), interpolated trilinearly between cell centres (points beyond the grid take its
-    edge's value), less ``fill.passenger_boxes`` (the distance to a box's faces, negative inside
+    finer grid gives the same surface more finely), interpolated trilinearly between cell centres
+    (points beyond the grid take its edge's value), less ``fill.passenger_boxes`` (the distance to a box's faces, negative inside
     it). Its zero level set bounds the volume the ``enclosed`` rule gives the particles. Needs
     ``fill.enabled`` (else :class:`~knockgs_core.errors.InputError`)."""
     from scipy import ndimage

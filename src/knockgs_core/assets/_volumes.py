@@ -48,18 +48,21 @@ def passengers(positions: np.ndarray, boxes) -> np.ndarray:
     return out
 
 
+def _overlaps(grid: FillGrid, axis: int, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The share [n, K] of each of ``grid``'s cells along ``axis`` that lies in each interval
+    [``lo``, ``hi``] [K] m."""
+    a = grid.lo[axis] + np.arange(grid.shell.shape[axis]) * grid.h[axis]
+    over = np.minimum(a[:, None] + grid.h[axis], hi[None]) - np.maximum(a[:, None], lo[None])
+    return np.clip(over, 0.0, None) / grid.h[axis]
+
+
 def box_share(grid: FillGrid, boxes) -> np.ndarray:
     """Each cell's share [n, n, n] float64 in [0, 1] of its volume inside ``boxes`` (axis-aligned,
     exact; boxes that overlap each other count their overlap once per box, clipped at 1)."""
-    n = grid.shell.shape[0]
-    out = np.zeros((n, n, n))
+    out = np.zeros(grid.shell.shape)
     for b in boxes:
         c, hs = np.asarray(b.center, np.float64), np.asarray(b.half_size, np.float64)
-        side = []
-        for a in range(3):
-            lo = grid.lo[a] + np.arange(n) * grid.h[a]
-            side.append(np.clip(np.minimum(lo + grid.h[a], c[a] + hs[a]) - np.maximum(lo, c[a] - hs[a]), 0.0, None)
-                        / grid.h[a])
+        side = [_overlaps(grid, a, c[a:a + 1] - hs[a], c[a:a + 1] + hs[a])[:, 0] for a in range(3)]
         out += np.einsum("i,j,k->ijk", *side)
     return np.minimum(out, 1.0)
 
@@ -70,10 +73,8 @@ def body_on(grid: FillGrid, body_grid: FillGrid, frac: np.ndarray) -> np.ndarray
     it, each cell of ``grid`` gets the shares of the fine cells it overlaps, by their overlap."""
     side = []
     for a in range(3):
-        n, m = grid.shell.shape[a], body_grid.shell.shape[a]
-        lo, flo = grid.lo[a] + np.arange(n) * grid.h[a], body_grid.lo[a] + np.arange(m) * body_grid.h[a]
-        over = np.minimum(lo[:, None] + grid.h[a], flo[None] + body_grid.h[a]) - np.maximum(lo[:, None], flo[None])
-        side.append(np.clip(over, 0.0, None) / grid.h[a])
+        flo = body_grid.lo[a] + np.arange(body_grid.shell.shape[a]) * body_grid.h[a]
+        side.append(_overlaps(grid, a, flo, flo + body_grid.h[a]))
     return np.einsum("iI,jJ,kK,IJK->ijk", side[0], side[1], side[2], frac, optimize=True)
 
 

@@ -114,12 +114,11 @@ def _probe_cells(particles, selected: np.ndarray, dx: float) -> tuple[np.ndarray
     (:func:`~knockgs_core.sim.probe_weights`), so both solvers put one load on the body. Where
     the particles carry their own volumes a cell's share is its selected mass over the
     selection's mean particle mass (one material), else its count."""
-    cells, counts = _cells(np.asarray(particles.positions)[selected], dx)
+    idx = np.floor(np.asarray(particles.positions, np.float64)[selected] / dx).astype(np.int64)
+    cells, where, counts = np.unique(idx, axis=0, return_inverse=True, return_counts=True)
     if particles.volumes is None:
         return cells, counts.astype(np.float64)
     w = probe_weights(selected, particles.volumes)[selected]
-    idx = np.floor(np.asarray(particles.positions, np.float64)[selected] / dx).astype(np.int64)
-    _, where = np.unique(idx, axis=0, return_inverse=True)
     return cells, np.bincount(where.ravel(), weights=w, minlength=len(cells))
 
 
